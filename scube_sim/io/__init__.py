@@ -1,0 +1,1 @@
+"""File formats: point clouds (PCD, PLY, KITTI .bin, .npz), 3DGS PLY, USD."""

@@ -1,0 +1,376 @@
+"""The LiDAR model's validated configuration (pydantic) and its YAML load/dump.
+
+A preset is one YAML file in `sensors/lidar/`. Every section is optional except `pattern`;
+unknown keys are errors, and an error names the file, the key path and what was expected.
+Units are in the key names: *_deg degrees, *_m metres, *_us microseconds, *_hz hertz.
+Frames: the sensor frame is x forward, y left, z up; azimuth is measured counter-clockwise from +x
+(towards +y), elevation up from the xy-plane.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Literal, Union
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ..labels import LABEL_IDS
+from ..resources import sensors_dir
+
+
+class ConfigError(ValueError):
+    """A sensor or scenario file that cannot be used; the message names the file and key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+def _finite(v):
+    arr = np.asarray(v, dtype=np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("values must be finite numbers")
+    return v
+
+
+class Channels(_Strict):
+    """Per-channel tables of a spinning sensor, one entry per laser, in the vendor's channel order.
+
+    origin_vertical_m / origin_horizontal_m: beam-origin offsets as in Velodyne calibrations
+    (`vert_offset_correction`, `horiz_offset_correction`): the beam starts at
+    ``h * (-sin az, cos az, 0) + v * (-sin el cos az, -sin el sin az, cos el)`` from the sensor
+    origin, i.e. perpendicular to the beam, rotating with the head.
+    """
+
+    elevation_deg: list[float] = Field(min_length=1)
+    azimuth_offset_deg: list[float] | None = None
+    fire_time_us: list[float] | None = None
+    origin_vertical_m: list[float] | None = None
+    origin_horizontal_m: list[float] | None = None
+
+    _check = field_validator("*")(classmethod(lambda cls, v: v if v is None else _finite(v)))
+
+    @field_validator("elevation_deg")
+    @classmethod
+    def _elev_range(cls, v):
+        if any(abs(x) > 90 for x in v):
+            raise ValueError("elevation angles must lie in [-90, 90] degrees")
+        return v
+
+    @model_validator(mode="after")
+    def _same_length(self):
+        n = len(self.elevation_deg)
+        for name in ("azimuth_offset_deg", "fire_time_us", "origin_vertical_m", "origin_horizontal_m"):
+            v = getattr(self, name)
+            if v is not None and len(v) != n:
+                raise ValueError(f"{name} has {len(v)} entries but elevation_deg has {n}")
+        return self
+
+    @property
+    def count(self) -> int:
+        return len(self.elevation_deg)
+
+    def table(self, name: str) -> np.ndarray:
+        """(C,) float64 array of a per-channel table, zeros where absent."""
+        v = getattr(self, name)
+        return np.zeros(self.count) if v is None else np.asarray(v, dtype=np.float64)
+
+
+class SpinningPattern(_Strict):
+    """A rotating multi-beam head: column j fires at ``j / (columns * rotation_hz)`` seconds after
+    the sweep start, channel c a further ``fire_time_us[c]``; the beam azimuth is the head angle at
+    that instant plus ``azimuth_offset_deg[c]``."""
+
+    type: Literal["spinning"] = "spinning"
+    columns: int = Field(gt=0, le=100_000)
+    rotation_hz: float = Field(gt=0, le=100)
+    direction: Literal["cw", "ccw"] = "cw"
+    start_azimuth_deg: float = 0.0
+    channels: Channels
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rotation_hz
+
+
+class EmitterPattern(_Strict):
+    """An explicit emitter table (solid-state / non-repetitive sensors, or replay of a recorded
+    sweep's ray directions). Either `file` (.csv with a header naming azimuth_deg, elevation_deg,
+    time_s and optionally channel; or .npy with those columns in that order) or inline lists."""
+
+    type: Literal["emitter"] = "emitter"
+    file: str | None = None
+    azimuth_deg: list[float] | None = None
+    elevation_deg: list[float] | None = None
+    time_s: list[float] | None = None
+    channel: list[int] | None = None
+    period_s: float = Field(default=0.1, gt=0)
+
+    @model_validator(mode="after")
+    def _source(self):
+        inline = [self.azimuth_deg, self.elevation_deg]
+        if self.file is None and any(v is None for v in inline):
+            raise ValueError("give either 'file' or both 'azimuth_deg' and 'elevation_deg'")
+        if self.file is None:
+            n = len(self.azimuth_deg)
+            for name in ("elevation_deg", "time_s", "channel"):
+                v = getattr(self, name)
+                if v is not None and len(v) != n:
+                    raise ValueError(f"{name} has {len(v)} entries but azimuth_deg has {n}")
+        return self
+
+
+Pattern = Annotated[Union[SpinningPattern, EmitterPattern], Field(discriminator="type")]
+
+
+class RangeLimits(_Strict):
+    min_m: float = Field(default=0.5, ge=0)
+    max_m: float = Field(default=120.0, gt=0, le=10_000)
+
+    @model_validator(mode="after")
+    def _order(self):
+        if self.max_m <= self.min_m:
+            raise ValueError(f"max_m ({self.max_m}) must exceed min_m ({self.min_m})")
+        return self
+
+
+class Noise(_Strict):
+    """Range noise: Gaussian with sigma = range_sigma_m + range_sigma_rel * range, then rounding
+    to a multiple of quantization_m (0: none)."""
+
+    range_sigma_m: float = Field(default=0.0, ge=0, le=10)
+    range_sigma_rel: float = Field(default=0.0, ge=0, le=1)
+    quantization_m: float = Field(default=0.0, ge=0, le=10)
+
+
+class Drop(_Strict):
+    """Which returns are lost. random_rate: independent loss probability; max_incidence_deg:
+    returns at a larger angle between beam and surface normal are lost (90 = never);
+    min_intensity: returns weaker than this (model units, before output_scale) are lost;
+    reflectivity_range: if set, a surface of effective reflectivity rho (reflectivity x cos
+    incidence) is detected only up to ``max_m * sqrt(rho / reflectivity_range)`` (the lidar
+    equation: received power ~ rho / r^2), i.e. max_m is the range at that reflectivity."""
+
+    random_rate: float = Field(default=0.0, ge=0, le=1)
+    max_incidence_deg: float = Field(default=90.0, gt=0, le=90)
+    min_intensity: float = Field(default=0.0, ge=0)
+    reflectivity_range: float | None = Field(default=None, gt=0, le=1)
+
+
+class Intensity(_Strict):
+    """intensity = reflectivity * cos(incidence) * min(1, (reference_range_m / r) ** falloff_exponent)
+    * output_scale. reflectivity from the semantic class (labels.py, overridable per class name),
+    from the surface colour's luminance, or a constant. falloff_exponent 0 gives the calibrated
+    reflectivity that Velodyne/Ouster drivers report; 2 the raw inverse-square power."""
+
+    source: Literal["class", "color", "constant"] = "class"
+    constant: float = Field(default=0.3, ge=0, le=1)
+    class_reflectivity: dict[str, float] = Field(default_factory=dict)
+    falloff_exponent: float = Field(default=0.0, ge=0, le=4)
+    reference_range_m: float = Field(default=10.0, gt=0)
+    output_scale: float = Field(default=1.0, gt=0)
+
+    @field_validator("class_reflectivity")
+    @classmethod
+    def _known_classes(cls, v):
+        for name, rho in v.items():
+            if name not in LABEL_IDS:
+                raise ValueError(f"unknown class {name!r}; known: {', '.join(LABEL_IDS)}")
+            if not 0 <= rho <= 1:
+                raise ValueError(f"reflectivity of {name!r} must be in [0, 1], got {rho}")
+        return v
+
+
+class Beam(_Strict):
+    """Beam divergence by sub-ray supersampling and how echoes become returns.
+
+    divergence_mrad: full-angle divergence; sub-rays sample the footprint (a disc of that angle),
+    weighted by a Gaussian profile with the 1/e^2 radius at the edge. samples = 1 traces the
+    centre ray only. Sub-ray hits whose ranges lie within echo_separation_m of each other form
+    one echo (range = weighted mean, strength = summed weight x intensity).
+    return_mode: first (= nearest), strongest, last, mean (one return at the weighted mean range
+    of all sub-ray hits: the mixed-pixel effect), or dual (strongest and last; the second-strongest
+    when they coincide).
+    """
+
+    divergence_mrad: float = Field(default=0.0, ge=0, le=100)
+    samples: int = Field(default=1, ge=1, le=64)
+    echo_separation_m: float = Field(default=0.5, gt=0)
+    return_mode: Literal["first", "nearest", "strongest", "last", "mean", "dual"] = "strongest"
+
+
+class Mount(_Strict):
+    """The sensor's pose in the ego (vehicle) frame: metres and degrees (roll, pitch, yaw)."""
+
+    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def matrix(self) -> np.ndarray:
+        from ..transforms import pose_from_xyz_rpy
+
+        return pose_from_xyz_rpy(self.xyz, self.rpy_deg)
+
+
+class EgoBody(_Strict):
+    """An axis-aligned box in the ego frame that blocks rays (the car's own body and roof).
+    returns: report the box surface as a return (label undefined) instead of dropping the ray."""
+
+    min: tuple[float, float, float]
+    max: tuple[float, float, float]
+    returns: bool = False
+
+    @model_validator(mode="after")
+    def _order(self):
+        if any(a >= b for a, b in zip(self.min, self.max)):
+            raise ValueError(f"each min must be below max, got min={self.min} max={self.max}")
+        return self
+
+
+class Motion(_Strict):
+    """Output frame of a moving sweep: 'raw' gives each point in the sensor frame at its own fire
+    time (what a real sensor reports, skewed by motion); 'compensated' gives every point in the
+    sensor frame at the sweep's reference instant (`reference`: sweep start or end)."""
+
+    output: Literal["raw", "compensated"] = "raw"
+    reference: Literal["start", "end"] = "start"
+
+
+class LidarConfig(_Strict):
+    """A complete LiDAR description. `source` says where the numbers come from."""
+
+    name: str
+    id: str | None = None
+    source: str = ""
+    notes: str = ""
+    pattern: Pattern
+    range: RangeLimits = RangeLimits()
+    noise: Noise = Noise()
+    drop: Drop = Drop()
+    intensity: Intensity = Intensity()
+    beam: Beam = Beam()
+    mount: Mount = Mount()
+    ego_body: EgoBody | None = None
+    motion: Motion = Motion()
+
+    @property
+    def channels(self) -> int:
+        p = self.pattern
+        if isinstance(p, SpinningPattern):
+            return p.channels.count
+        return len(set(p.channel)) if p.channel else 1
+
+
+# --- loading ---------------------------------------------------------------------------------
+
+
+def _format_loc(loc) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif part in ("spinning", "emitter") and out.endswith("pattern"):
+            continue  # the discriminator tag pydantic inserts
+        else:
+            out += ("." if out else "") + str(part)
+    return out or "(top level)"
+
+
+def format_validation_error(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        lines.append(f"{source}: {_format_loc(err['loc'])}: {msg}")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict, source: str = "<dict>") -> LidarConfig:
+    """Validate a mapping; raises ConfigError naming `source` and the key path."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: expected a mapping of LiDAR settings, got {type(data).__name__}")
+    try:
+        return LidarConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(format_validation_error(exc, source)) from None
+
+
+def load_yaml(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such file")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = yaml.safe_load(fh)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    return data
+
+
+def load_config_file(path: str | Path) -> LidarConfig:
+    path = Path(path)
+    cfg = config_from_dict(load_yaml(path), str(path))
+    p = cfg.pattern
+    if isinstance(p, EmitterPattern) and p.file and not Path(p.file).is_absolute():
+        p.file = str((path.parent / p.file).resolve())  # relative to the YAML file
+    return cfg
+
+
+def normalize_name(name: str) -> str:
+    """Lower case, letters and digits only: 'VLP-16', 'vlp_16' and 'vlp16' are one name."""
+    return re.sub(r"[^a-z0-9]", "", name.lower())
+
+
+def preset_paths() -> dict[str, Path]:
+    """Normalised id -> YAML path of every shipped preset."""
+    return {normalize_name(p.stem): p for p in sorted((sensors_dir() / "lidar").glob("*.yaml"))}
+
+
+def list_presets() -> list[LidarConfig]:
+    return [load_config_file(p) for p in preset_paths().values()]
+
+
+def load_lidar_config(name_or_path: str | Path) -> LidarConfig:
+    """A preset by name (case and punctuation ignored: 'VLP-16' == 'vlp16') or a YAML path."""
+    s = str(name_or_path)
+    p = Path(s)
+    if p.suffix.lower() in (".yaml", ".yml") or p.is_file():
+        return load_config_file(p)
+    presets = preset_paths()
+    key = normalize_name(s)
+    if key in presets:
+        return load_config_file(presets[key])
+    # Also accept the display name stored in the file (e.g. 'Pandar128E3X' for pandar128).
+    for path in presets.values():
+        data = load_yaml(path)
+        if isinstance(data, dict) and normalize_name(str(data.get("name", ""))) == key:
+            return load_config_file(path)
+    raise ConfigError(f"unknown sensor {s!r}: not a file and not a preset; presets: "
+                      f"{', '.join(sorted(p.stem for p in presets.values()))}")
+
+
+def dump_config(cfg: LidarConfig, path: str | Path | None = None) -> str:
+    """YAML text of a config (written to `path` if given); per-channel lists stay on one line."""
+    data = cfg.model_dump(mode="json", exclude_none=True)
+
+    class _Dumper(yaml.SafeDumper):
+        pass
+
+    def _repr_list(dumper, value):
+        flow = all(isinstance(x, (int, float)) for x in value)
+        return dumper.represent_sequence("tag:yaml.org,2002:seq", value, flow_style=flow)
+
+    _Dumper.add_representer(list, _repr_list)
+    _Dumper.add_representer(tuple, _repr_list)
+    text = yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100)
+    if path is not None:
+        from ..io.atomic import atomic_path
+
+        with atomic_path(path) as tmp:
+            Path(tmp).write_text(text, encoding="utf-8")
+    return text

@@ -1,0 +1,336 @@
+"""VoxSplat: 3D Gaussians on a sparse voxel scaffold (SCube, NeurIPS 2024).
+
+Each occupied voxel holds M Gaussians with 14 raw values each, in this order:
+offset(3), opacity(1), scale(3), quaternion wxyz(4), RGB as the SH degree-0 coefficient(3).
+Activations (paper): ``mu = r * tanh(offset) + voxel_center`` with ``r = offset_range * voxel_size``
+(paper: 3 voxels), ``alpha = sigmoid(opacity)``, ``s = exp(scale)`` in metres,
+``R = quat2rot(normalize(q))``, ``colour = clip(0.5 + C0 * rgb, 0, 1)``.
+
+Frames: voxel ``ijk`` has its centre at ``(ijk + 0.5) * voxel_size`` in the *local* frame, whose
+origin sits at ``origin`` (float64, metres) in the world frame. All geometry is kept local so that
+float32 never has to hold large world coordinates (float32 at 1e6 m resolves only 6 cm).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .transforms import normalize_quat, quat_to_rotmat
+
+SH_C0 = 0.28209479177387814
+NUM_RAW = 14
+FORMAT_NAME = "scube_sim.voxsplat"
+FORMAT_VERSION = 1
+
+# Slices into the 14 raw values.
+OFFSET, OPACITY, SCALE, QUAT, RGB = slice(0, 3), slice(3, 4), slice(4, 7), slice(7, 11), slice(11, 14)
+
+# exp() of float32 overflows above ~88; a Gaussian larger than 10 km or smaller than 1 nm is
+# not a scene element, so the scale activation is clamped to keep the numerics finite.
+_LOG_SCALE_MIN, _LOG_SCALE_MAX = np.log(1e-9), np.log(1e4)
+
+
+@dataclass
+class Gaussians:
+    """Activated Gaussians, flat. Positions are in the local frame of `origin`.
+
+    means (N, 3) float64 m; scales (N, 3) float64 m (std-devs along the rotated axes);
+    quats (N, 4) float64 unit wxyz; opacities (N,) float64 in [0, 1]; sh_dc (N, 3) float32;
+    voxel (N,) int64 index of the owning voxel (-1 when not on a scaffold); slot (N,) int16.
+    """
+
+    means: np.ndarray
+    scales: np.ndarray
+    quats: np.ndarray
+    opacities: np.ndarray
+    sh_dc: np.ndarray
+    voxel: np.ndarray | None = None
+    slot: np.ndarray | None = None
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def colors(self) -> np.ndarray:
+        """(N, 3) float32 RGB in [0, 1] from the SH degree-0 term."""
+        return np.clip(0.5 + SH_C0 * self.sh_dc, 0.0, 1.0).astype(np.float32)
+
+    def rotations(self) -> np.ndarray:
+        """(N, 3, 3) float64 rotation matrices."""
+        return quat_to_rotmat(self.quats)
+
+    def subset(self, mask_or_index) -> "Gaussians":
+        sel = mask_or_index
+        return Gaussians(
+            self.means[sel], self.scales[sel], self.quats[sel], self.opacities[sel], self.sh_dc[sel],
+            None if self.voxel is None else self.voxel[sel],
+            None if self.slot is None else self.slot[sel],
+            self.origin.copy(),
+        )
+
+    def check_finite(self, source: str = "gaussians") -> None:
+        """Raise ValueError naming the field if any value is NaN or Inf."""
+        for name in ("means", "scales", "quats", "opacities", "sh_dc"):
+            a = getattr(self, name)
+            bad = ~np.isfinite(a)
+            if np.any(bad):
+                idx = int(np.argwhere(bad)[0][0])
+                raise ValueError(f"{source}: {name} contains NaN or Inf (first at Gaussian {idx})")
+        if not np.all(np.isfinite(self.origin)):
+            raise ValueError(f"{source}: origin contains NaN or Inf")
+
+
+@dataclass
+class VoxSplat:
+    """Sparse voxels with M Gaussians each (raw parameters) and per-voxel semantics.
+
+    ijk (V, 3) int32; params (V, M, 14) float32 raw; valid (V, M) bool (False marks an empty
+    slot, e.g. a voxel that held fewer than M Gaussians); labels (V,) int16 ids of `labels.py`;
+    logits (V, C) float32 or None; voxel_size metres; origin (3,) float64 world position of the
+    local frame; offset_range in voxels (r = offset_range * voxel_size).
+    """
+
+    ijk: np.ndarray
+    params: np.ndarray
+    voxel_size: float
+    origin: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    valid: np.ndarray | None = None
+    labels: np.ndarray | None = None
+    logits: np.ndarray | None = None
+    offset_range: float = 3.0
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.ijk = np.ascontiguousarray(self.ijk, dtype=np.int32).reshape(-1, 3)
+        self.params = np.ascontiguousarray(self.params, dtype=np.float32)
+        if self.params.ndim != 3 or self.params.shape[2] != NUM_RAW:
+            raise ValueError(f"params: expected shape (V, M, {NUM_RAW}), got {self.params.shape}")
+        if self.params.shape[0] != self.ijk.shape[0]:
+            raise ValueError(f"params has {self.params.shape[0]} voxels but ijk has {self.ijk.shape[0]}")
+        self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
+        self.voxel_size = float(self.voxel_size)
+        if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise ValueError(f"voxel_size: expected a positive number of metres, got {self.voxel_size}")
+        if not np.all(np.isfinite(self.origin)):
+            raise ValueError("origin: contains NaN or Inf")
+        v, m = self.params.shape[:2]
+        self.valid = np.ones((v, m), bool) if self.valid is None else np.asarray(self.valid, bool).reshape(v, m)
+        self.labels = np.zeros(v, np.int16) if self.labels is None else np.asarray(self.labels, np.int16).reshape(v)
+        if self.logits is not None:
+            self.logits = np.asarray(self.logits, np.float32).reshape(v, -1)
+
+    # --- sizes -------------------------------------------------------------------------------
+    @property
+    def num_voxels(self) -> int:
+        return int(self.ijk.shape[0])
+
+    @property
+    def gaussians_per_voxel(self) -> int:
+        return int(self.params.shape[1])
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.valid.sum())
+
+    def __repr__(self) -> str:
+        return (f"VoxSplat({self.num_voxels} voxels x M={self.gaussians_per_voxel}, "
+                f"{self.num_gaussians} Gaussians, voxel {self.voxel_size:g} m, origin {self.origin.tolist()})")
+
+    # --- activations (paper) -----------------------------------------------------------------
+    def voxel_centers(self) -> np.ndarray:
+        """(V, 3) float64 voxel centres, local frame, metres."""
+        return (self.ijk.astype(np.float64) + 0.5) * self.voxel_size
+
+    def means(self) -> np.ndarray:
+        """(V, M, 3) float64 activated means, local frame."""
+        r = self.offset_range * self.voxel_size
+        return r * np.tanh(self.params[..., OFFSET].astype(np.float64)) + self.voxel_centers()[:, None, :]
+
+    def scales(self) -> np.ndarray:
+        """(V, M, 3) float64 metres."""
+        return np.exp(np.clip(self.params[..., SCALE].astype(np.float64), _LOG_SCALE_MIN, _LOG_SCALE_MAX))
+
+    def quats(self) -> np.ndarray:
+        """(V, M, 4) float64 unit wxyz (zero-norm raw quaternions become the identity)."""
+        return normalize_quat(self.params[..., QUAT])
+
+    def rotations(self) -> np.ndarray:
+        """(V, M, 3, 3) float64."""
+        return quat_to_rotmat(self.params[..., QUAT])
+
+    def opacities(self) -> np.ndarray:
+        """(V, M) float64 in [0, 1]."""
+        x = np.clip(self.params[..., 3].astype(np.float64), -60.0, 60.0)
+        return 1.0 / (1.0 + np.exp(-x))
+
+    def colors(self) -> np.ndarray:
+        """(V, M, 3) float32 RGB in [0, 1]."""
+        return np.clip(0.5 + SH_C0 * self.params[..., RGB], 0.0, 1.0).astype(np.float32)
+
+    def gaussians(self) -> Gaussians:
+        """The valid Gaussians, activated and flattened, with their voxel index and slot."""
+        vi, si = np.nonzero(self.valid)
+        return Gaussians(
+            means=self.means()[vi, si],
+            scales=self.scales()[vi, si],
+            quats=self.quats()[vi, si],
+            opacities=self.opacities()[vi, si],
+            sh_dc=self.params[vi, si, RGB].copy(),
+            voxel=vi.astype(np.int64),
+            slot=si.astype(np.int16),
+            origin=self.origin.copy(),
+        )
+
+    def world_means(self) -> np.ndarray:
+        """(N, 3) float64 means of the valid Gaussians in the world frame."""
+        return self.gaussians().means + self.origin
+
+    def check_finite(self, source: str = "VoxSplat") -> None:
+        """Raise ValueError naming the parameter group if a raw value is NaN or Inf."""
+        names = {"offset": OFFSET, "opacity": OPACITY, "scale": SCALE, "quaternion": QUAT, "rgb": RGB}
+        for name, sl in names.items():
+            bad = ~np.isfinite(self.params[..., sl])
+            if np.any(bad):
+                v, m = np.argwhere(bad)[0][:2]
+                raise ValueError(f"{source}: raw {name} contains NaN or Inf (voxel {v}, slot {m})")
+
+    # --- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_gaussians(
+        cls,
+        g: Gaussians,
+        voxel_size: float,
+        *,
+        max_per_voxel: int | None = None,
+        labels: np.ndarray | None = None,
+        offset_range: float = 3.0,
+        origin: np.ndarray | None = None,
+    ) -> "VoxSplat":
+        """Voxelize Gaussians by their centres.
+
+        `g.means` are taken relative to `g.origin`; the result's origin is `origin` (default: a
+        voxel-aligned point near the centre of the data, so local coordinates stay small).
+        M is the largest number of Gaussians that share a voxel, capped at `max_per_voxel`
+        (the extra Gaussians of a crowded voxel are dropped, lowest opacity first).
+        labels: optional (N,) per-Gaussian label; a voxel takes its most frequent label.
+        """
+        g.check_finite("from_gaussians")
+        voxel_size = float(voxel_size)
+        if not voxel_size > 0:
+            raise ValueError(f"voxel_size: expected > 0, got {voxel_size}")
+        world = g.means + g.origin
+        if origin is None:
+            if len(g):
+                mid = 0.5 * (world.min(0) + world.max(0))
+                origin = np.round(mid / voxel_size) * voxel_size
+            else:
+                origin = g.origin
+        origin = np.asarray(origin, dtype=np.float64)
+        local = world - origin
+        ijk_all = np.floor(local / voxel_size).astype(np.int64)
+        if len(g) and np.abs(ijk_all).max() >= 2**31 - 1:
+            raise ValueError("from_gaussians: scene too large for int32 voxel indices at this voxel size")
+        uniq, inv, counts = np.unique(ijk_all, axis=0, return_inverse=True, return_counts=True)
+        inv = inv.reshape(-1)
+        m = int(counts.max()) if len(g) else 1
+        if max_per_voxel is not None:
+            m = min(m, int(max_per_voxel))
+        # Order by voxel, then by decreasing opacity, so that a cap drops the faintest first.
+        order = np.lexsort((-g.opacities, inv))
+        inv_sorted = inv[order]
+        starts = np.r_[0, np.cumsum(counts)[:-1]]
+        slot = np.arange(len(g)) - starts[inv_sorted]
+        keep = slot < m
+        order, inv_sorted, slot = order[keep], inv_sorted[keep], slot[keep]
+
+        v = uniq.shape[0]
+        params = np.zeros((v, m, NUM_RAW), np.float32)
+        params[..., 7] = 1.0  # identity quaternion in empty slots
+        params[..., 3] = -30.0  # empty slots are transparent as well as invalid
+        valid = np.zeros((v, m), bool)
+        centers = (uniq.astype(np.float64) + 0.5) * voxel_size
+        r = offset_range * voxel_size
+        off = (local[order] - centers[inv_sorted]) / r
+        raw = np.empty((order.shape[0], NUM_RAW), np.float64)
+        raw[:, OFFSET] = np.arctanh(np.clip(off, -1 + 1e-7, 1 - 1e-7))
+        op = np.clip(g.opacities[order], 1e-12, 1 - 1e-7)
+        raw[:, 3] = np.log(op) - np.log1p(-op)
+        raw[:, SCALE] = np.log(np.clip(g.scales[order], 1e-9, None))
+        raw[:, QUAT] = normalize_quat(g.quats[order])
+        raw[:, RGB] = g.sh_dc[order]
+        params[inv_sorted, slot] = raw
+        valid[inv_sorted, slot] = True
+
+        vox_labels = None
+        if labels is not None:
+            labels = np.asarray(labels, np.int64)
+            pairs = inv * 1024 + labels
+            up, pc = np.unique(pairs, return_counts=True)
+            pv, pl = up // 1024, up % 1024
+            best = np.lexsort((-pc, pv))  # per voxel, most frequent first
+            first = np.r_[True, pv[best][1:] != pv[best][:-1]]
+            vox_labels = np.zeros(v, np.int16)
+            vox_labels[pv[best][first]] = pl[best][first]
+        return cls(uniq.astype(np.int32), params, voxel_size, origin, valid, vox_labels,
+                   offset_range=offset_range)
+
+    # --- file format -------------------------------------------------------------------------
+    def save(self, path: str | Path) -> Path:
+        """Write the versioned .npz (atomically: temporary name, then rename)."""
+        from .io.atomic import atomic_path
+
+        path = Path(path)
+        arrays = dict(
+            format=np.array(FORMAT_NAME), version=np.array(FORMAT_VERSION, np.int32),
+            ijk=self.ijk, params=self.params, valid=self.valid, labels=self.labels,
+            voxel_size=np.array(self.voxel_size), origin=self.origin,
+            offset_range=np.array(self.offset_range),
+            metadata=np.array(json.dumps(self.metadata, sort_keys=True)),
+        )
+        if self.logits is not None:
+            arrays["logits"] = self.logits
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path) -> "VoxSplat":
+        """Read a .npz written by `save`; errors name the file and the key."""
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such VoxSplat file")
+        try:
+            z = np.load(path, allow_pickle=False)
+        except Exception as exc:  # zipfile/format errors
+            raise ValueError(f"{path}: not a readable .npz ({exc})") from None
+        with z:
+            def need(key):
+                if key not in z.files:
+                    raise ValueError(f"{path}: missing key {key!r} (is this a scube_sim VoxSplat .npz?)")
+                return z[key]
+
+            fmt = str(need("format"))
+            if fmt != FORMAT_NAME:
+                raise ValueError(f"{path}: key 'format' is {fmt!r}, expected {FORMAT_NAME!r}")
+            version = int(need("version"))
+            if version > FORMAT_VERSION:
+                raise ValueError(f"{path}: VoxSplat format version {version} is newer than this "
+                                 f"scube_sim reads ({FORMAT_VERSION})")
+            try:
+                vs = cls(
+                    ijk=need("ijk"), params=need("params"), voxel_size=float(need("voxel_size")),
+                    origin=need("origin"), valid=need("valid"), labels=need("labels"),
+                    logits=z["logits"] if "logits" in z.files else None,
+                    offset_range=float(need("offset_range")),
+                    metadata=json.loads(str(need("metadata"))),
+                )
+            except ValueError as exc:
+                raise ValueError(f"{path}: {exc}") from None
+        vs.check_finite(str(path))
+        return vs

@@ -1,0 +1,44 @@
+"""Shared fixtures. Third-party data stays in ../shared/data (override: SCUBE_SIM_SHARED_DATA)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, settings
+
+REPO = Path(__file__).resolve().parents[1]
+
+settings.register_profile(
+    "ci", max_examples=60, deadline=None, derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.load_profile("ci")
+
+
+def shared_data_dir() -> Path:
+    env = os.environ.get("SCUBE_SIM_SHARED_DATA")
+    return Path(env) if env else REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """../shared/data, or skip the test with the reason."""
+    d = shared_data_dir()
+    if not d.is_dir():
+        pytest.skip(f"third-party data folder {d} is absent (set SCUBE_SIM_SHARED_DATA)")
+    return d
+
+
+def require(path: Path) -> Path:
+    """Skip the calling test if a third-party file is absent."""
+    if not path.exists():
+        pytest.skip(f"third-party file {path} is absent")
+    return path
+
+
+@pytest.fixture
+def rng() -> np.random.Generator:
+    return np.random.default_rng(1234)
