@@ -1,0 +1,220 @@
+"""Standard 3D Gaussian Splatting PLY files (the Inria ``train.py`` layout) and splat import.
+
+Layout: binary little-endian element ``vertex`` with float properties
+``x y z [nx ny nz] f_dc_0..2 [f_rest_*] opacity scale_0..2 rot_0..3``, where opacity is a logit,
+scale is log(std-dev), rot is an unnormalised wxyz quaternion, colour = 0.5 + C0 * f_dc, and
+``f_rest`` holds the higher SH bands channel-major (all of R, then G, then B). Positions are in the
+file's world frame (scene units; metres for our own files).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..transforms import normalize_quat
+from ..voxsplat import _LOG_SCALE_MAX, _LOG_SCALE_MIN, Gaussians, VoxSplat
+from .atomic import atomic_path
+
+__all__ = ["SplatPlyInfo", "read_3dgs_ply_info", "read_3dgs_ply", "write_3dgs_ply",
+           "default_voxel_size", "read_splat_file"]
+
+REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+            "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+_WRITE_ORDER = ("x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3")
+
+
+@dataclass(frozen=True)
+class SplatPlyInfo:
+    """What a 3DGS PLY holds: vertex count, SH degree (from the number of ``f_rest_*``
+    properties: 3 * ((d + 1)^2 - 1)), and all vertex property names in file order."""
+
+    num_gaussians: int
+    sh_degree: int
+    properties: tuple[str, ...]
+
+
+def _load_vertex(path: Path):
+    from plyfile import PlyData, PlyParseError
+
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such splat file")
+    try:
+        ply = PlyData.read(str(path), mmap=False)
+    except PlyParseError as exc:  # header errors and early end-of-file alike
+        raise ValueError(f"{path}: malformed or truncated PLY ({exc})") from None
+    if "vertex" not in ply:
+        raise ValueError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
+    return ply["vertex"].data
+
+
+def _info(path: Path, names: tuple[str, ...], n: int) -> SplatPlyInfo:
+    missing = [p for p in REQUIRED if p not in names]
+    if missing:
+        raise ValueError(f"{path}: not a 3DGS PLY: vertex property {missing[0]!r} is missing "
+                         f"(missing: {missing})")
+    n_rest = sum(1 for p in names if p.startswith("f_rest_"))
+    degree = int(round(np.sqrt(n_rest / 3 + 1))) - 1
+    if 3 * ((degree + 1) ** 2 - 1) != n_rest:
+        raise ValueError(f"{path}: {n_rest} f_rest_* properties is not 3 * ((d + 1)^2 - 1) for any SH degree d")
+    return SplatPlyInfo(n, degree, names)
+
+
+def read_3dgs_ply_info(path: str | Path) -> SplatPlyInfo:
+    """Header facts of a 3DGS PLY (reads only the header)."""
+    path = Path(path)
+    props: list[str] = []
+    count, element = None, None
+    with open(path, "rb") as fh:
+        if fh.readline().strip() != b"ply":
+            raise ValueError(f"{path}: not a PLY file (no 'ply' magic line)")
+        for raw in fh:
+            words = raw.decode("ascii", errors="replace").split()
+            if not words:
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "element" and len(words) == 3:
+                element = words[1]
+                if element == "vertex":
+                    count = int(words[2])
+            elif words[0] == "property" and element == "vertex":
+                props.append(words[-1])
+        else:
+            raise ValueError(f"{path}: malformed PLY header: no end_header line")
+    if count is None:
+        raise ValueError(f"{path}: PLY has no 'vertex' element")
+    return _info(path, tuple(props), count)
+
+
+def _local_origin(world: np.ndarray) -> np.ndarray:
+    """A float64 point near the data: the bounding-box centre rounded to whole units, so
+    small scenes keep origin 0 and large coordinates become small local ones."""
+    if world.shape[0] == 0:
+        return np.zeros(3)
+    return np.round(0.5 * (world.min(0) + world.max(0)))
+
+
+def read_3dgs_ply(path: str | Path) -> Gaussians:
+    """Read a 3DGS PLY into activated Gaussians.
+
+    Returns means (N, 3) float64 relative to ``origin`` (a float64 point near the data),
+    scales = exp(scale_*) (N, 3), unit wxyz quats, opacities = sigmoid(opacity), sh_dc = f_dc
+    (N, 3) float32. Normals and ``f_rest_*`` (view-dependent colour) are dropped; use
+    `read_3dgs_ply_info` for the SH degree. Extra properties are ignored; a missing required
+    property or a truncated file raises ValueError naming the file.
+    """
+    path = Path(path)
+    v = _load_vertex(path)
+    _info(path, tuple(v.dtype.names), v.shape[0])
+
+    def cols(*names):
+        return np.stack([v[n].astype(np.float64) for n in names], axis=1)
+
+    world = cols("x", "y", "z")
+    origin = _local_origin(world) if np.all(np.isfinite(world)) else np.zeros(3)
+    logit = np.clip(v["opacity"].astype(np.float64), -60.0, 60.0)  # exp overflow guard
+    g = Gaussians(
+        means=world - origin,
+        scales=np.exp(np.clip(cols("scale_0", "scale_1", "scale_2"), _LOG_SCALE_MIN, _LOG_SCALE_MAX)),
+        quats=normalize_quat(cols("rot_0", "rot_1", "rot_2", "rot_3")),
+        opacities=1.0 / (1.0 + np.exp(-logit)),
+        sh_dc=cols("f_dc_0", "f_dc_1", "f_dc_2").astype(np.float32),
+        voxel=None, slot=None, origin=origin,
+    )
+    g.check_finite(str(path))
+    return g
+
+
+def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
+    """Write Gaussians as an Inria-layout 3DGS PLY (SH degree 0, normals zero).
+
+    Positions are written in world coordinates (means + origin) as float32; opacity as a logit
+    (clipped to [1e-7, 1 - 1e-7] so that 0 and 1 stay finite), scales as logs, quats as unit wxyz.
+    """
+    from plyfile import PlyData, PlyElement
+
+    path = Path(path)
+    g = gaussians
+    g.check_finite("write_3dgs_ply")
+    n = len(g)
+    out = np.zeros(n, [(p, "<f4") for p in _WRITE_ORDER])
+    world = g.means + g.origin
+    for i, p in enumerate("xyz"):
+        out[p] = world[:, i]
+    op = np.clip(np.asarray(g.opacities, np.float64), 1e-7, 1 - 1e-7)
+    out["opacity"] = np.log(op) - np.log1p(-op)
+    log_s = np.log(np.clip(np.asarray(g.scales, np.float64), 1e-30, None))
+    q = normalize_quat(g.quats)
+    for i in range(3):
+        out[f"f_dc_{i}"] = g.sh_dc[:, i]
+        out[f"scale_{i}"] = log_s[:, i]
+    for i in range(4):
+        out[f"rot_{i}"] = q[:, i]
+    ply = PlyData([PlyElement.describe(out, "vertex")], text=False, byte_order="<")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            ply.write(fh)
+    return path
+
+
+def _median_occupancy(local: np.ndarray, voxel_size: float) -> float:
+    ijk = np.floor(local / voxel_size).astype(np.int64)
+    ijk -= ijk.min(0)
+    dims = ijk.max(0) + 1
+    if np.prod(dims.astype(np.float64)) < 2**62:  # one int64 key per voxel: a fast 1-D unique
+        keys = np.ravel_multi_index(ijk.T, dims)
+        _, counts = np.unique(keys, return_counts=True)
+    else:
+        _, counts = np.unique(ijk, axis=0, return_counts=True)
+    return float(np.median(counts))
+
+
+def default_voxel_size(g: Gaussians, target: float = 4.0) -> float:
+    """The voxel size (scene units) at which the median occupied voxel holds `target` Gaussians.
+
+    Bisection in log space over [extent * 1e-6, 2 * extent] (extent = largest side of the
+    bounding box of the centres) for the smallest size whose median occupancy (over occupied
+    voxels) reaches `target`, to within 1 %. Median occupancy only grows, in practice, with the
+    voxel size. Fewer than `target` Gaussians, or all at one point: the whole extent (or 1.0).
+    """
+    local = g.means
+    if len(g) == 0:
+        return 1.0
+    extent = float((local.max(0) - local.min(0)).max())
+    if extent <= 0 or len(g) < target:
+        return extent if extent > 0 else 1.0
+    lo, hi = np.log(extent * 1e-6), np.log(2.0 * extent)
+    if _median_occupancy(local, float(np.exp(lo))) >= target:
+        return float(np.exp(lo))
+    while hi - lo > np.log(1.01):
+        mid = 0.5 * (lo + hi)
+        if _median_occupancy(local, float(np.exp(mid))) >= target:
+            hi = mid
+        else:
+            lo = mid
+    return float(np.exp(hi))
+
+
+def read_splat_file(path: str | Path, voxel_size: float | None = None,
+                    max_per_voxel: int | None = None) -> VoxSplat:
+    """Import any 3DGS PLY as a VoxSplat by voxelizing the Gaussians' centres.
+
+    voxel_size: in the file's units; None picks `default_voxel_size` (median occupied voxel
+    holds about 4 Gaussians). max_per_voxel: M; None keeps every Gaussian (M = the fullest
+    voxel's count, so empty slots cost memory on clumpy files; a cap drops the faintest first).
+    The SH degree and source go into ``metadata``; ``f_rest`` is not kept.
+    """
+    path = Path(path)
+    g = read_3dgs_ply(path)
+    if voxel_size is None:
+        voxel_size = default_voxel_size(g)
+    vs = VoxSplat.from_gaussians(g, voxel_size, max_per_voxel=max_per_voxel)
+    info = read_3dgs_ply_info(path)
+    vs.metadata.update({"source": str(path), "source_format": "3dgs_ply",
+                        "source_sh_degree": info.sh_degree, "source_num_gaussians": info.num_gaussians,
+                        "num_dropped": info.num_gaussians - vs.num_gaussians})
+    return vs

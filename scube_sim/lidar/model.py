@@ -1,0 +1,357 @@
+"""The LiDAR model: a scan pattern traced through a scene, with the sensor's physical effects.
+
+One sweep, step by step (each effect only when its config asks for it):
+1. rays of the scan pattern (sensor frame), split into sub-rays across the beam divergence;
+2. the sensor pose at each ray's fire time (motion distortion: SLERP/lerp between the sweep's
+   start and end poses, or a pose function), rays to the world frame;
+3. the ego-body box blocks rays; the tracer finds the nearest surface within the max range;
+4. intensity = reflectivity x cos(incidence) x range fall-off; sub-ray hits form echoes, and the
+   return mode picks one or two per pulse;
+5. drops (min range, random, grazing, weak, dark-and-far), range noise, quantisation;
+6. points in the sensor frame at their own fire time ('raw') or at the sweep's reference
+   instant ('compensated').
+Randomness comes from one seeded generator: the same seed gives the same sweep, bit for bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from ..labels import LABEL_IDS, LABEL_REFLECTIVITY
+from ..raytrace.tracer import Tracer
+from ..transforms import check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
+from .config import LidarConfig, SpinningPattern
+from .pattern import ScanPattern, make_pattern
+
+POINT_DTYPE = np.dtype([
+    ("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32),
+    ("ring", np.uint16), ("time", np.float32), ("range", np.float32), ("azimuth", np.float32),
+    ("label", np.int16), ("instance", np.int32), ("column", np.int32), ("return_id", np.uint8),
+])
+"""One LiDAR return. x y z metres in the output frame (sensor frame, see Motion); intensity in
+model units x output_scale; ring: channel index; time: seconds after the sweep start; range:
+metres from the beam origin; azimuth: radians, beam direction CCW from +x; label: semantic id;
+instance: actor id (0 = static scene); column: firing column; return_id: 0 first/only, 1 second."""
+
+PoseFn = Callable[[np.ndarray], np.ndarray]
+
+
+@dataclass
+class Sweep:
+    """One sweep's returns and where it was taken.
+
+    points: structured POINT_DTYPE array, in firing order. t_start / t_end: absolute seconds.
+    pose_start / pose_end: (4, 4) sensor-to-world poses at those instants; pose_reference: the
+    pose of the output frame (identity-relative to the points: world = pose_reference @ p for
+    compensated output; for raw output each point has its own pose at its own time).
+    """
+
+    points: np.ndarray
+    t_start: float
+    t_end: float
+    pose_start: np.ndarray
+    pose_end: np.ndarray
+    pose_reference: np.ndarray
+    output: str
+    sensor: str
+    channels: int
+    columns: int
+    ring_elevation_deg: np.ndarray
+    num_rays: int
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def xyz(self) -> np.ndarray:
+        """(N, 3) float32 points in the output frame."""
+        p = self.points
+        return np.stack([p["x"], p["y"], p["z"]], axis=1)
+
+    def range_image(self, field: str = "range", return_id: int = 0) -> np.ndarray:
+        """(rings, columns) float32 view, rows by decreasing elevation (top beam first), NaN
+        where a ray gave no return. Spinning patterns only."""
+        if self.columns <= 0:
+            raise ValueError("range_image: needs a spinning pattern (an emitter table has no columns)")
+        row_of_ring = np.empty(self.channels, np.int64)
+        row_of_ring[np.argsort(-self.ring_elevation_deg, kind="stable")] = np.arange(self.channels)
+        img = np.full((self.channels, self.columns), np.nan, np.float32)
+        p = self.points[self.points["return_id"] == return_id]
+        img[row_of_ring[p["ring"]], p["column"]] = p[field]
+        return img
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    return (0.2126 * rgb[:, 0] + 0.7152 * rgb[:, 1] + 0.0722 * rgb[:, 2]).astype(np.float64)
+
+
+def _subray_offsets(samples: int, divergence_rad: float):
+    """Deterministic footprint samples: centre plus a Vogel (sunflower) spiral over the disc of
+    half-angle divergence/2. Returns angular radius (S,), polar angle (S,), weights (S,) summing
+    to 1 from a Gaussian beam profile whose 1/e^2 radius is the disc edge."""
+    if samples == 1 or divergence_rad == 0:
+        return np.zeros(1), np.zeros(1), np.ones(1)
+    half = 0.5 * divergence_rad
+    i = np.arange(samples)
+    rho = half * np.sqrt(i / (samples - 1))
+    phi = i * np.pi * (3.0 - np.sqrt(5.0))
+    w = np.exp(-2.0 * (rho / half) ** 2)
+    return rho, phi, w / w.sum()
+
+
+def _perp_basis(d: np.ndarray):
+    """Two unit vectors perpendicular to each (N, 3) unit direction."""
+    ref = np.where(np.abs(d[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    u = np.cross(d, ref)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(d, u)
+
+
+def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Entry distance of rays into an axis-aligned box (inf on a miss; 0 when starting inside)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d
+        t1 = (lo - o) * inv
+        t2 = (hi - o) * inv
+        tlo = np.nanmax(np.minimum(t1, t2), axis=1)
+        thi = np.nanmin(np.maximum(t1, t2), axis=1)
+    hit = (thi >= np.maximum(tlo, 0.0))
+    return np.where(hit, np.maximum(tlo, 0.0), np.inf)
+
+
+class Lidar:
+    """A configured LiDAR. `scan` traces one sweep; the pattern is computed once."""
+
+    def __init__(self, config: LidarConfig):
+        self.config = config
+        self.pattern: ScanPattern = make_pattern(config)
+        b = config.beam
+        self._sub_rho, self._sub_phi, self._sub_w = _subray_offsets(b.samples, b.divergence_mrad * 1e-3)
+        refl = LABEL_REFLECTIVITY.astype(np.float64).copy()
+        for name, rho in config.intensity.class_reflectivity.items():
+            refl[LABEL_IDS[name]] = rho
+        self._class_reflectivity = refl
+
+    @property
+    def mount(self) -> np.ndarray:
+        """(4, 4) sensor-to-ego pose."""
+        return self.config.mount.matrix()
+
+    def sensor_pose(self, ego_pose: np.ndarray) -> np.ndarray:
+        """Sensor-to-world pose for an ego-to-world pose (applies the mounting extrinsic)."""
+        return check_pose(ego_pose, "ego_pose") @ self.mount
+
+    def scan(
+        self,
+        tracer: Tracer,
+        pose_start: np.ndarray,
+        pose_end: np.ndarray | None = None,
+        *,
+        pose_fn: PoseFn | None = None,
+        t_start: float = 0.0,
+        seed: int = 0,
+    ) -> Sweep:
+        """Trace one sweep.
+
+        pose_start / pose_end: (4, 4) float64 sensor-to-world poses at the sweep's start and end
+        (end defaults to start: a static sensor). pose_fn: alternatively, absolute times (N,) ->
+        (N, 4, 4) sensor-to-world poses. t_start: absolute seconds of the first fire.
+        """
+        cfg, pat = self.config, self.pattern
+        t_end = t_start + pat.period_s
+        if pose_fn is not None:
+            ends = np.asarray(pose_fn(np.array([t_start, t_end], np.float64)), np.float64)
+            pose_start, pose_end = check_pose(ends[0], "pose_fn(t_start)"), check_pose(ends[1], "pose_fn(t_end)")
+        else:
+            pose_start = check_pose(pose_start, "pose_start")
+            pose_end = pose_start if pose_end is None else check_pose(pose_end, "pose_end")
+        rng = np.random.default_rng(seed)
+
+        # 1. pulses and their sub-rays (sensor frame).
+        n_pulse = len(pat)
+        s = self._sub_w.shape[0]
+        d_s = pat.directions
+        if s > 1:
+            u, v = _perp_basis(d_s)
+            tan_r = np.tan(self._sub_rho)
+            d_sub = (d_s[:, None, :] + tan_r[None, :, None] * (np.cos(self._sub_phi)[None, :, None] * u[:, None, :]
+                                                                + np.sin(self._sub_phi)[None, :, None] * v[:, None, :]))
+            d_sub = (d_sub / np.linalg.norm(d_sub, axis=2, keepdims=True)).reshape(-1, 3)
+        else:
+            d_sub = d_s
+        o_sub = np.repeat(pat.offsets, s, axis=0)
+        t_sub = np.repeat(pat.time, s)
+
+        # 2. sensor pose per ray (world).
+        static = pose_fn is None and np.array_equal(pose_start, pose_end)
+        if static:
+            o_w = transform_points(pose_start, o_sub)
+            d_w = rotate_vectors(pose_start, d_sub)
+        else:
+            if pose_fn is not None:
+                poses = np.asarray(pose_fn(t_start + pat.time), np.float64)
+                if poses.shape != (n_pulse, 4, 4) or not np.all(np.isfinite(poses)):
+                    raise ValueError(f"pose_fn: expected finite ({n_pulse}, 4, 4) poses, got {poses.shape}")
+            else:
+                poses = interpolate_poses(pose_start, pose_end, pat.time / pat.period_s)
+            poses_sub = np.repeat(poses, s, axis=0) if s > 1 else poses
+            o_w = transform_points(poses_sub, o_sub)
+            d_w = rotate_vectors(poses_sub, d_sub)
+
+        # 3. ego body and scene.
+        t_far = np.full(o_w.shape[0], cfg.range.max_m, np.float64)
+        t_body = np.full(o_w.shape[0], np.inf)
+        if cfg.ego_body is not None:
+            mount = self.mount
+            t_body = _ray_box(transform_points(mount, o_sub), rotate_vectors(mount, d_sub),
+                              np.asarray(cfg.ego_body.min), np.asarray(cfg.ego_body.max))
+            t_far = np.minimum(t_far, t_body)
+        hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
+        rng_sub = hits.t.copy()
+        hit = hits.hit.copy()
+        label = hits.label.astype(np.int16)
+        instance = hits.instance.copy()
+        cos_inc = np.abs(np.einsum("ij,ij->i", hits.normals.astype(np.float64), d_w))
+        if cfg.ego_body is not None and cfg.ego_body.returns:
+            body = np.isfinite(t_body) & (~hit | (t_body < rng_sub))
+            hit |= body
+            rng_sub = np.where(body, t_body, rng_sub)
+            label = np.where(body, 0, label).astype(np.int16)
+            instance = np.where(body, 0, instance)
+            cos_inc = np.where(body, 1.0, cos_inc)
+
+        # 4. intensity per sub-ray, then echoes per pulse.
+        ic = cfg.intensity
+        if ic.source == "class":
+            refl = self._class_reflectivity[label]
+        elif ic.source == "color":
+            refl = _luminance(hits.color)
+        else:
+            refl = np.full(label.shape, ic.constant)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fall = np.minimum(1.0, (ic.reference_range_m / np.maximum(rng_sub, 1e-6)) ** ic.falloff_exponent)
+        inten = np.where(hit, refl * cos_inc * fall, 0.0)
+        pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
+        rid = np.zeros(pulse.shape[0], np.uint8)
+        if cfg.beam.return_mode == "dual":
+            pulse, echo_range, strength, rep, rid = self._dual(pulse, echo_range, strength, rep)
+
+        # 5. drops, noise, quantisation.
+        keep = echo_range >= cfg.range.min_m
+        keep &= echo_range <= cfg.range.max_m
+        cos_rep = cos_inc[rep]
+        refl_rep = refl[rep]
+        if cfg.drop.random_rate > 0:
+            keep &= rng.random(pulse.shape[0]) >= cfg.drop.random_rate
+        if cfg.drop.max_incidence_deg < 90:
+            keep &= cos_rep >= np.cos(np.deg2rad(cfg.drop.max_incidence_deg))
+        if cfg.drop.min_intensity > 0:
+            keep &= strength >= cfg.drop.min_intensity
+        if cfg.drop.reflectivity_range is not None:
+            eff = np.clip(refl_rep * cos_rep / cfg.drop.reflectivity_range, 0.0, 1.0)
+            keep &= echo_range <= cfg.range.max_m * np.sqrt(eff)
+        pulse, echo_range, strength, rep, rid = (a[keep] for a in (pulse, echo_range, strength, rep, rid))
+        nz = cfg.noise
+        if nz.range_sigma_m > 0 or nz.range_sigma_rel > 0:
+            sigma = nz.range_sigma_m + nz.range_sigma_rel * echo_range
+            echo_range = echo_range + sigma * rng.standard_normal(echo_range.shape[0])
+        if nz.quantization_m > 0:
+            echo_range = np.round(echo_range / nz.quantization_m) * nz.quantization_m
+        echo_range = np.maximum(echo_range, 0.0)
+
+        # 6. points in the output frame.
+        p_sensor = pat.offsets[pulse] + echo_range[:, None] * pat.directions[pulse]
+        ref = pose_start if cfg.motion.reference == "start" else pose_end
+        if cfg.motion.output == "compensated" and not static:
+            p_out = transform_points(invert_pose(ref) @ poses[pulse], p_sensor)
+        else:
+            p_out = p_sensor
+        out = np.zeros(pulse.shape[0], POINT_DTYPE)
+        out["x"], out["y"], out["z"] = p_out[:, 0], p_out[:, 1], p_out[:, 2]
+        out["intensity"] = strength * ic.output_scale
+        out["ring"] = pat.ring[pulse]
+        out["time"] = pat.time[pulse]
+        out["range"] = echo_range
+        out["azimuth"] = pat.azimuth[pulse]
+        out["label"] = label[rep]
+        out["instance"] = instance[rep]
+        out["column"] = pat.column[pulse]
+        out["return_id"] = rid
+        return Sweep(out, float(t_start), float(t_end), pose_start, pose_end, ref, cfg.motion.output,
+                     cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, n_pulse)
+
+    def _echoes(self, hit, rng_sub, inten, n_pulse, s):
+        """Group sub-ray hits into echoes and apply the single-return modes.
+
+        Returns per kept echo: pulse index, range, strength, representative sub-ray index."""
+        mode = self.config.beam.return_mode
+        if s == 1:
+            idx = np.nonzero(hit)[0]
+            return idx, rng_sub[idx], inten[idx], idx
+        w = np.tile(self._sub_w, n_pulse)
+        r = np.where(hit, rng_sub, np.inf).reshape(n_pulse, s)
+        order = np.argsort(r, axis=1, kind="stable")
+        sub = (order + (np.arange(n_pulse) * s)[:, None]).ravel()  # flat sub-ray ids, by range
+        h_sorted = hit[sub].reshape(n_pulse, s)
+        r_sorted = np.where(h_sorted, rng_sub[sub].reshape(n_pulse, s), 1e30)
+        gap = np.diff(r_sorted, axis=1) > self.config.beam.echo_separation_m
+        cluster = np.concatenate([np.zeros((n_pulse, 1), np.int64), np.cumsum(gap, axis=1)], axis=1)
+        hs = h_sorted.ravel()
+        sub, cl = sub[hs], cluster.ravel()[hs]
+        pulse_of = sub // s
+        if mode == "mean":
+            cl = np.zeros_like(cl)  # one echo at the mean range of all sub-ray hits
+        key = pulse_of * s + cl
+        uk, inv = np.unique(key, return_inverse=True)
+        inv = inv.reshape(-1)
+        wsum = np.bincount(inv, weights=w[sub])
+        echo_r = np.bincount(inv, weights=w[sub] * rng_sub[sub]) / wsum
+        strength = np.bincount(inv, weights=w[sub] * inten[sub])
+        # Representative sub-ray of each echo: the largest weighted intensity (its label/normal).
+        score = w[sub] * (inten[sub] + 1e-12)
+        o2 = np.lexsort((-score, inv))
+        first = np.r_[True, inv[o2][1:] != inv[o2][:-1]]
+        rep = np.empty(uk.shape[0], np.int64)
+        rep[inv[o2][first]] = sub[o2][first]
+        e_pulse = uk // s
+        self._last_echoes = (e_pulse, echo_r, strength, rep)
+        if mode in ("first", "nearest", "mean"):
+            pick = np.r_[True, e_pulse[1:] != e_pulse[:-1]]  # lowest cluster id = nearest
+        elif mode == "last":
+            pick = np.r_[e_pulse[1:] != e_pulse[:-1], True]
+        elif mode in ("strongest", "dual"):
+            if mode == "dual":
+                return e_pulse, echo_r, strength, rep
+            o3 = np.lexsort((-strength, e_pulse))
+            f3 = np.r_[True, e_pulse[o3][1:] != e_pulse[o3][:-1]]
+            pick = np.zeros(uk.shape[0], bool)
+            pick[o3[f3]] = True
+        else:  # pragma: no cover - validated by the config
+            raise ValueError(mode)
+        return e_pulse[pick], echo_r[pick], strength[pick], rep[pick]
+
+    @staticmethod
+    def _dual(e_pulse, echo_r, strength, rep):
+        """Dual return: the strongest and the last echo of each pulse; when they coincide, the
+        strongest and the second strongest. Echo arrays arrive sorted by (pulse, range)."""
+        n = e_pulse.shape[0]
+        if n == 0:
+            return e_pulse, echo_r, strength, rep, np.zeros(0, np.uint8)
+        o3 = np.lexsort((-strength, e_pulse))
+        starts = np.r_[True, e_pulse[o3][1:] != e_pulse[o3][:-1]]
+        strongest = o3[starts]
+        rank = np.arange(n) - np.repeat(np.nonzero(starts)[0], np.diff(np.r_[np.nonzero(starts)[0], n]))
+        second = np.full(e_pulse.max() + 1, -1, np.int64)
+        second[e_pulse[o3[rank == 1]]] = o3[rank == 1]
+        last = np.nonzero(np.r_[e_pulse[1:] != e_pulse[:-1], True])[0]
+        p_str = e_pulse[strongest]
+        other = np.where(last != strongest, last, second[p_str])
+        a = strongest
+        b = other[other >= 0]
+        sel = np.concatenate([a, b])
+        rid = np.concatenate([np.zeros(a.shape[0], np.uint8), np.ones(b.shape[0], np.uint8)])
+        order = np.lexsort((rid, e_pulse[sel]))
+        sel, rid = sel[order], rid[order]
+        return e_pulse[sel], echo_r[sel], strength[sel], rep[sel], rid

@@ -1,0 +1,94 @@
+"""Embree first-hit queries on triangle meshes, behind one interface (trimesh's ray/ pattern).
+
+Two engines: embreex (Embree 4 through Cython, one thread per call) and open3d's
+`RaycastingScene` (Embree inside, multi-threaded). Both take float32 rays in the mesh's frame and
+return the first hit up to a per-ray limit. The BVH is built once, at construction.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+BACKENDS = ("open3d", "embreex")
+
+
+class BackendUnavailable(RuntimeError):
+    pass
+
+
+class EmbreexBackend:
+    """embreex: Embree 4, single-threaded per call; honours the per-ray far limit in traversal."""
+
+    name = "embreex"
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        try:
+            from embreex import mesh_construction, rtcore_scene
+        except ImportError as exc:  # pragma: no cover - depends on the install
+            raise BackendUnavailable(f"embreex is not importable: {exc}") from None
+        self.num_faces = int(faces.shape[0])
+        self._scene = rtcore_scene.EmbreeScene()
+        if self.num_faces:
+            mesh_construction.TriangleMesh(self._scene, np.ascontiguousarray(vertices, np.float32),
+                                           np.ascontiguousarray(faces, np.int32))
+            # embreex commits the BVH lazily on the first query: build it now, not mid-sweep.
+            self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
+
+    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray):
+        """(N, 3) float32 origins, unit dirs, (N,) far limits -> t (N,) float32 (inf on a miss),
+        prim (N,) int64 (-1 on a miss)."""
+        n = origins.shape[0]
+        if n == 0 or self.num_faces == 0:
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
+        far = np.ascontiguousarray(np.minimum(t_far, 3.0e38), np.float32)
+        res = self._scene.run(np.ascontiguousarray(origins, np.float32),
+                              np.ascontiguousarray(dirs, np.float32), dists=far, output=1)
+        prim = res["primID"].astype(np.int64)
+        t = np.where(prim >= 0, res["tfar"], np.inf).astype(np.float32)
+        return t, prim
+
+
+class Open3DBackend:
+    """open3d RaycastingScene: multi-threaded; no far limit in traversal, so it is applied after."""
+
+    name = "open3d"
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray, nthreads: int = 0):
+        try:
+            import open3d as o3d
+        except ImportError as exc:  # pragma: no cover - depends on the install
+            raise BackendUnavailable(
+                f"open3d is not importable ({exc}); on Debian it needs libusb-1.0-0") from None
+        self.num_faces = int(faces.shape[0])
+        self._nthreads = nthreads
+        self._scene = o3d.t.geometry.RaycastingScene()
+        if self.num_faces:
+            self._scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, np.float32)),
+                                      o3d.core.Tensor(np.ascontiguousarray(faces, np.uint32)))
+            # The BVH is committed on the first query: build it now.
+            self._scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))
+        self._o3d = o3d
+
+    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray):
+        n = origins.shape[0]
+        if n == 0 or self.num_faces == 0:
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
+        rays = np.empty((n, 6), np.float32)
+        rays[:, :3] = origins
+        rays[:, 3:] = dirs
+        res = self._scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self._nthreads)
+        t = res["t_hit"].numpy()
+        prim = res["primitive_ids"].numpy().astype(np.int64)
+        miss = ~np.isfinite(t) | (t > t_far)
+        prim[miss] = -1
+        t = np.where(miss, np.inf, t).astype(np.float32)
+        return t, prim
+
+
+def make_backend(name: str, vertices: np.ndarray, faces: np.ndarray):
+    """Build a backend by name ('open3d' or 'embreex') over a triangle mesh."""
+    if name == "open3d":
+        return Open3DBackend(vertices, faces)
+    if name == "embreex":
+        return EmbreexBackend(vertices, faces)
+    raise ValueError(f"backend: expected one of {BACKENDS}, got {name!r}")
