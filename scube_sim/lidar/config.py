@@ -81,8 +81,10 @@ class Channels(_Strict):
 
 class SpinningPattern(_Strict):
     """A rotating multi-beam head: column j fires at ``j / (columns * rotation_hz)`` seconds after
-    the sweep start, channel c a further ``fire_time_us[c]``; the beam azimuth is the head angle at
-    that instant plus ``azimuth_offset_deg[c]``."""
+    the sweep start, channel c a further ``fire_time_us[c]`` (relative to the column's encoder
+    instant; may be negative, as in Hesai's tables). The beam azimuth is the head angle at that
+    instant plus ``azimuth_offset_deg[c]``; the head angle is ``start_azimuth_deg`` at the sweep
+    start and turns at ``rotation_hz``, clockwise seen from above for ``cw``."""
 
     type: Literal["spinning"] = "spinning"
     columns: int = Field(gt=0, le=100_000)

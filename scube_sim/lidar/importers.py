@@ -45,7 +45,8 @@ import numpy as np
 
 from .config import ConfigError, LidarConfig, config_from_dict, load_yaml
 
-__all__ = ["from_velodyne_yaml", "from_hesai_csv", "from_ouster_json", "from_waymo_frame"]
+__all__ = ["from_velodyne_yaml", "from_hesai_csv", "from_ouster_json", "from_waymo_frame",
+           "velodyne_distance_resolution", "parse_lidar_mode"]
 
 
 # --- shared helpers ----------------------------------------------------------------------------
@@ -66,6 +67,12 @@ def _float(value, path: Path, where: str) -> float:
     if not math.isfinite(out):
         raise ConfigError(f"{path}: {where}: expected a finite number, got {value!r}")
     return out
+
+
+def _deg(rad: float) -> float:
+    """Radians -> degrees rounded at 1e-10 degrees (0.3 nm at 200 m), so that the presets read
+    -15.0 rather than -14.999999999999998."""
+    return round(math.degrees(rad), 10) + 0.0  # + 0.0 turns -0.0 into 0.0
 
 
 def _nonzero_or_none(values: list[float]) -> list[float] | None:
@@ -127,8 +134,8 @@ def from_velodyne_yaml(path: str | Path, *, columns: int, rotation_hz: float, na
         return out
 
     channels = {
-        "elevation_deg": [math.degrees(v) for v in table("vert_correction")],
-        "azimuth_offset_deg": _nonzero_or_none([math.degrees(v) for v in table("rot_correction")]),
+        "elevation_deg": [_deg(v) for v in table("vert_correction")],
+        "azimuth_offset_deg": _nonzero_or_none([_deg(v) for v in table("rot_correction")]),
         "fire_time_us": fire_time_us,
         "origin_vertical_m": _nonzero_or_none(table("vert_offset_correction", 0.0)),
         "origin_horizontal_m": _nonzero_or_none(table("horiz_offset_correction", 0.0)),
@@ -248,7 +255,9 @@ def _hesai_fire_times(path: Path, n: int, operation_mode: int, angle_state: int,
                 if mode_row[i] == str(operation_mode) and state_row[i] == str(angle_state)), None)
     if col is None:
         raise ConfigError(f"{path}: no column for operation mode {operation_mode}, angle state {angle_state}")
-    per_us = {"ns": 1000.0, "us": 1.0}[mode_table_unit]
+    if mode_table_unit not in ("ns", "us"):
+        raise ValueError(f"mode_table_unit must be 'ns' or 'us', got {mode_table_unit!r}")
+    per_us = 1000.0 if mode_table_unit == "ns" else 1.0
     table = {}
     for line, row in enumerate(rows[first:], start=first + 1):
         ch = _channel_number(row[0], path, line)
@@ -400,7 +409,7 @@ def from_waymo_frame(frame_metadata_json: str | Path, laser_name: str = "TOP", *
     if not incl:
         raise ConfigError(f"{path}: laser {laser_name}: beam_inclinations_rad is missing or empty "
                           f"(this laser only publishes min/max inclination)")
-    elevation = [math.degrees(_float(v, path, f"{laser_name}.beam_inclinations_rad[{i}]"))
+    elevation = [_deg(_float(v, path, f"{laser_name}.beam_inclinations_rad[{i}]"))
                  for i, v in enumerate(incl)]
     from ..transforms import rotmat_to_euler
 
@@ -409,7 +418,7 @@ def from_waymo_frame(frame_metadata_json: str | Path, laser_name: str = "TOP", *
         m = np.asarray(ext, dtype=np.float64).reshape(4, 4)
     except (TypeError, ValueError):
         raise ConfigError(f"{path}: laser {laser_name}: extrinsic_laser_to_vehicle_4x4 is not a 4x4 matrix") from None
-    rpy = [math.degrees(a) for a in rotmat_to_euler(m[:3, :3])]
+    rpy = [_deg(a) for a in rotmat_to_euler(m[:3, :3])]
     yaw = math.degrees(math.atan2(m[1, 0], m[0, 0]))
     start = (180.0 - 180.0 / columns - yaw + 180.0) % 360.0 - 180.0
     pattern = {"type": "spinning", "columns": columns, "rotation_hz": rotation_hz, "direction": "cw",

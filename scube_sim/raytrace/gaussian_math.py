@@ -83,7 +83,7 @@ _BOX_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
 _BOX_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                    [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int64)
 
-PROXY_KINDS = ("octahedron", "icosahedron", "voxel_box")
+PROXY_KINDS = ("box", "octahedron", "icosahedron", "voxel_box")
 
 
 def _template_mesh(template_v, template_f, centers, axes_scaled):
@@ -101,7 +101,11 @@ def gaussian_proxies(kind: str, means, rotations, scales, k: float, pad: float):
     Returns (vertices (P, 3) float32, faces (F, 3) int32, faces_per_proxy). The proxy of Gaussian
     i owns faces [i * fpp, (i + 1) * fpp). `pad` absorbs float32 rounding of rays and vertices.
     """
-    if kind == "octahedron":
+    if kind == "box":
+        # The ellipsoid's oriented bounding box: tightest of the three for flat (surfel) Gaussians
+        # seen face-on, which is how a surface VoxSplat is mostly seen.
+        tv, tf, scale = _BOX_V, _BOX_F, 1.0
+    elif kind == "octahedron":
         tv, tf, scale = _OCTA_V, _OCTA_F, _OCTA_SCALE
     elif kind == "icosahedron":
         tv, tf, scale = _ICO_V, _ICO_F, _ICO_SCALE
