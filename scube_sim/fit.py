@@ -14,19 +14,19 @@ from __future__ import annotations
 import numpy as np
 
 from .transforms import rotmat_to_quat
-from .voxsplat import NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0, VoxSplat
+from .voxsplat import NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0, VoxSplat, unique_voxels
 
 
-def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int):
-    """Count, mean (K, 3) and covariance (K, 3, 3) of points grouped by integer key."""
-    cnt = np.bincount(key, minlength=nkeys).astype(np.float64)
-    safe = np.maximum(cnt, 1.0)
-    mean = np.stack([np.bincount(key, weights=p[:, i], minlength=nkeys) for i in range(3)], 1) / safe[:, None]
+def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int, w: np.ndarray):
+    """Weight, weighted mean (K, 3) and covariance (K, 3, 3) of points grouped by integer key."""
+    cnt = np.bincount(key, weights=w, minlength=nkeys)
+    safe = np.where(cnt > 0, cnt, 1.0)
+    mean = np.stack([np.bincount(key, weights=w * p[:, i], minlength=nkeys) for i in range(3)], 1) / safe[:, None]
     q = p - mean[key]  # centred first: the second moments stay accurate far from the origin
     cov = np.empty((nkeys, 3, 3))
     for i in range(3):
         for j in range(i, 3):
-            cov[:, i, j] = cov[:, j, i] = np.bincount(key, weights=q[:, i] * q[:, j], minlength=nkeys) / safe
+            cov[:, i, j] = cov[:, j, i] = np.bincount(key, weights=w * q[:, i] * q[:, j], minlength=nkeys) / safe
     return cnt, mean, cov
 
 
@@ -37,6 +37,7 @@ def fit_voxsplat(
     gaussians_per_voxel: int = 4,
     colors: np.ndarray | None = None,
     labels: np.ndarray | None = None,
+    weights: np.ndarray | None = None,
     origin: np.ndarray | None = None,
     min_scale: float | None = None,
     max_normal_scale: float | None = None,
@@ -64,13 +65,12 @@ def fit_voxsplat(
     min_scale = 0.01 * vs if min_scale is None else float(min_scale)
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
 
-    ijk_all = np.floor(p / vs).astype(np.int64)
-    uniq, inv, counts = np.unique(ijk_all, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
+    w = np.ones(p.shape[0]) if weights is None else np.asarray(weights, np.float64).reshape(-1)
+    uniq, inv, counts = unique_voxels(np.floor(p / vs))
     if min_points > 1:
         keep_v = counts >= min_points
         keep_p = keep_v[inv]
-        p, inv = p[keep_p], np.cumsum(keep_v)[inv[keep_p]] - 1
+        p, w, inv = p[keep_p], w[keep_p], np.cumsum(keep_v)[inv[keep_p]] - 1
         colors = None if colors is None else np.asarray(colors)[keep_p]
         labels = None if labels is None else np.asarray(labels)[keep_p]
         uniq = uniq[keep_v]
@@ -82,14 +82,14 @@ def fit_voxsplat(
     for level in range(levels):
         nk = nv << level
         key = (inv << level) + cluster
-        _, mean, cov = _group_moments(key, p, nk)
+        _, mean, cov = _group_moments(key, p, nk, w)
         _, vec = np.linalg.eigh(cov)
         axis = vec[:, :, 2]  # eigenvector of the largest eigenvalue
         side = np.einsum("ij,ij->i", p - mean[key], axis[key]) > 0
         cluster = cluster * 2 + side
 
     key = inv * m + cluster
-    cnt, mean, cov = _group_moments(key, p, nv * m)
+    cnt, mean, cov = _group_moments(key, p, nv * m, w)
     evals, evecs = np.linalg.eigh(cov)  # ascending: column 0 is the surface normal
     sig = np.sqrt(np.maximum(evals, 0.0))
     if max_normal_scale is not None:
@@ -108,8 +108,8 @@ def fit_voxsplat(
     params[:, QUAT] = quats
     if colors is not None:
         c = np.asarray(colors, np.float64)
-        safe = np.maximum(cnt, 1.0)
-        cm = np.stack([np.bincount(key, weights=c[:, i], minlength=nv * m) for i in range(3)], 1) / safe[:, None]
+        safe = np.where(cnt > 0, cnt, 1.0)
+        cm = np.stack([np.bincount(key, weights=w * c[:, i], minlength=nv * m) for i in range(3)], 1) / safe[:, None]
         params[:, RGB] = (cm - 0.5) / SH_C0
     valid = (cnt > 0).reshape(nv, m)
     params = params.reshape(nv, m, NUM_RAW)
@@ -120,7 +120,8 @@ def fit_voxsplat(
     if labels is not None:
         lab = np.asarray(labels, np.int64)
         pair = inv * 1024 + lab
-        up, pc = np.unique(pair, return_counts=True)
+        up, upi = np.unique(pair, return_inverse=True)
+        pc = np.bincount(upi.reshape(-1), weights=w)  # label weight (area) per voxel
         pv, pl = up // 1024, up % 1024
         best = np.lexsort((pl, -pc, pv))  # most frequent, ties to the smaller id
         first = np.r_[True, pv[best][1:] != pv[best][:-1]]

@@ -34,6 +34,24 @@ OFFSET, OPACITY, SCALE, QUAT, RGB = slice(0, 3), slice(3, 4), slice(4, 7), slice
 _LOG_SCALE_MIN, _LOG_SCALE_MAX = np.log(1e-9), np.log(1e4)
 
 
+def voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """(N, 3) integer voxel indices -> (N,) int64 keys that sort like (i, j, k); |index| < 2^20."""
+    ijk = np.asarray(ijk, np.int64)
+    if ijk.size and np.abs(ijk).max() >= 1 << 20:
+        raise ValueError("voxel indices beyond +-2^20: the scene is too large for this voxel size")
+    b = ijk + (1 << 20)
+    return (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2]
+
+
+def unique_voxels(ijk: np.ndarray):
+    """Unique voxels of (N, 3) indices: (unique (V, 3) int64, inverse (N,), counts (V,))."""
+    keys = voxel_keys(ijk)
+    uk, inv, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    mask = (1 << 21) - 1
+    uniq = np.stack([(uk >> 42) & mask, (uk >> 21) & mask, uk & mask], 1) - (1 << 20)
+    return uniq, inv.reshape(-1), counts
+
+
 @dataclass
 class Gaussians:
     """Activated Gaussians, flat. Positions are in the local frame of `origin`.
@@ -232,11 +250,7 @@ class VoxSplat:
                 origin = g.origin
         origin = np.asarray(origin, dtype=np.float64)
         local = world - origin
-        ijk_all = np.floor(local / voxel_size).astype(np.int64)
-        if len(g) and np.abs(ijk_all).max() >= 2**31 - 1:
-            raise ValueError("from_gaussians: scene too large for int32 voxel indices at this voxel size")
-        uniq, inv, counts = np.unique(ijk_all, axis=0, return_inverse=True, return_counts=True)
-        inv = inv.reshape(-1)
+        uniq, inv, counts = unique_voxels(np.floor(local / voxel_size))
         m = int(counts.max()) if len(g) else 1
         if max_per_voxel is not None:
             m = min(m, int(max_per_voxel))

@@ -73,16 +73,44 @@ class Open3DBackend:
         n = origins.shape[0]
         if n == 0 or self.num_faces == 0:
             return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
-        rays = np.empty((n, 6), np.float32)
-        rays[:, :3] = origins
-        rays[:, 3:] = dirs
-        res = self._scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self._nthreads)
+        res = self._scene.cast_rays(self._o3d.core.Tensor(_o3d_rays(origins, dirs)), nthreads=self._nthreads)
         t = res["t_hit"].numpy()
         prim = res["primitive_ids"].numpy().astype(np.int64)
         miss = ~np.isfinite(t) | (t > t_far)
         prim[miss] = -1
         t = np.where(miss, np.inf, t).astype(np.float32)
         return t, prim
+
+    def all_hits(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray, chunk_hits: int = 4_000_000):
+        """Every face crossing of every ray up to its far limit, in one traversal per chunk of rays
+        (chunked so that at most about `chunk_hits` crossings are held at once).
+
+        Yields (ray index (K,) int64 into the given rays, t (K,) float32, prim (K,) int64)."""
+        n = origins.shape[0]
+        if n == 0 or self.num_faces == 0:
+            return
+        rays = _o3d_rays(origins, dirs)
+        counts = self._scene.count_intersections(self._o3d.core.Tensor(rays), nthreads=self._nthreads).numpy()
+        csum = np.cumsum(counts.astype(np.int64))
+        lo = 0
+        while lo < n:
+            base = csum[lo - 1] if lo else 0
+            hi = max(lo + 1, int(np.searchsorted(csum, base + chunk_hits, side="right")))
+            hi = min(hi, n)
+            res = self._scene.list_intersections(self._o3d.core.Tensor(rays[lo:hi]), nthreads=self._nthreads)
+            ray = res["ray_ids"].numpy().astype(np.int64) + lo
+            t = res["t_hit"].numpy()
+            prim = res["primitive_ids"].numpy().astype(np.int64)
+            keep = t <= t_far[ray]
+            yield ray[keep], t[keep], prim[keep]
+            lo = hi
+
+
+def _o3d_rays(origins, dirs):
+    rays = np.empty((origins.shape[0], 6), np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = dirs
+    return rays
 
 
 def make_backend(name: str, vertices: np.ndarray, faces: np.ndarray):

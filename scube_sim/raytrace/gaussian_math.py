@@ -95,26 +95,46 @@ def _template_mesh(template_v, template_f, centers, axes_scaled):
     return verts.reshape(-1, 3).astype(np.float32), faces.reshape(-1, 3).astype(np.int32)
 
 
-def gaussian_proxies(kind: str, means, rotations, scales, k: float, pad: float):
-    """Closed polyhedra that contain each Gaussian's k-sigma ellipsoid dilated by `pad` metres.
-
-    Returns (vertices (P, 3) float32, faces (F, 3) int32, faces_per_proxy). The proxy of Gaussian
-    i owns faces [i * fpp, (i + 1) * fpp). `pad` absorbs float32 rounding of rays and vertices.
-    """
+def _template(kind: str):
     if kind == "box":
         # The ellipsoid's oriented bounding box: tightest of the three for flat (surfel) Gaussians
         # seen face-on, which is how a surface VoxSplat is mostly seen.
-        tv, tf, scale = _BOX_V, _BOX_F, 1.0
-    elif kind == "octahedron":
-        tv, tf, scale = _OCTA_V, _OCTA_F, _OCTA_SCALE
-    elif kind == "icosahedron":
-        tv, tf, scale = _ICO_V, _ICO_F, _ICO_SCALE
-    else:
-        raise ValueError(f"proxy: expected one of {PROXY_KINDS}, got {kind!r}")
-    semi = k * np.asarray(scales, np.float64) + pad
+        return _BOX_V, _BOX_F, 1.0
+    if kind == "octahedron":
+        return _OCTA_V, _OCTA_F, _OCTA_SCALE
+    if kind == "icosahedron":
+        return _ICO_V, _ICO_F, _ICO_SCALE
+    if kind == "voxel_box":
+        return _BOX_V, _BOX_F, 1.0
+    raise ValueError(f"proxy: expected one of {PROXY_KINDS}, got {kind!r}")
+
+
+def template_planes(kind: str):
+    """Outward unit normals (F, 3) and offsets (F,) of a proxy template's faces, in template
+    coordinates (where the template's vertices are `tv`): a point y is inside iff y.n <= h."""
+    tv, tf, _ = _template(kind)
+    t = tv[tf]
+    n = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    h = np.einsum("ij,ij->i", n, t[:, 0])
+    assert np.all(h > 0), "template faces must wind outwards"
+    return n, h
+
+
+def gaussian_proxies(kind: str, means, rotations, scales, k: float, pad: float):
+    """Closed convex polyhedra that contain each Gaussian's k-sigma ellipsoid dilated by `pad` m.
+
+    Returns (vertices (P, 3) float32, faces (F, 3) int32, faces_per_proxy, frame_scale (N, 3)).
+    The proxy of Gaussian i owns faces [i * fpp, (i + 1) * fpp). Template coordinates of a point
+    x are ``frame_scale * (A (x - mu))`` with A = S^-1 R^T (see `unit_frame_matrices`). `pad`
+    absorbs float32 rounding of rays and vertices.
+    """
+    tv, tf, scale = _template(kind)
+    s = np.asarray(scales, np.float64)
+    semi = k * s + pad
     axes = rotations * (scale * semi)[:, None, :]
     v, f = _template_mesh(tv, tf, np.asarray(means, np.float64), axes)
-    return v, f, tf.shape[0]
+    return v, f, tf.shape[0], s / (scale * semi)
 
 
 def gaussian_aabbs(means, rotations, scales, k: float):

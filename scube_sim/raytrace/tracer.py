@@ -197,8 +197,11 @@ class Tracer:
             self._box_members = np.full((vox.shape[0], m), -1, np.int64)
             self._box_members[inv[order], slot] = order
             v, f, fpp = gm.box_proxies(blo, bhi, pad)
+            self._box_center = 0.5 * (blo + bhi)
+            self._box_half = 0.5 * (bhi - blo) + pad
         else:
-            v, f, fpp = gm.gaussian_proxies(self.proxy, self._mu, rot, g.scales, self.k, pad)
+            v, f, fpp, self._frame_scale = gm.gaussian_proxies(self.proxy, self._mu, rot, g.scales, self.k, pad)
+        self._planes_n, self._planes_h = gm.template_planes(self.proxy)
         self._set_bounds(v.min(0).astype(np.float64) if len(v) else np.zeros(3),
                          v.max(0).astype(np.float64) if len(v) else np.zeros(3))
         self._faces_per_proxy = fpp
@@ -295,9 +298,29 @@ class Tracer:
         return out
 
     # --- hard Gaussians ----------------------------------------------------------------------
-    def _candidates(self, prim: np.ndarray, rays: np.ndarray):
-        """Proxy faces -> (ray index, Gaussian index) pairs to test exactly."""
+    def _to_template(self, owner, x, is_dir):
+        """Points (or directions) (n, 3) into the template coordinates of proxies `owner`."""
+        if self.proxy == "voxel_box":
+            return (x if is_dir else x - self._box_center[owner]) / self._box_half[owner]
+        v = x if is_dir else x - self._mu[owner]
+        return self._frame_scale[owner] * gm._matvec(self._a[owner], v)
+
+    def _candidates(self, prim, rays, d, start):
+        """Proxy faces -> (ray index, Gaussian index) pairs to test exactly.
+
+        A ray visits each (convex) proxy once: when it crosses one of its entering faces, or, for
+        a proxy it starts inside, when it leaves through an exiting face. Exit faces of proxies
+        already entered are skipped, so no (ray, Gaussian) pair is tested twice."""
         owner = prim // self._faces_per_proxy
+        face = prim % self._faces_per_proxy
+        yd = self._to_template(owner, d[rays], True)
+        entering = np.einsum("ij,ij->i", yd, self._planes_n[face]) < 0
+        leave = np.nonzero(~entering)[0]
+        if leave.size:
+            ys = self._to_template(owner[leave], start[rays[leave]], False)
+            inside = np.all(ys @ self._planes_n.T <= self._planes_h, axis=1)
+            entering[leave[inside]] = True
+        rays, owner = rays[entering], owner[entering]
         if self.proxy != "voxel_box":
             return rays, owner
         members = self._box_members[owner]  # (n, M)
@@ -316,6 +339,7 @@ class Tracer:
         best_t = np.full(n, np.inf)
         best_g = np.full(n, -1, np.int64)
         t_cur = t_lo.copy()
+        start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
         d32 = d.astype(np.float32)
         active = np.nonzero(t_hi >= t_lo)[0]
         step = self._step
@@ -332,7 +356,7 @@ class Tracer:
             active, tf, prim = active[found], tf[found], prim[found]
             if not active.size:
                 break
-            ray_idx, g = self._candidates(prim, active)
+            ray_idx, g = self._candidates(prim, active, d, start_pt)
             t_star, d2, half = self._exact(ray_idx, g, o, d)
             inside = d2 <= self.k * self.k
             if entry_mode:
@@ -385,16 +409,57 @@ class Tracer:
         return out
 
     # --- soft Gaussians ----------------------------------------------------------------------
+    def _soft_contributions(self, ray_idx, g, o, d, tmin, tmax):
+        """(ray, gaussian) pairs -> the ones that contribute: (ray, gaussian, t*, alpha)."""
+        t_star, d2, _ = self._exact(ray_idx, g, o, d)
+        alpha = self._opacity[g] * np.exp(-0.5 * d2)
+        ok = ((d2 <= self.k * self.k) & (t_star >= tmin[ray_idx]) & (t_star <= tmax[ray_idx])
+              & (alpha >= self.soft_alpha_min))
+        return ray_idx[ok], g[ok], t_star[ok], np.minimum(alpha[ok], 0.999)
+
+    def _soft_result(self, n, o, d, parts) -> Hits:
+        cr, cg, ct, ca = (np.concatenate([x[i] for x in parts]) for i in range(4))
+        if not cr.size:
+            return Hits.empty(n)
+        depth, acc, best = composite_front_to_back(cr, ct, ca, cg, n, self.soft_min_transmittance)
+        hit = acc >= self.soft_hit_alpha
+        best_t = np.where(hit, depth, np.inf)
+        best_g = np.where(hit, best, -1)
+        return self._gaussian_hits(o, d, best_t, best_g, alpha=acc.astype(np.float32))
+
+    def _trace_soft_listed(self, o, d, tmin, tmax, t_lo, t_hi) -> Hits:
+        """Soft mode with a backend that lists all crossings in one traversal (open3d): every
+        proxy along the ray at once, then the exact compositing."""
+        n = o.shape[0]
+        active = np.nonzero(t_hi >= t_lo)[0]
+        t0 = np.where(np.isfinite(t_lo), t_lo, 0.0)
+        start_pt = o + t0[:, None] * d
+        parts = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))]
+        if active.size and len(self.gaussians):
+            self.stats.casts += 1
+            self.stats.rays_cast += active.size
+            for r, _, prim in self._backend.all_hits(start_pt[active].astype(np.float32),
+                                                     d[active].astype(np.float32), (t_hi - t0)[active]):
+                ray_idx, g = self._candidates(prim, active[r], d, start_pt)
+                # A ray through a shared edge or vertex crosses several faces of one proxy at once.
+                key = np.unique(ray_idx * len(self.gaussians) + g)
+                ray_idx, g = key // len(self.gaussians), key % len(self.gaussians)
+                parts.append(self._soft_contributions(ray_idx, g, o, d, tmin, tmax))
+        return self._soft_result(n, o, d, parts)
+
     def _trace_soft(self, o, d, tmin, tmax, t_lo, t_hi) -> Hits:
+        if hasattr(self._backend, "all_hits"):
+            return self._trace_soft_listed(o, d, tmin, tmax, t_lo, t_hi)
         n = o.shape[0]
         t_cur = t_lo.copy()
+        start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
         d32 = d.astype(np.float32)
         active = np.nonzero(t_hi >= t_lo)[0]
         step = self._step
-        num_g = max(len(self.gaussians), 1)
-        seen = np.zeros(0, np.int64)  # sorted keys ray * G + gaussian already composited
-        c_ray, c_g, c_t, c_a = [], [], [], []
         log_t_min = np.log(self.soft_min_transmittance)
+        log_tr = np.zeros(n)  # log transmittance of the contributions known to be final
+        done = []  # finalised contributions (ray, gaussian, t*, alpha) per round
+        pend = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
         it = 0
         while active.size and it < self.max_iterations and len(self.gaussians):
             it += 1
@@ -407,36 +472,22 @@ class Tracer:
             active, tf, prim = active[found], tf[found], prim[found]
             if not active.size:
                 break
-            ray_idx, g = self._candidates(prim, active)
-            keys = ray_idx * num_g + g
-            keys, first = np.unique(keys, return_index=True)
-            fresh = ~np.isin(keys, seen, assume_unique=True)
-            ray_idx, g = ray_idx[first][fresh], g[first][fresh]
-            seen = np.union1d(seen, keys[fresh])
-            t_star, d2, _ = self._exact(ray_idx, g, o, d)
-            alpha = self._opacity[g] * np.exp(-0.5 * d2)
-            ok = ((d2 <= self.k * self.k) & (t_star >= tmin[ray_idx]) & (t_star <= tmax[ray_idx])
-                  & (alpha >= self.soft_alpha_min))
-            c_ray.append(ray_idx[ok]); c_g.append(g[ok]); c_t.append(t_star[ok])
-            c_a.append(np.minimum(alpha[ok], 0.999))
+            ray_idx, g = self._candidates(prim, active, d, start_pt)
+            pend = tuple(np.concatenate([a, b]) for a, b in
+                         zip(pend, self._soft_contributions(ray_idx, g, o, d, tmin, tmax)))
             t_cur[active] += tf.astype(np.float64) + step
-            # Every Gaussian not yet found has its proxy entry, hence its t*, beyond t_cur - step:
-            # the composite of the found ones in front of that point is final, so a ray whose
-            # transmittance there is already below the threshold is done.
-            cr, ct, ca = (np.concatenate(c_ray), np.concatenate(c_t), np.concatenate(c_a))
-            final = ct < (t_cur[cr] - step)
-            log_tr = np.bincount(cr[final], weights=np.log1p(-ca[final]), minlength=n)
+            # Any Gaussian not found yet has its proxy entry, hence its t*, beyond this ray's last
+            # face: contributions in front of it are final, and once their transmittance is below
+            # the threshold the ray is done.
+            final = pend[2] < t_cur[pend[0]] - step
+            if np.any(final):
+                done.append(tuple(a[final] for a in pend))
+                np.add.at(log_tr, pend[0][final], np.log1p(-pend[3][final]))
+                pend = tuple(a[~final] for a in pend)
             active = active[(log_tr[active] > log_t_min) & (t_cur[active] < t_hi[active])]
         self.stats.unfinished += int(active.size) if it >= self.max_iterations else 0
-        if not c_ray:
-            return Hits.empty(n)
-        cr, cg, ct, ca = (np.concatenate(c_ray), np.concatenate(c_g), np.concatenate(c_t),
-                          np.concatenate(c_a))
-        depth, acc, best = composite_front_to_back(cr, ct, ca, cg, n, self.soft_min_transmittance)
-        hit = acc >= self.soft_hit_alpha
-        best_t = np.where(hit, depth, np.inf)
-        best_g = np.where(hit, best, -1)
-        return self._gaussian_hits(o, d, best_t, best_g, alpha=acc.astype(np.float32))
+        done.append(pend)
+        return self._soft_result(n, o, d, done)
 
 
 def composite_front_to_back(ray, t, alpha, gid, n, min_transmittance):

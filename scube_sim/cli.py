@@ -1,0 +1,186 @@
+"""`scube-sim` command line. Errors print one line naming the problem and exit with code 2."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
+                  help="LiDAR simulation on VoxSplats (SCube): hard-opacity Gaussian ray tracing with Embree.")
+
+EXIT_USAGE = 2
+
+
+class CliError(Exception):
+    """An input problem to report in one line (exit code 2)."""
+
+
+def _fail(msg: str) -> None:
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(EXIT_USAGE)
+
+
+def _parse_pose(text: str) -> np.ndarray:
+    from .transforms import pose_from_xyz_rpy
+
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise CliError(f"--pose: expected six numbers x,y,z,roll,pitch,yaw (metres, degrees), got {text!r}")
+    if len(vals) != 6 or not np.all(np.isfinite(vals)):
+        raise CliError(f"--pose: expected six finite numbers x,y,z,roll,pitch,yaw (metres, degrees), got {text!r}")
+    return pose_from_xyz_rpy(vals[:3], vals[3:])
+
+
+def _run(fn):
+    """Run a command body, turning input errors into one-line messages and exit code 2."""
+    from .lidar.config import ConfigError
+
+    try:
+        return fn()
+    except (CliError, ConfigError, FileNotFoundError, ValueError, KeyError) as exc:
+        msg = str(exc).strip().splitlines()
+        _fail(msg[0] if len(msg) == 1 else "; ".join(msg))
+    except OSError as exc:
+        _fail(f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}".lstrip(": "))
+
+
+@app.command("lidar")
+def lidar_cmd(
+    scene: Path = typer.Argument(..., help="VoxSplat .npz or any 3DGS .ply"),
+    sensor: str = typer.Option(..., "--sensor", "-s", help="preset name (see `scube-sim sensors`) or a sensor YAML path"),
+    output: Path = typer.Option(..., "-o", "--output", help="point cloud to write: .pcd, .ply, .bin (KITTI) or .npz"),
+    pose: str = typer.Option("0,0,0,0,0,0", "--pose", help="sensor pose in the scene frame: x,y,z,roll,pitch,yaw (m, deg)"),
+    mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (entry for VoxSplats, soft for 3DGS .ply)"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex (default: the faster one)"),
+    k: float = typer.Option(3.0, "--k", help="hard surface: the k-sigma ellipsoid"),
+    seed: int = typer.Option(0, "--seed", help="random seed (noise, drops)"),
+    png: Optional[Path] = typer.Option(None, "--png", help="also write a bird's-eye view PNG"),
+) -> None:
+    """Simulate one LiDAR sweep; the output is in the sensor frame (x forward, y left, z up)."""
+
+    def body():
+        from .io.pointcloud import write_points
+        from .lidar.config import load_lidar_config
+        from .lidar.model import Lidar
+        from .raytrace.tracer import DEFAULT_BACKEND, Tracer
+        from .scene import load_scene
+        from .voxsplat import VoxSplat
+
+        sensor_pose = _parse_pose(pose)
+        if output.suffix.lower() not in (".pcd", ".ply", ".bin", ".npz"):
+            raise CliError(f"{output}: unknown point cloud format {output.suffix!r}; use .pcd, .ply, .bin or .npz")
+        cfg = load_lidar_config(sensor)
+        t0 = time.perf_counter()
+        sc = load_scene(scene)
+        m = mode if mode != "auto" else ("entry" if isinstance(sc, VoxSplat) else "soft")
+        tracer = Tracer(sc, backend=backend or DEFAULT_BACKEND, mode=m, k=k)
+        t1 = time.perf_counter()
+        sweep = Lidar(cfg).scan(tracer, sensor_pose, seed=seed)
+        t2 = time.perf_counter()
+        write_points(output, sweep.points)
+        if png:
+            from .viz import bev_png
+
+            bev_png(png, sweep.xyz(), labels=sweep.points["label"], title=f"{cfg.name} on {scene.name}")
+        typer.echo(f"{cfg.name}: {len(sweep)} points from {sweep.num_rays} rays -> {output} "
+                   f"(load+build {t1 - t0:.2f} s, sweep {t2 - t1:.3f} s, mode {m}, backend {tracer.backend_name})")
+        if len(sweep) < 0.01 * sweep.num_rays:
+            typer.echo("note: under 1 % of the rays returned; is the sensor inside a surface or outside the "
+                       "scene? (--pose is the sensor pose in the scene frame)", err=True)
+
+    _run(body)
+
+
+@app.command("export")
+def export_cmd(
+    scene: Path = typer.Argument(..., help="VoxSplat .npz or 3DGS .ply"),
+    to: str = typer.Option(..., "--to", help="ply (3DGS, Inria layout) | usd (.usda) | usdc | npz (VoxSplat)"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="default: SCENE with the new suffix"),
+    voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="for --to npz from a .ply (default: automatic)"),
+) -> None:
+    """Convert a scene between VoxSplat .npz, 3DGS .ply and USD."""
+
+    def body():
+        from .scene import as_voxsplat, load_scene
+        from .voxsplat import VoxSplat
+
+        suffixes = {"ply": ".ply", "usd": ".usda", "usda": ".usda", "usdc": ".usdc", "npz": ".npz"}
+        if to not in suffixes:
+            raise CliError(f"--to: expected one of {', '.join(suffixes)}, got {to!r}")
+        out = output or scene.with_name(scene.stem + ("_3dgs" if to == "ply" and scene.suffix == ".ply" else "")
+                                        + suffixes[to])
+        sc = load_scene(scene)
+        if to == "ply":
+            from .io.ply3dgs import write_3dgs_ply
+
+            write_3dgs_ply(out, sc.gaussians() if isinstance(sc, VoxSplat) else sc)
+        elif to == "npz":
+            as_voxsplat(sc, voxel_size).save(out)
+        else:
+            from .io.usd import export_usd
+
+            if isinstance(sc, VoxSplat):
+                export_usd(out, voxsplat=sc)
+            else:
+                export_usd(out, gaussians=sc)
+        typer.echo(f"wrote {out}")
+
+    _run(body)
+
+
+@app.command("sensors")
+def sensors_cmd() -> None:
+    """List the LiDAR presets: channels, vertical field of view, rate, columns, range."""
+
+    def body():
+        from rich.console import Console
+        from rich.table import Table
+
+        from .lidar.config import SpinningPattern, list_presets
+
+        table = Table(title="LiDAR presets (sensors/lidar/*.yaml)")
+        for col in ("id", "name", "channels", "vertical FOV [deg]", "rate [Hz]", "columns", "range [m]"):
+            table.add_column(col)
+        for cfg in list_presets():
+            p = cfg.pattern
+            if isinstance(p, SpinningPattern):
+                el = p.channels.elevation_deg
+                fov, rate, cols = f"{min(el):+.1f} .. {max(el):+.1f}", f"{p.rotation_hz:g}", str(p.columns)
+            else:
+                fov, rate, cols = "table", f"{1 / p.period_s:g}", "-"
+            table.add_row(cfg.id or "", cfg.name, str(cfg.channels), fov, rate, cols,
+                          f"{cfg.range.min_m:g} .. {cfg.range.max_m:g}")
+        Console().print(table)
+
+    _run(body)
+
+
+@app.command("demo")
+def demo_cmd(
+    output: Path = typer.Option(Path("out"), "-o", "--output", help="output folder"),
+    sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
+    voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
+    seed: int = typer.Option(0, "--seed"),
+) -> None:
+    """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/."""
+
+    def body():
+        from .demo import run_demo
+
+        run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo)
+
+    _run(body)
+
+
+def main() -> None:
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

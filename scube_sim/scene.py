@@ -1,0 +1,31 @@
+"""Load a scene file by its suffix: a VoxSplat .npz or any 3DGS .ply."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .voxsplat import Gaussians, VoxSplat
+
+
+def load_scene(path: str | Path) -> VoxSplat | Gaussians:
+    """A VoxSplat (.npz written by scube_sim) or the Gaussians of a 3DGS .ply (Inria layout)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such scene file")
+    suffix = path.suffix.lower()
+    if suffix == ".npz":
+        return VoxSplat.load(path)
+    if suffix == ".ply":
+        from .io.ply3dgs import read_3dgs_ply
+
+        return read_3dgs_ply(path)
+    raise ValueError(f"{path}: unknown scene format {path.suffix!r}; expected a VoxSplat .npz or a 3DGS .ply")
+
+
+def as_voxsplat(scene: VoxSplat | Gaussians, voxel_size: float | None = None) -> VoxSplat:
+    """A VoxSplat for any scene (3DGS Gaussians are voxelized by their centres)."""
+    if isinstance(scene, VoxSplat):
+        return scene
+    from .io.ply3dgs import default_voxel_size
+
+    return VoxSplat.from_gaussians(scene, voxel_size or default_voxel_size(scene))

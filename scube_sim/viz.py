@@ -1,0 +1,80 @@
+"""Pictures people would rather look at than read: bird's-eye views and range images (PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .io.atomic import atomic_path
+from .labels import LABEL_COLORS, LABEL_NAMES
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = None,
+            values: np.ndarray | None = None, value_name: str = "range [m]", extent: float | None = None,
+            title: str = "", point_size: float = 0.3, sensor_xy=(0.0, 0.0)) -> Path:
+    """Top-down scatter of (N, 3) points (x forward/right on the page, y up), coloured by
+    semantic label (with a legend of the classes present) or by a scalar (with a colour bar)."""
+    plt = _plt()
+    xyz = np.asarray(xyz, np.float64)
+    fig, ax = plt.subplots(figsize=(8, 8), dpi=120)
+    order = np.argsort(xyz[:, 2]) if len(xyz) else np.zeros(0, int)  # high points drawn last
+    p = xyz[order]
+    if labels is not None:
+        lab = np.asarray(labels)[order].astype(int)
+        ax.scatter(p[:, 0], p[:, 1], s=point_size, c=LABEL_COLORS[lab] / 255.0, linewidths=0)
+        present = np.unique(lab)
+        handles = [plt.Line2D([], [], marker="o", ls="", color=LABEL_COLORS[i] / 255.0, label=LABEL_NAMES[i])
+                   for i in present]
+        ax.legend(handles=handles, loc="upper right", fontsize=7, markerscale=1.5, framealpha=0.8)
+    else:
+        val = np.linalg.norm(p[:, :2], axis=1) if values is None else np.asarray(values)[order]
+        sc = ax.scatter(p[:, 0], p[:, 1], s=point_size, c=val, cmap="viridis", linewidths=0)
+        fig.colorbar(sc, ax=ax, fraction=0.04, label=value_name)
+    ax.plot([sensor_xy[0]], [sensor_xy[1]], "r^", ms=8)
+    if extent is not None:
+        ax.set_xlim(sensor_xy[0] - extent, sensor_xy[0] + extent)
+        ax.set_ylim(sensor_xy[1] - extent, sensor_xy[1] + extent)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: float | None = None,
+                     title: str = "") -> Path:
+    """Stack (rings, columns) images one above the other (NaN = no return)."""
+    plt = _plt()
+    n = len(images)
+    fig, axes = plt.subplots(n, 1, figsize=(14, 1.6 * n + 0.8), dpi=110, squeeze=False)
+    for ax, (name, img) in zip(axes[:, 0], images.items()):
+        im = ax.imshow(img, aspect="auto", interpolation="nearest", cmap="turbo", vmin=0,
+                       vmax=vmax if vmax is not None else np.nanpercentile(img, 99) if np.isfinite(img).any() else 1)
+        ax.set_ylabel(name, fontsize=8)
+        ax.set_yticks([])
+        fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01)
+    axes[-1, 0].set_xlabel("column")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
