@@ -13,7 +13,6 @@ import argparse
 import json
 import math
 import os
-import pickle
 import sys
 from pathlib import Path
 
@@ -30,6 +29,7 @@ from scube_sim.lidar.importers import (  # noqa: E402
     from_waymo_frame,
     velodyne_distance_resolution,
 )
+from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
 from scube_sim.transforms import euler_to_rotmat, rotmat_to_euler  # noqa: E402
 
 VELODYNE = ("ros-drivers/velodyne @ 29abd0e1361cb7f5eda451d2b51c35eeca45e0d5, "
@@ -100,8 +100,7 @@ def nuscenes_hdl32e_mount(data: Path) -> tuple[dict, str]:
     pkl = data / "nuscenes-mmdet3d-demo" / "n015-2018-07-24-11-22-45+0800.pkl"
     if not pkl.is_file():
         return ROOF, ROOF_NOTE
-    with open(pkl, "rb") as fh:
-        info = pickle.load(fh)  # a known third-party file: builtins and numpy only (its README)
+    info = load_pickle(pkl)  # restricted: builtins and numpy only
     lidar2ego = np.asarray(info["data_list"][0]["lidar_points"]["lidar2ego"], dtype=np.float64)
     # nuScenes' LIDAR_TOP frame is the Velodyne driver frame (x right, y forward); ours is the ROS
     # frame (x forward, y left): ours -> theirs is a +90 degree yaw.

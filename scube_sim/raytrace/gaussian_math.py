@@ -83,7 +83,25 @@ _BOX_V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
 _BOX_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
                    [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], np.int64)
 
-PROXY_KINDS = ("box", "octahedron", "icosahedron", "voxel_box")
+PROXY_KINDS = ("octahedron", "icosahedron", "voxel_box")
+
+
+def template_rotations(index: np.ndarray) -> np.ndarray:
+    """(N,) integer ids -> (N, 3, 3) rotations, deterministic and different for neighbouring ids.
+
+    Each per-Gaussian proxy template is turned by its own rotation (any rotation of a template
+    that contains the unit sphere still contains it). Without this, Gaussians fitted on a plane
+    share orientation and size, and their proxies' faces lie exactly in common planes: a ray then
+    meets several faces at the same distance, and Embree reports only one of them. Shoemake's
+    uniform quaternion from a Kronecker (golden-ratio) sequence."""
+    i = np.asarray(index, np.float64)[:, None]
+    u = np.mod(i * np.array([0.7548776662466927, 0.5698402909980532, 0.3221518669916131]) + 0.5, 1.0)
+    a, b = np.sqrt(1 - u[:, 0]), np.sqrt(u[:, 0])
+    w, x = a * np.sin(2 * np.pi * u[:, 1]), a * np.cos(2 * np.pi * u[:, 1])
+    y, z = b * np.sin(2 * np.pi * u[:, 2]), b * np.cos(2 * np.pi * u[:, 2])
+    from ..transforms import quat_to_rotmat
+
+    return quat_to_rotmat(np.stack([w, x, y, z], 1)).reshape(-1, 3, 3)
 
 
 def _template_mesh(template_v, template_f, centers, axes_scaled):
@@ -96,10 +114,6 @@ def _template_mesh(template_v, template_f, centers, axes_scaled):
 
 
 def _template(kind: str):
-    if kind == "box":
-        # The ellipsoid's oriented bounding box: tightest of the three for flat (surfel) Gaussians
-        # seen face-on, which is how a surface VoxSplat is mostly seen.
-        return _BOX_V, _BOX_F, 1.0
     if kind == "octahedron":
         return _OCTA_V, _OCTA_F, _OCTA_SCALE
     if kind == "icosahedron":
@@ -126,13 +140,14 @@ def gaussian_proxies(kind: str, means, rotations, scales, k: float, pad: float):
 
     Returns (vertices (P, 3) float32, faces (F, 3) int32, faces_per_proxy, frame_scale (N, 3)).
     The proxy of Gaussian i owns faces [i * fpp, (i + 1) * fpp). Template coordinates of a point
-    x are ``frame_scale * (A (x - mu))`` with A = S^-1 R^T (see `unit_frame_matrices`). `pad`
-    absorbs float32 rounding of rays and vertices.
+    x are ``Q_i^T (frame_scale * (A (x - mu)))`` with A = S^-1 R^T (`unit_frame_matrices`) and
+    Q_i = template_rotations(i). `pad` absorbs float32 rounding of rays and vertices.
     """
     tv, tf, scale = _template(kind)
     s = np.asarray(scales, np.float64)
     semi = k * s + pad
     axes = rotations * (scale * semi)[:, None, :]
+    axes = axes @ template_rotations(np.arange(s.shape[0]))
     v, f = _template_mesh(tv, tf, np.asarray(means, np.float64), axes)
     return v, f, tf.shape[0], s / (scale * semi)
 
@@ -143,10 +158,11 @@ def gaussian_aabbs(means, rotations, scales, k: float):
     return means - half, means + half
 
 
-def box_proxies(lo: np.ndarray, hi: np.ndarray, pad: float):
-    """Axis-aligned boxes (N, 3) corners -> (vertices float32, faces int32, 12)."""
+def box_proxies(lo: np.ndarray, hi: np.ndarray, pad):
+    """Axis-aligned boxes (N, 3) corners, dilated by pad (scalar or (N,)) ->
+    (vertices float32, faces int32, 12)."""
     c = 0.5 * (lo + hi)
-    h = 0.5 * (hi - lo) + pad
+    h = 0.5 * (hi - lo) + np.reshape(pad, (-1, 1))
     axes = np.zeros((c.shape[0], 3, 3))
     axes[:, 0, 0], axes[:, 1, 1], axes[:, 2, 2] = h[:, 0], h[:, 1], h[:, 2]
     v, f = _template_mesh(_BOX_V, _BOX_F, c, axes)

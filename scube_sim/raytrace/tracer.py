@@ -196,9 +196,19 @@ class Tracer:
             slot = np.arange(order.shape[0]) - starts[inv[order]]
             self._box_members = np.full((vox.shape[0], m), -1, np.int64)
             self._box_members[inv[order], slot] = order
-            v, f, fpp = gm.box_proxies(blo, bhi, pad)
+            # Boxes of neighbouring voxels share face planes (a flat ground gives every box the
+            # same top), and Embree reports one of several faces met at the same distance. So
+            # overlapping boxes get different dilations: a class per voxel index modulo c, where
+            # c = 2 * reach + 1 and reach is how many cells a box reaches beyond its own.
+            ijk = scene.ijk[vox].astype(np.int64)
+            cell_lo = ijk * scene.voxel_size
+            reach = max(np.max((cell_lo - blo) / scene.voxel_size), np.max((bhi - cell_lo) / scene.voxel_size - 1), 0.0)
+            c = 2 * int(np.ceil(reach)) + 1
+            cls = (ijk[:, 0] % c) * c * c + (ijk[:, 1] % c) * c + (ijk[:, 2] % c)
+            dil = pad * (1.0 + 2.0 * cls)
+            v, f, fpp = gm.box_proxies(blo, bhi, dil)
             self._box_center = 0.5 * (blo + bhi)
-            self._box_half = 0.5 * (bhi - blo) + pad
+            self._box_half = 0.5 * (bhi - blo) + dil[:, None]
         else:
             v, f, fpp, self._frame_scale = gm.gaussian_proxies(self.proxy, self._mu, rot, g.scales, self.k, pad)
         self._planes_n, self._planes_h = gm.template_planes(self.proxy)
@@ -214,12 +224,10 @@ class Tracer:
         Rays are clipped to the scene bounds in float64 before they are handed to Embree in
         float32, so a float32 ray is never further from the scene than its extent: its rounding
         (origin and direction, ~1.2e-7 relative) stays below a few ulps of the extent wherever it
-        meets a proxy. Proxies grow by `_pad` to absorb that, and a re-cast starts `_step` past
-        the last face so that the same face is not found again."""
+        meets a proxy. Proxies grow by `_pad` to absorb that."""
         self.extent = float(extent)
         eps32 = float(np.finfo(np.float32).eps)
         self._pad = 8.0 * eps32 * self.extent + 1e-12
-        self._step = 2.0 * self._pad
 
     def _set_bounds(self, lo: np.ndarray, hi: np.ndarray) -> None:
         self._lo = np.asarray(lo, np.float64) - 2.0 * self._pad
@@ -298,20 +306,39 @@ class Tracer:
         return out
 
     # --- hard Gaussians ----------------------------------------------------------------------
+    def _next_step(self, active, prim, face_pts, last_prim, step):
+        """How far past the face just found the next cast starts, per active ray.
+
+        As little as float32 allows at the cast's origin (4 ulps), so that faces closer than the
+        step to the one found are rarely skipped; if a ray finds the same face again (its new
+        origin rounded back onto it), its step grows fourfold until it gets past. Returns the
+        steps and which rays found their previous face again (not to be processed twice)."""
+        base = 4.0 * np.finfo(np.float32).eps * np.maximum(np.abs(face_pts).max(axis=1), 1e-3)
+        again = prim == last_prim[active]
+        st = np.where(again, np.maximum(step[active] * 4.0, base), base)
+        step[active] = st
+        last_prim[active] = prim
+        return st, again
+
     def _to_template(self, owner, x, is_dir):
         """Points (or directions) (n, 3) into the template coordinates of proxies `owner`."""
         if self.proxy == "voxel_box":
             return (x if is_dir else x - self._box_center[owner]) / self._box_half[owner]
         v = x if is_dir else x - self._mu[owner]
-        return self._frame_scale[owner] * gm._matvec(self._a[owner], v)
+        y = self._frame_scale[owner] * gm._matvec(self._a[owner], v)
+        return np.einsum("nji,nj->ni", gm.template_rotations(owner), y)  # Q^T y
 
     def _candidates(self, prim, rays, d, start):
         """Proxy faces -> (ray index, Gaussian index) pairs to test exactly.
 
-        A ray visits each (convex) proxy once: when it crosses one of its entering faces, or, for
-        a proxy it starts inside, when it leaves through an exiting face. Exit faces of proxies
-        already entered are skipped, so no (ray, Gaussian) pair is tested twice."""
+        In soft mode a ray visits each (convex) proxy once: when it crosses one of its entering
+        faces, or, for a proxy it starts inside, when it leaves through an exiting face. Exit
+        faces of proxies already entered are skipped, so no Gaussian is composited twice."""
         owner = prim // self._faces_per_proxy
+        if self.mode != "soft":
+            # Hard modes keep the nearest exact hit, so a repeated pair costs one exact test and
+            # changes nothing; the visit test would cost about as much as it saves.
+            return self._expand(rays, owner)
         face = prim % self._faces_per_proxy
         yd = self._to_template(owner, d[rays], True)
         entering = np.einsum("ij,ij->i", yd, self._planes_n[face]) < 0
@@ -320,7 +347,10 @@ class Tracer:
             ys = self._to_template(owner[leave], start[rays[leave]], False)
             inside = np.all(ys @ self._planes_n.T <= self._planes_h, axis=1)
             entering[leave[inside]] = True
-        rays, owner = rays[entering], owner[entering]
+        return self._expand(rays[entering], owner[entering])
+
+    def _expand(self, rays, owner):
+        """Proxy owners -> Gaussians (a voxel box stands for all of its voxel's Gaussians)."""
         if self.proxy != "voxel_box":
             return rays, owner
         members = self._box_members[owner]  # (n, M)
@@ -342,7 +372,8 @@ class Tracer:
         start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
         d32 = d.astype(np.float32)
         active = np.nonzero(t_hi >= t_lo)[0]
-        step = self._step
+        step = np.zeros(n)
+        last_prim = np.full(n, -1, np.int64)
         entry_mode = self.mode == "entry"
         it = 0
         while active.size and it < self.max_iterations and len(self.gaussians):
@@ -356,6 +387,7 @@ class Tracer:
             active, tf, prim = active[found], tf[found], prim[found]
             if not active.size:
                 break
+            t_step, _ = self._next_step(active, prim, start[found] + tf[:, None] * d32[active], last_prim, step)
             ray_idx, g = self._candidates(prim, active, d, start_pt)
             t_star, d2, half = self._exact(ray_idx, g, o, d)
             inside = d2 <= self.k * self.k
@@ -376,7 +408,7 @@ class Tracer:
             better = th < best_t[ri]
             best_t[ri[better]] = th[better]
             best_g[ri[better]] = gi[better]
-            t_cur[active] += tf.astype(np.float64) + step
+            t_cur[active] += tf.astype(np.float64) + t_step
             go_on = t_cur[active] < np.minimum(best_t[active], t_hi[active])
             if not self.exact_order:
                 go_on &= best_g[active] < 0  # stop at the first exact hit found (see class doc)
@@ -455,7 +487,8 @@ class Tracer:
         start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
         d32 = d.astype(np.float32)
         active = np.nonzero(t_hi >= t_lo)[0]
-        step = self._step
+        step = np.zeros(n)
+        last_prim = np.full(n, -1, np.int64)
         log_t_min = np.log(self.soft_min_transmittance)
         log_tr = np.zeros(n)  # log transmittance of the contributions known to be final
         done = []  # finalised contributions (ray, gaussian, t*, alpha) per round
@@ -472,14 +505,15 @@ class Tracer:
             active, tf, prim = active[found], tf[found], prim[found]
             if not active.size:
                 break
-            ray_idx, g = self._candidates(prim, active, d, start_pt)
+            t_step, again = self._next_step(active, prim, start[found] + tf[:, None] * d32[active], last_prim, step)
+            ray_idx, g = self._candidates(prim[~again], active[~again], d, start_pt)
             pend = tuple(np.concatenate([a, b]) for a, b in
                          zip(pend, self._soft_contributions(ray_idx, g, o, d, tmin, tmax)))
-            t_cur[active] += tf.astype(np.float64) + step
+            t_cur[active] += tf.astype(np.float64) + t_step
             # Any Gaussian not found yet has its proxy entry, hence its t*, beyond this ray's last
             # face: contributions in front of it are final, and once their transmittance is below
             # the threshold the ray is done.
-            final = pend[2] < t_cur[pend[0]] - step
+            final = pend[2] < t_cur[pend[0]] - step[pend[0]]
             if np.any(final):
                 done.append(tuple(a[final] for a in pend))
                 np.add.at(log_tr, pend[0][final], np.log1p(-pend[3][final]))

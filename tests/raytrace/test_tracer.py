@@ -226,3 +226,25 @@ def test_degenerate_gaussians_never_give_nan_points(data):
         h = Tracer(g, backend="embreex", mode=mode).trace(o, d)
         assert np.all(np.isfinite(h.t[h.hit])) and np.all(np.isfinite(h.points[h.hit]))
         assert np.all(np.isfinite(h.normals))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("proxy", ["octahedron", "icosahedron", "voxel_box"])
+def test_lattice_of_identical_gaussians(backend, proxy, rng):
+    # Gaussians fitted on a plane share orientation and size: their proxies' faces would lie in
+    # common planes, where Embree reports one face of several. The nearest hit must not change.
+    xs, ys = np.meshgrid(np.arange(-1.0, 1.01, 0.1), np.arange(-1.0, 1.01, 0.1))
+    n = xs.size
+    means = np.c_[xs.ravel(), ys.ravel(), np.zeros(n)]
+    scales = np.tile([0.03, 0.03, 0.002], (n, 1))
+    g = Gaussians(means, scales, np.tile([1.0, 0, 0, 0], (n, 1)), np.ones(n), np.zeros((n, 3), np.float32))
+    scene = VoxSplat.from_gaussians(g, 0.2) if proxy == "voxel_box" else g
+    gg = scene.gaussians() if proxy == "voxel_box" else g
+    o = np.c_[rng.uniform(-3, 3, (4000, 2)), rng.uniform(0.5, 4, 4000)]
+    d = np.c_[rng.uniform(-0.9, 0.9, (4000, 2)), np.zeros(4000)] - o
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    rots = gg.rotations()
+    want = brute_force_hard(o, d, gg.means, rots, gg.scales, K, "entry")
+    h = Tracer(scene, backend=backend, proxy=proxy, opacity_floor=0.0).trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
+    assert np.array_equal(h.hit, np.isfinite(want))
+    np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)

@@ -1,0 +1,99 @@
+"""Shared benchmark helpers: cached scenes, peak-memory probes, timing, result files."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+BENCH_DIR = Path(__file__).resolve().parent
+CACHE = BENCH_DIR / ".cache"
+RESULTS = BENCH_DIR / "results"
+
+
+def street_voxsplat(voxel_size: float, m: int = 4):
+    """The street scene fitted at `voxel_size` (cached on disk: fitting 1e6 Gaussians takes ~10 s)."""
+    from scube_sim.fit import fit_voxsplat
+    from scube_sim.voxsplat import VoxSplat
+    from scube_sim.worlds.street import street_scene
+
+    CACHE.mkdir(exist_ok=True)
+    path = CACHE / f"street_{voxel_size:g}_m{m}.npz"
+    if path.exists():
+        return VoxSplat.load(path)
+    mesh = street_scene()
+    s = mesh.sample_surface_grid(min(voxel_size / 2, 0.1))
+    vs = fit_voxsplat(s["points"], voxel_size, gaussians_per_voxel=m, colors=s["colors"], labels=s["labels"],
+                      weights=s["weights"])
+    vs.save(path)
+    return vs
+
+
+def rss_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def reset_peak() -> bool:
+    """Reset the kernel's peak-RSS counter (VmHWM) of this process; False if not allowed."""
+    try:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_mb() -> float:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def timed(fn, repeat: int = 3):
+    """Median wall time of `repeat` calls (after one warm-up call) and the last result."""
+    out = fn()
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), out
+
+
+def machine() -> dict:
+    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
+            "date": time.strftime("%Y-%m-%d %H:%M")}
+
+
+def write_results(name: str, rows: list[dict], header: list[str], notes: str = "") -> Path:
+    """bench/results/<name>.json (all fields) and <name>.md (the `header` columns)."""
+    RESULTS.mkdir(exist_ok=True)
+    (RESULTS / f"{name}.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+    lines = [f"# {name}", "", f"machine: {machine()}", ""]
+    if notes:
+        lines += [notes, ""]
+    lines.append("| " + " | ".join(header) + " |")
+    lines.append("|" + "---|" * len(header))
+    for r in rows:
+        lines.append("| " + " | ".join(_fmt(r.get(h, "")) for h in header) + " |")
+    path = RESULTS / f"{name}.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        if v != v:
+            return "-"
+        return f"{v:.3g}" if abs(v) < 1000 else f"{v:,.0f}"
+    return str(v)

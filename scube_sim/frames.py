@@ -1,0 +1,70 @@
+"""`Frames`: the camera input of the converter, shared by the worlds and the dataset adapters.
+
+A set of posed images: real rigs fire their cameras tens of milliseconds apart, so each image has
+its own camera-to-world pose and timestamp; the set has one reference ego pose and time.
+Frames: cameras are OpenCV (x right, y down, z forward); poses are (4, 4) float64 camera-to-world
+(``T_world_cam``); times are seconds (float64).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .camera.model import Intrinsics
+from .transforms import check_pose
+
+
+@dataclass
+class CameraImage:
+    """One image. image (H, W, 3) uint8 RGB; optional ground truth from renderers: depth (H, W)
+    float32 metres along the optical axis (inf where nothing was hit), semantic (H, W) int16 label
+    ids, sky (H, W) bool."""
+
+    name: str
+    image: np.ndarray
+    intrinsics: Intrinsics
+    cam_to_world: np.ndarray
+    timestamp: float
+    depth: np.ndarray | None = None
+    semantic: np.ndarray | None = None
+    sky: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.cam_to_world = check_pose(self.cam_to_world, f"camera {self.name!r}: cam_to_world")
+        h, w = self.image.shape[:2]
+        if (w, h) != (self.intrinsics.width, self.intrinsics.height):
+            raise ValueError(f"camera {self.name!r}: image is {w}x{h} but intrinsics say "
+                             f"{self.intrinsics.width}x{self.intrinsics.height}")
+        if not np.isfinite(self.timestamp):
+            raise ValueError(f"camera {self.name!r}: timestamp is not finite")
+
+
+@dataclass
+class Frames:
+    """Posed camera images around one reference instant.
+
+    images: list of CameraImage; ego_pose (4, 4) float64 ego-to-world at `timestamp`;
+    metadata: free-form provenance (dataset, sample id, ...)."""
+
+    images: list[CameraImage]
+    ego_pose: np.ndarray
+    timestamp: float
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.ego_pose = check_pose(self.ego_pose, "Frames.ego_pose")
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def names(self) -> list[str]:
+        return [im.name for im in self.images]
+
+    def __getitem__(self, name: str) -> CameraImage:
+        for im in self.images:
+            if im.name == name:
+                return im
+        raise KeyError(f"no camera {name!r}; have {', '.join(self.names)}")
