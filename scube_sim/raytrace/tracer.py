@@ -36,6 +36,7 @@ MODES = ("entry", "max_response", "soft")
 # this 2-core machine for every scene size and proxy; see README "Tracer benchmark".
 DEFAULT_BACKEND = "open3d"
 MIN_SCALE = 1e-9  # metres
+STEP_ULPS = 0.5  # first re-cast step past a face, in float32 ulps of the face position (grows on a re-hit)
 
 
 @dataclass
@@ -313,7 +314,7 @@ class Tracer:
         step to the one found are rarely skipped; if a ray finds the same face again (its new
         origin rounded back onto it), its step grows fourfold until it gets past. Returns the
         steps and which rays found their previous face again (not to be processed twice)."""
-        base = 4.0 * np.finfo(np.float32).eps * np.maximum(np.abs(face_pts).max(axis=1), 1e-3)
+        base = STEP_ULPS * np.finfo(np.float32).eps * np.maximum(np.abs(face_pts).max(axis=1), 1e-3)
         again = prim == last_prim[active]
         st = np.where(again, np.maximum(step[active] * 4.0, base), base)
         step[active] = st
