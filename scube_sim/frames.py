@@ -55,6 +55,8 @@ class Frames:
 
     def __post_init__(self):
         self.ego_pose = check_pose(self.ego_pose, "Frames.ego_pose")
+        if not np.isfinite(self.timestamp):
+            raise ValueError("Frames.timestamp is not finite")
 
     def __len__(self) -> int:
         return len(self.images)

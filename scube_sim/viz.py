@@ -78,3 +78,64 @@ def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: f
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return path
+
+
+def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", cols: int = 3) -> Path:
+    """Camera images (name -> (H, W, 3) uint8) in a grid, titled by name."""
+    plt = _plt()
+    n = len(images)
+    rows = int(np.ceil(n / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), dpi=100, squeeze=False)
+    for ax in axes.ravel():
+        ax.axis("off")
+    for ax, (name, img) in zip(axes.ravel(), images.items()):
+        ax.imshow(img)
+        ax.set_title(name, fontsize=9)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path
+
+
+def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_size: float, *,
+                  corner=(0.0, 0.0, 0.0), visible: np.ndarray | None = None, title: str = "") -> Path:
+    """Top view of a voxel grid: each column shows the class of its highest voxel; with
+    `visible`, a second panel shows which voxels the input cameras saw."""
+    plt = _plt()
+    ijk = np.asarray(ijk, np.int64)
+    n = int(ijk[:, :2].max()) + 1 if len(ijk) else 1
+    order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
+    top = np.r_[ijk[order][1:, 0] != ijk[order][:-1, 0], True] | np.r_[ijk[order][1:, 1] != ijk[order][:-1, 1], True]
+    sel = order[top]
+    img = np.ones((n, n, 3))
+    img[ijk[sel, 0], ijk[sel, 1]] = LABEL_COLORS[labels[sel]] / 255.0
+    panels = [("class of the highest voxel", img)]
+    if visible is not None:
+        vis = np.full((n, n, 3), 1.0)
+        vis[ijk[:, 0], ijk[:, 1]] = (0.75, 0.75, 0.75)
+        v = ijk[visible]
+        vis[v[:, 0], v[:, 1]] = (0.85, 0.2, 0.1)
+        panels.append((f"seen by the input cameras ({visible.mean() * 100:.0f} % of voxels)", vis))
+    fig, axes = plt.subplots(1, len(panels), figsize=(7.5 * len(panels), 7.5), dpi=100, squeeze=False)
+    ext = [corner[1], corner[1] + n * voxel_size, corner[0], corner[0] + n * voxel_size]
+    for ax, (name, im) in zip(axes[0], panels):
+        # x forward is up on the page, y left is left: show (i, j) with i upwards and j flipped
+        ax.imshow(im[::-1, ::-1], extent=[ext[1], ext[0], ext[2], ext[3]], interpolation="nearest")
+        ax.set_xlabel("y [m] (left)")
+        ax.set_ylabel("x [m] (forward)")
+        ax.set_title(name, fontsize=10)
+    present = np.unique(labels)
+    handles = [plt.Line2D([], [], marker="s", ls="", color=LABEL_COLORS[i] / 255.0, label=LABEL_NAMES[i]) for i in present]
+    axes[0, 0].legend(handles=handles, loc="lower left", fontsize=7, framealpha=0.85)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return path

@@ -10,11 +10,17 @@ coordinates measured from the image's top-left corner. Distortion models:
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 
 DISTORTION_MODELS = ("pinhole", "opencv", "fisheye")
+
+
+@functools.lru_cache(maxsize=64)
+def _pixel_rays(intr: "Intrinsics") -> np.ndarray:
+    return intr._compute_pixel_rays()
 
 
 @dataclass(frozen=True)
@@ -31,10 +37,14 @@ class Intrinsics:
     dist: tuple[float, ...] = field(default_factory=tuple)
 
     def __post_init__(self):
+        # Accept any sequence (numpy arrays too) but store a tuple: the camera is hashable.
+        object.__setattr__(self, "dist", tuple(float(c) for c in np.ravel(self.dist)))
         if self.model not in DISTORTION_MODELS:
             raise ValueError(f"distortion model: expected one of {DISTORTION_MODELS}, got {self.model!r}")
         if self.width <= 0 or self.height <= 0 or not (self.fx > 0 and self.fy > 0):
             raise ValueError(f"intrinsics: need positive size and focal lengths, got {self}")
+        if not np.all(np.isfinite([self.fx, self.fy, self.cx, self.cy, *self.dist])):
+            raise ValueError(f"intrinsics: focal lengths, principal point and distortion must be finite, got {self}")
         need = {"pinhole": 0, "opencv": 5, "fisheye": 4}[self.model]
         if len(self.dist) not in (0, need):
             raise ValueError(f"distortion {self.model!r}: expected {need} coefficients, got {len(self.dist)}")
@@ -60,18 +70,23 @@ class Intrinsics:
                 "cy": self.cy, "model": self.model, "dist": list(self.dist)}
 
     # --- distortion on normalised coordinates ------------------------------------------------
+    def _coeffs(self) -> tuple[float, ...]:
+        need = {"pinhole": 0, "opencv": 5, "fisheye": 4}[self.model]
+        return self.dist if self.dist else (0.0,) * need
+
     def distort(self, x: np.ndarray, y: np.ndarray):
         """Ideal normalised image coordinates -> distorted ones."""
-        if self.model == "pinhole" or not self.dist or not np.any(self.dist):
+        if self.model == "pinhole" or (self.model == "opencv" and not any(self.dist)):
             return x, y
         if self.model == "opencv":
-            k1, k2, p1, p2, k3 = self.dist
+            k1, k2, p1, p2, k3 = self._coeffs()
             r2 = x * x + y * y
             radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
             xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
             yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
             return xd, yd
-        k1, k2, k3, k4 = self.dist
+        # fisheye (equidistant): even with zero coefficients theta_d = atan(r), not r
+        k1, k2, k3, k4 = self._coeffs()
         r = np.sqrt(x * x + y * y)
         theta = np.arctan(r)
         t2 = theta * theta
@@ -79,25 +94,56 @@ class Intrinsics:
         scale = np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
         return x * scale, y * scale
 
-    def undistort(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 20):
-        """Distorted normalised coordinates -> ideal ones (fixed-point iteration, as OpenCV)."""
-        if self.model == "pinhole" or not self.dist or not np.any(self.dist):
+    def undistort(self, xd: np.ndarray, yd: np.ndarray, iterations: int = 30):
+        """Distorted normalised coordinates -> ideal ones, by Newton's method (quadratic
+        convergence, so strong barrel distortion and wide fisheye angles converge too)."""
+        xd = np.asarray(xd, np.float64)
+        yd = np.asarray(yd, np.float64)
+        if self.model == "pinhole" or (self.model == "opencv" and not any(self.dist)):
             return xd, yd
+        if self.model == "fisheye":
+            k1, k2, k3, k4 = self._coeffs()
+            theta_d = np.sqrt(xd * xd + yd * yd)
+            theta = theta_d.copy()
+            for _ in range(iterations):
+                t2 = theta * theta
+                f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
+                df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+                theta = np.clip(theta - f / np.where(np.abs(df) > 1e-12, df, 1e-12), 0.0, np.pi / 2 - 1e-9)
+            scale = np.where(theta_d > 1e-12, np.tan(theta) / np.maximum(theta_d, 1e-12), 1.0)
+            return xd * scale, yd * scale
+        k1, k2, p1, p2, k3 = self._coeffs()
         x, y = xd.copy(), yd.copy()
         for _ in range(iterations):
-            xe, ye = self.distort(x, y)
-            x, y = x + (xd - xe), y + (yd - ye)
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            drad = 2 * k1 + r2 * (4 * k2 + 6 * k3 * r2)  # d(radial)/d(x) = drad * x
+            ex = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) - xd
+            ey = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y - yd
+            j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
+            j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
+            j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
+            det = j11 * j22 - j12 * j12
+            det = np.where(np.abs(det) > 1e-12, det, 1e-12)
+            x = x - (j22 * ex - j12 * ey) / det
+            y = y - (j11 * ey - j12 * ex) / det
         return x, y
 
     # --- rays and projection -----------------------------------------------------------------
     def pixel_rays(self) -> np.ndarray:
-        """(H, W, 3) float64 unit ray directions through the pixel centres, camera frame."""
+        """(H, W, 3) float64 unit ray directions through the pixel centres, camera frame
+        (cached per camera: read-only)."""
+        return _pixel_rays(self)
+
+    def _compute_pixel_rays(self) -> np.ndarray:
         u = np.arange(self.width) + 0.5
         v = np.arange(self.height) + 0.5
         uu, vv = np.meshgrid(u, v)
         x, y = self.undistort((uu - self.cx) / self.fx, (vv - self.cy) / self.fy)
         d = np.stack([x, y, np.ones_like(x)], axis=-1)
-        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        d.flags.writeable = False
+        return d
 
     def project(self, points_cam: np.ndarray):
         """(N, 3) camera-frame points -> (N, 2) pixel coordinates and (N,) depth z; points behind

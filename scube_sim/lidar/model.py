@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 
 from ..labels import LABEL_IDS, LABEL_REFLECTIVITY
+from ..raytrace.compose import nearest_hits
 from ..raytrace.tracer import Tracer
 from ..transforms import check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
 from .config import LidarConfig, SpinningPattern
@@ -145,7 +146,7 @@ class Lidar:
 
     def scan(
         self,
-        tracer: Tracer,
+        tracer: Tracer | list[Tracer],
         pose_start: np.ndarray,
         pose_end: np.ndarray | None = None,
         *,
@@ -155,6 +156,7 @@ class Lidar:
     ) -> Sweep:
         """Trace one sweep.
 
+        tracer: a Tracer, or several (e.g. a static scene and its actors): the nearest hit counts.
         pose_start / pose_end: (4, 4) float64 sensor-to-world poses at the sweep's start and end
         (end defaults to start: a static sensor). pose_fn: alternatively, absolute times (N,) ->
         (N, 4, 4) sensor-to-world poses. t_start: absolute seconds of the first fire.
@@ -208,7 +210,10 @@ class Lidar:
             t_body = _ray_box(transform_points(mount, o_sub), rotate_vectors(mount, d_sub),
                               np.asarray(cfg.ego_body.min), np.asarray(cfg.ego_body.max))
             t_far = np.minimum(t_far, t_body)
-        hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
+        if isinstance(tracer, (list, tuple)):
+            hits = nearest_hits(list(tracer), o_w, d_w, 0.0, t_far)
+        else:
+            hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
         rng_sub = hits.t.copy()
         hit = hits.hit.copy()
         label = hits.label.astype(np.int16)

@@ -137,8 +137,8 @@ class Tracer:
     def _build_mesh(self, mesh: TriangleMesh) -> None:
         self.origin = mesh.origin.copy()
         self.mesh = mesh
-        self._tri = mesh.triangles()
         self._face_normals = mesh.face_normals()
+        self._face_offset = np.einsum("ij,ij->i", self._face_normals, mesh.vertices[mesh.faces[:, 0]])
         v = mesh.vertices
         self._set_tolerances(np.abs(v).max() if v.size else 0.0)
         self._set_bounds(v.min(0) if v.size else np.zeros(3), v.max(0) if v.size else np.zeros(3))
@@ -289,8 +289,9 @@ class Tracer:
         f = prim[idx]
         # Refine the float32 hit in float64 on the triangle's plane.
         nrm = self._face_normals[f]
-        denom = np.einsum("ij,ij->i", nrm, d[idx])
-        num = np.einsum("ij,ij->i", nrm, self._tri[f, 0] - o[idx])
+        di, oi = d[idx], o[idx]
+        denom = nrm[:, 0] * di[:, 0] + nrm[:, 1] * di[:, 1] + nrm[:, 2] * di[:, 2]
+        num = self._face_offset[f] - (nrm[:, 0] * oi[:, 0] + nrm[:, 1] * oi[:, 1] + nrm[:, 2] * oi[:, 2])
         ok = np.abs(denom) > 1e-12
         t = np.where(ok, num / np.where(ok, denom, 1.0), tmin[idx] + t32[idx])
         valid = (t >= tmin[idx] - 1e-9) & (t <= tmax[idx])

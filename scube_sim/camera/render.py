@@ -1,0 +1,85 @@
+"""Render cameras on triangle meshes with Embree: RGB, metric depth, semantics, sky mask.
+
+Shading: Lambertian with a sun (and its shadow, traced) plus sky ambient light, on the procedural
+albedo of `worlds.textures`; the sky is a horizon-to-zenith gradient with a glow around the sun.
+Albedo and output are sRGB; lighting is applied in linear light.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..labels import label_id
+from ..raytrace.compose import nearest_hits
+from ..raytrace.tracer import Tracer
+from .model import Intrinsics
+
+SKY = label_id("sky")
+
+
+def _to_linear(c):
+    return np.power(np.clip(c, 0, 1), 2.2)
+
+
+def _to_srgb(c):
+    return np.power(np.clip(c, 0, 1), 1 / 2.2)
+
+
+def sky_color(dirs: np.ndarray, sun_dir: np.ndarray) -> np.ndarray:
+    """(N, 3) world directions -> (N, 3) linear RGB of the sky."""
+    up = np.clip(dirs[:, 2], -0.2, 1.0)
+    horizon = np.array([0.80, 0.85, 0.92])
+    zenith = np.array([0.25, 0.45, 0.85])
+    w = np.clip(up, 0, 1)[:, None] ** 0.6
+    c = _to_linear((1 - w) * horizon + w * zenith)
+    glow = np.clip(dirs @ sun_dir, 0, 1) ** 64
+    return c + glow[:, None] * np.array([1.0, 0.9, 0.7])
+
+
+def render_camera(tracers: list[Tracer], intr: Intrinsics, cam_to_world: np.ndarray, *,
+                  sun_dir=(0.3, 0.2, 0.93), shadows: bool = True, shading: bool = True, albedo_fn=None,
+                  max_depth: float = 1000.0):
+    """Render one camera.
+
+    tracers: mesh tracers (e.g. the static world and its actors at this instant).
+    cam_to_world: (4, 4) OpenCV camera -> world. shading=False skips colour (rgb is None): depth,
+    semantics and sky only. Returns a dict with
+    rgb (H, W, 3) uint8, depth (H, W) float32 metres along the optical axis (inf on sky),
+    semantic (H, W) int16 (sky where nothing is hit), instance (H, W) int32, sky (H, W) bool.
+    """
+    from ..worlds.textures import albedo as default_albedo
+
+    albedo_fn = albedo_fn or default_albedo
+    sun = np.asarray(sun_dir, np.float64)
+    sun = sun / np.linalg.norm(sun)
+    d_cam = intr.pixel_rays().reshape(-1, 3)
+    r, t = cam_to_world[:3, :3], cam_to_world[:3, 3]
+    d = d_cam @ r.T
+    o = np.broadcast_to(t, d.shape)
+    h = nearest_hits(tracers, o, d, 0.0, max_depth)
+    hit = h.hit
+    n = d.shape[0]
+    rgb = np.empty((n, 3))
+    rgb[~hit] = sky_color(d[~hit], sun) if shading else 0.0
+    if hit.any() and shading:
+        p = h.points[hit]
+        nrm = h.normals[hit].astype(np.float64)
+        alb = _to_linear(albedo_fn(p, nrm, h.label[hit], h.color[hit], h.instance[hit]))
+        lambert = np.clip(nrm @ sun, 0.0, None)
+        if shadows:
+            lit = lambert > 0
+            sh = nearest_hits(tracers, p[lit] + nrm[lit] * 1e-3, np.broadcast_to(sun, (int(lit.sum()), 3)), 0.0, max_depth)
+            lambert[np.nonzero(lit)[0][sh.hit]] = 0.0
+        ambient = 0.35 + 0.15 * np.clip(nrm[:, 2], 0, 1)  # more sky light on upward faces
+        rgb[hit] = alb * (ambient[:, None] * np.array([0.85, 0.9, 1.0]) + 0.9 * lambert[:, None] * np.array([1.0, 0.97, 0.9]))
+    depth = np.where(hit, h.t * d_cam[:, 2], np.inf).astype(np.float32)
+    sem = np.where(hit, h.label, SKY).astype(np.int16)
+    inst = np.where(hit, h.instance, 0).astype(np.int32)
+    shape = (intr.height, intr.width)
+    return {
+        "rgb": (np.round(_to_srgb(rgb) * 255)).astype(np.uint8).reshape(shape + (3,)) if shading else None,
+        "depth": depth.reshape(shape),
+        "semantic": sem.reshape(shape),
+        "instance": inst.reshape(shape),
+        "sky": (~hit).reshape(shape),
+    }

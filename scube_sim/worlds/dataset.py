@@ -1,0 +1,299 @@
+"""Procedural training and test data on disk: a documented, versioned layout.
+
+    DIR/dataset.json                       format, version, DatasetConfig, label table, rig
+    DIR/<split>/<index:06d>/meta.json      world config and seed, poses, cameras, timestamps, boxes
+    DIR/<split>/<index:06d>/rgb_<frame>_<camera>.png     8-bit sRGB images
+    DIR/<split>/<index:06d>/frames.npz     depth_<frame>_<camera> (H, W) float16 metres along the
+                                           optical axis (inf: sky), semantic_<frame>_<camera> (H, W)
+                                           uint8 label ids (cameras may differ in size)
+    DIR/<split>/<index:06d>/voxels.npz     fine and coarse ground-truth grids of the chunk:
+                                           <level>_ijk (V, 3) int16, <level>_labels (V,) uint8,
+                                           <level>_visible (V,) bool, <level>_voxel_size
+    DIR/<split>/<index:06d>/lidar.npz      the ground-truth LiDAR sweep on the mesh at frame 0
+                                           (POINT_DTYPE, sensor frame, raw motion distortion)
+
+Frames: index 0 is the input instant T; the others (T+5, T+10 at 10 Hz by default) are for
+evaluation. Each image has its own timestamp (the rig's firing offsets) and camera-to-world pose.
+The chunk frame is the ego frame at T (see `groundtruth`); `meta.json` holds chunk_to_world.
+
+A sample is written into a temporary folder and renamed when complete, so an interrupted run
+leaves only whole samples, and a rerun skips them (resumable). Seeds are fixed per split: the
+test split is a held-out set of worlds no training run sees.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from ..camera.render import render_camera
+from ..camera.rig import load_rig
+from ..labels import LABEL_TABLE_VERSION, LABELS
+from ..lidar.config import load_lidar_config
+from ..lidar.model import Lidar
+from ..mesh import TriangleMesh
+from ..raytrace.tracer import Tracer
+from ..transforms import invert_pose, transform_points
+from .generator import STYLES, WORLD_VERSION, WorldConfig, generate_world
+from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
+
+DATASET_FORMAT = "scube_sim.worlds"
+DATASET_VERSION = 1
+SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+
+
+class DatasetConfig(BaseModel):
+    """How samples are made. Stored in dataset.json; frozen once a converter trains on it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rig: str = "waymo-5"
+    image_scale: float = Field(default=0.25, gt=0, le=1)
+    frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)
+    frame_rate_hz: float = 10.0
+    fine_voxel_m: float = 0.1
+    coarse_factor: int = 4
+    visibility_scale: float = Field(default=0.5, gt=0, le=1)
+    lidar: str = "waymo-top"
+    styles: list[str] = Field(default_factory=lambda: list(STYLES))
+
+
+def sample_world_config(split: str, index: int, cfg: DatasetConfig) -> WorldConfig:
+    """The world of sample `index` of `split`: seed and style fixed by the split and the index."""
+    if split not in SPLIT_SEED_BASE:
+        raise ValueError(f"split: expected one of {', '.join(SPLIT_SEED_BASE)}, got {split!r}")
+    seed = SPLIT_SEED_BASE[split] + index
+    style = cfg.styles[index % len(cfg.styles)]
+    duration = max(cfg.frame_offsets) / cfg.frame_rate_hz + 0.5
+    return WorldConfig(style=style, seed=seed, duration_s=duration)
+
+
+class _SceneAt:
+    """The static tracer (built once) plus the actors' tracer per instant (cached)."""
+
+    def __init__(self, world):
+        self.world = world
+        self.static = Tracer(world.static)
+        self._actors: dict[float, Tracer | None] = {}
+
+    def __call__(self, t: float) -> list[Tracer]:
+        key = round(float(t), 9)
+        if key not in self._actors:
+            meshes = self.world.actor_meshes_at(t)
+            self._actors[key] = Tracer(TriangleMesh.concatenate(meshes)) if meshes else None
+        a = self._actors[key]
+        return [self.static] if a is None else [self.static, a]
+
+
+def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
+    """Generate one sample in memory: {'meta', 'images', 'frames', 'voxels', 'lidar'}."""
+    t_start = time.perf_counter()
+    wcfg = sample_world_config(split, index, cfg)
+    world = generate_world(wcfg)
+    rig = load_rig(cfg.rig)
+    scene_at = _SceneAt(world)
+    chunk_to_world = world.ego_pose_at(0.0)
+    frames_meta, images, maps = [], {}, {}
+    for k in cfg.frame_offsets:
+        t_ref = k / cfg.frame_rate_hz
+        cams_meta = []
+        for cam in rig.cameras:
+            intr = cam.intrinsics().scaled(cfg.image_scale)
+            t_cam = t_ref + cam.time_offset_s
+            pose = world.ego_pose_at(t_cam) @ cam.cam_to_ego()
+            out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir)
+            images[f"rgb_{k:02d}_{cam.name}.png"] = out["rgb"]
+            maps[f"depth_{k:02d}_{cam.name}"] = out["depth"].astype(np.float16)
+            maps[f"semantic_{k:02d}_{cam.name}"] = out["semantic"].astype(np.uint8)
+            cams_meta.append({"name": cam.name, "intrinsics": intr.to_dict(), "cam_to_world": pose.tolist(),
+                              "timestamp": t_cam})
+        frames_meta.append({"offset": k, "time": t_ref, "ego_pose": world.ego_pose_at(t_ref).tolist(),
+                            "cameras": cams_meta,
+                            "boxes": [_box_json(b) for b in world.boxes_at(t_ref)]})
+
+    # Ground-truth voxels of the chunk, with visibility from the input cameras at T.
+    mesh0 = world.mesh_at(0.0)
+    fine = voxelize_mesh(mesh0, chunk_to_world, cfg.fine_voxel_m)
+    to_chunk = invert_pose(chunk_to_world)
+    seen = []
+    for cam in rig.cameras:
+        intr = cam.intrinsics().scaled(cfg.visibility_scale)
+        pose = world.ego_pose_at(cam.time_offset_s) @ cam.cam_to_ego()
+        vis = render_camera(scene_at(cam.time_offset_s), intr, pose, sun_dir=world.sun_dir, shading=False)
+        seen.append(transform_points(to_chunk, depth_to_points(vis["depth"], intr, pose)))
+    fine.visible = mark_visible(fine, np.concatenate(seen))
+    coarse = coarsen(fine, cfg.coarse_factor)
+
+    # Ground-truth LiDAR sweep over the first frame interval, on the mesh (actors at T).
+    lidar = Lidar(load_lidar_config(cfg.lidar))
+    period = lidar.pattern.period_s
+    sweep = lidar.scan(scene_at(0.0), lidar.sensor_pose(world.ego_pose_at(0.0)),
+                       lidar.sensor_pose(world.ego_pose_at(period)), t_start=0.0, seed=index)
+
+    meta = {
+        "format": DATASET_FORMAT, "version": DATASET_VERSION, "split": split, "index": index,
+        "world": wcfg.model_dump(), "world_version": WORLD_VERSION, "layout": world.layout.kind,
+        "chunk_to_world": chunk_to_world.tolist(), "sun_dir": world.sun_dir.tolist(), "frames": frames_meta,
+        "lidar": {"sensor": cfg.lidar, "pose_start": sweep.pose_start.tolist(), "pose_end": sweep.pose_end.tolist(),
+                  "t_start": sweep.t_start, "t_end": sweep.t_end},
+        "voxels": {"fine": len(fine), "coarse": len(coarse), "fine_visible_fraction": float(fine.visible.mean())},
+        "seconds": round(time.perf_counter() - t_start, 3),
+    }
+    voxels = {}
+    for name, g in (("fine", fine), ("coarse", coarse)):
+        voxels[f"{name}_ijk"] = g.ijk.astype(np.int16)
+        voxels[f"{name}_labels"] = g.labels.astype(np.uint8)
+        voxels[f"{name}_visible"] = g.visible
+        voxels[f"{name}_voxel_size"] = np.float64(g.voxel_size)
+    return {"meta": meta, "images": images, "frames": maps, "voxels": voxels, "lidar": sweep.points}
+
+
+def _box_json(b: dict) -> dict:
+    return {"instance": int(b["instance"]), "label": int(b["label"]),
+            "center": [float(v) for v in b["center"]], "size": [float(v) for v in b["size"]], "yaw": float(b["yaw"])}
+
+
+def _save_npz(path: Path, **arrays) -> None:
+    with open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
+
+
+def _save_png(path: Path, rgb: np.ndarray) -> None:
+    from PIL import Image
+
+    # No timestamps or other metadata: the same image gives the same bytes.
+    Image.fromarray(rgb).save(path, format="PNG", optimize=False, compress_level=6)
+
+
+def write_sample(sample: dict, folder: Path) -> Path:
+    """Write a sample into `folder` atomically (a temporary sibling folder, then rename)."""
+    folder = Path(folder)
+    tmp = folder.with_name(f".tmp-{folder.name}")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    try:
+        (tmp / "meta.json").write_text(json.dumps(sample["meta"], indent=1, sort_keys=True))
+        for name, rgb in sample["images"].items():
+            _save_png(tmp / name, rgb)
+        _save_npz(tmp / "frames.npz", **sample["frames"])
+        _save_npz(tmp / "voxels.npz", **sample["voxels"])
+        _save_npz(tmp / "lidar.npz", points=sample["lidar"])
+        tmp.rename(folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def dataset_header(cfg: DatasetConfig) -> dict:
+    rig = load_rig(cfg.rig)
+    return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "config": cfg.model_dump(),
+            "world_version": WORLD_VERSION, "label_table_version": LABEL_TABLE_VERSION,
+            "labels": [lab.name for lab in LABELS], "rig": rig.model_dump(mode="json"),
+            "split_seed_base": SPLIT_SEED_BASE}
+
+
+def open_dataset(out: Path, cfg: DatasetConfig | None) -> DatasetConfig:
+    """Create DIR/dataset.json, or check that an existing one matches `cfg` (resuming a run)."""
+    out = Path(out)
+    head = out / "dataset.json"
+    if head.exists():
+        old = json.loads(head.read_text())
+        if old.get("format") != DATASET_FORMAT:
+            raise ValueError(f"{head}: not a scube_sim worlds dataset (format {old.get('format')!r})")
+        if old.get("version") != DATASET_VERSION:
+            raise ValueError(f"{head}: dataset version {old.get('version')} differs from this scube_sim's "
+                             f"{DATASET_VERSION}; write to a new folder")
+        existing = DatasetConfig.model_validate(old["config"])
+        if cfg is not None and cfg != existing:
+            raise ValueError(f"{head}: the folder holds a dataset made with other settings; "
+                             f"use a new folder or the same settings")
+        return existing
+    cfg = cfg or DatasetConfig()
+    out.mkdir(parents=True, exist_ok=True)
+    from ..io.atomic import atomic_path
+
+    with atomic_path(head) as tmp:
+        Path(tmp).write_text(json.dumps(dataset_header(cfg), indent=1))
+    return cfg
+
+
+def _make_and_write(args) -> float:
+    split, index, cfg, folder = args
+    t = time.perf_counter()
+    write_sample(make_sample(split, index, cfg), folder)
+    return time.perf_counter() - t
+
+
+def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | None = None, *, start: int = 0,
+                     jobs: int = 1, progress: bool = True) -> dict:
+    """Write samples start..start+count-1 of `split` into `out`, skipping complete ones.
+
+    jobs > 1 generates samples in that many processes (the output does not depend on it).
+    Returns {'written': n, 'skipped': n, 'seconds_per_sample': wall seconds per written sample}."""
+    out = Path(out)
+    cfg = open_dataset(out, cfg)
+    split_dir = out / split
+    split_dir.mkdir(parents=True, exist_ok=True)
+    todo = [i for i in range(start, start + count) if not (split_dir / f"{i:06d}" / "meta.json").exists()]
+    for stale in split_dir.glob(".tmp-*"):  # left by an interrupted run
+        shutil.rmtree(stale, ignore_errors=True)
+    skipped = count - len(todo)
+    work = [(split, i, cfg, split_dir / f"{i:06d}") for i in todo]
+    t0 = time.perf_counter()
+    bar = task = None
+    if progress and work:
+        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+        bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
+                       TimeElapsedColumn(), TimeRemainingColumn())
+        bar.start()
+        task = bar.add_task(f"{split} samples", total=len(work))
+    try:
+        if jobs <= 1:
+            for w in work:
+                _make_and_write(w)
+                if bar:
+                    bar.advance(task)
+        else:
+            import multiprocessing as mp
+            from concurrent.futures import ProcessPoolExecutor, as_completed
+
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
+                for fut in as_completed([pool.submit(_make_and_write, w) for w in work]):
+                    fut.result()
+                    if bar:
+                        bar.advance(task)
+    finally:
+        if bar:
+            bar.stop()
+    n = len(work)
+    return {"written": n, "skipped": skipped, "seconds_per_sample": (time.perf_counter() - t0) / n if n else 0.0}
+
+
+def load_sample(folder: Path) -> dict:
+    """Read a sample back: meta, images (dict name -> (H, W, 3) uint8), frames, voxels, lidar."""
+    from PIL import Image
+
+    folder = Path(folder)
+    meta_path = folder / "meta.json"
+    if not meta_path.exists():
+        raise FileNotFoundError(f"{folder}: not a complete sample (no meta.json)")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != DATASET_FORMAT or meta.get("version", 0) > DATASET_VERSION:
+        raise ValueError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')} is not readable "
+                         f"by this scube_sim ({DATASET_FORMAT} {DATASET_VERSION})")
+    images = {p.name: np.asarray(Image.open(p)) for p in sorted(folder.glob("rgb_*.png"))}
+    with np.load(folder / "frames.npz", allow_pickle=False) as z:
+        frames = {k: z[k] for k in z.files}
+    with np.load(folder / "voxels.npz", allow_pickle=False) as z:
+        voxels = {k: z[k] for k in z.files}
+    with np.load(folder / "lidar.npz", allow_pickle=False) as z:
+        lidar = z["points"]
+    return {"meta": meta, "images": images, "frames": frames, "voxels": voxels, "lidar": lidar}
