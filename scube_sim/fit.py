@@ -17,8 +17,14 @@ from .transforms import rotmat_to_quat
 from .voxsplat import NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0, VoxSplat, unique_voxels
 
 
-def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int, w: np.ndarray):
-    """Weight, weighted mean (K, 3) and covariance (K, 3, 3) of points grouped by integer key."""
+_PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int, w: np.ndarray, extra=None):
+    """Weight, weighted mean (K, 3) and covariance (K, 3, 3) of points grouped by integer key.
+
+    extra: optional (cov6 (F, 6), index (N,)): each point stands for a small patch whose own
+    covariance (xx, xy, xz, yy, yz, zz) is cov6[index], added to the spread of the points."""
     cnt = np.bincount(key, weights=w, minlength=nkeys)
     safe = np.where(cnt > 0, cnt, 1.0)
     mean = np.stack([np.bincount(key, weights=w * p[:, i], minlength=nkeys) for i in range(3)], 1) / safe[:, None]
@@ -27,6 +33,13 @@ def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int, w: np.ndarray):
     for i in range(3):
         for j in range(i, 3):
             cov[:, i, j] = cov[:, j, i] = np.bincount(key, weights=w * q[:, i] * q[:, j], minlength=nkeys) / safe
+    if extra is not None:
+        cov6, index = extra
+        for c, (i, j) in enumerate(_PAIRS):
+            add = np.bincount(key, weights=w * cov6[index, c], minlength=nkeys) / safe
+            cov[:, i, j] += add
+            if i != j:
+                cov[:, j, i] += add
     return cnt, mean, cov
 
 
@@ -38,6 +51,7 @@ def fit_voxsplat(
     colors: np.ndarray | None = None,
     labels: np.ndarray | None = None,
     weights: np.ndarray | None = None,
+    patch_cov: tuple[np.ndarray, np.ndarray] | None = None,
     origin: np.ndarray | None = None,
     min_scale: float | None = None,
     max_normal_scale: float | None = None,
@@ -71,6 +85,8 @@ def fit_voxsplat(
         keep_v = counts >= min_points
         keep_p = keep_v[inv]
         p, w, inv = p[keep_p], w[keep_p], np.cumsum(keep_v)[inv[keep_p]] - 1
+        if patch_cov is not None:
+            patch_cov = (patch_cov[0], patch_cov[1][keep_p])
         colors = None if colors is None else np.asarray(colors)[keep_p]
         labels = None if labels is None else np.asarray(labels)[keep_p]
         uniq = uniq[keep_v]
@@ -82,14 +98,14 @@ def fit_voxsplat(
     for level in range(levels):
         nk = nv << level
         key = (inv << level) + cluster
-        _, mean, cov = _group_moments(key, p, nk, w)
+        _, mean, cov = _group_moments(key, p, nk, w, patch_cov)
         _, vec = np.linalg.eigh(cov)
         axis = vec[:, :, 2]  # eigenvector of the largest eigenvalue
         side = np.einsum("ij,ij->i", p - mean[key], axis[key]) > 0
         cluster = cluster * 2 + side
 
     key = inv * m + cluster
-    cnt, mean, cov = _group_moments(key, p, nv * m, w)
+    cnt, mean, cov = _group_moments(key, p, nv * m, w, patch_cov)
     evals, evecs = np.linalg.eigh(cov)  # ascending: column 0 is the surface normal
     sig = np.sqrt(np.maximum(evals, 0.0))
     if max_normal_scale is not None:

@@ -80,7 +80,10 @@ class TriangleMesh:
 
         Unlike random sampling, the samples' first and second moments match the surface's area
         moments closely, which is what a Gaussian fit needs. Returns the dict of
-        `sample_surface` plus weights (N,) float64: the area (m^2) each sample stands for."""
+        `sample_surface` plus weights (N,) float64: the area (m^2) each sample stands for, and
+        patch_cov (F, 6): the covariance (xx, xy, xz, yy, yz, zz) of the sub-triangle a sample of
+        face f stands for (the face's covariance / n^2; uniform on a triangle it is
+        1/12 sum (v_i - c)(v_i - c)^T)."""
         tri = self.triangles()
         edges = np.stack([np.linalg.norm(tri[:, 1] - tri[:, 0], axis=1),
                           np.linalg.norm(tri[:, 2] - tri[:, 1], axis=1),
@@ -103,14 +106,19 @@ class TriangleMesh:
             pts.append(p.reshape(-1, 3))
             faces.append(np.repeat(sel, bary.shape[0]))
             wts.append(np.repeat(areas[sel] / (n * n), bary.shape[0]))
+        c = tri.mean(axis=1, keepdims=True)
+        dv = tri - c
+        cov = np.einsum("fvi,fvj->fij", dv, dv) / 12.0 / (nsub.astype(np.float64) ** 2)[:, None, None]
+        patch_cov = np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], 1)
         if not pts:
             return dict(points=np.zeros((0, 3)), normals=np.zeros((0, 3)), face=np.zeros(0, np.int64),
-                        labels=np.zeros(0, np.int16), colors=np.zeros((0, 3), np.float32), weights=np.zeros(0))
+                        labels=np.zeros(0, np.int16), colors=np.zeros((0, 3), np.float32), weights=np.zeros(0),
+                        patch_cov=patch_cov)
         face = np.concatenate(faces)
         colors = (self.colors[face] if self.colors is not None
                   else np.full((face.shape[0], 3), 0.5, np.float32))
         return dict(points=np.concatenate(pts), normals=self.face_normals()[face], face=face,
-                    labels=self.labels[face], colors=colors, weights=np.concatenate(wts))
+                    labels=self.labels[face], colors=colors, weights=np.concatenate(wts), patch_cov=patch_cov)
 
     def sample_surface(self, density: float, rng: np.random.Generator) -> dict[str, np.ndarray]:
         """Area-uniform surface samples: about `density` points per square metre.

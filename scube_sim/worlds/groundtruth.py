@@ -243,19 +243,52 @@ def depth_to_points(depth: np.ndarray, intr, cam_to_world: np.ndarray) -> np.nda
 
 
 def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: float, *,
-                gaussians_per_voxel: int = 4, albedo_fn=None) -> VoxSplat:
-    """The ground-truth VoxSplat of a chunk: Gaussians fitted to dense stratified surface samples
-    with their albedo as colour. Local frame = the chunk frame; origin = the ego position at T
-    (world frame, float64) — the chunk frame's rotation is the ego's (see `chunk_to_world`)."""
+                gaussians_per_voxel: int = 4, albedo_fn=None, tile_m: float = 12.8,
+                region: tuple | None = None) -> VoxSplat:
+    """The ground-truth VoxSplat of a chunk: Gaussians fitted to stratified surface samples (with
+    each sample's sub-triangle covariance, so the fit sees the surface's exact second moments)
+    and their albedo as colour. Its frame is the chunk frame (origin = CHUNK_CORNER, so voxel ijk
+    match `VoxelGrid`); trace it with sensor poses in the chunk frame, inv(chunk_to_world) @
+    T_world_sensor (chunk_to_world is kept in its metadata). Built in slabs of `tile_m` along x
+    so that memory stays bounded at fine voxel sizes. region: optional (lo (3,), hi (3,)) box in
+    the chunk frame to fit only part of the chunk."""
     from .textures import albedo as default_albedo
 
     albedo_fn = albedo_fn or default_albedo
-    s = chunk_samples(mesh, chunk_to_world, min(voxel_size / 3.0, 0.05))
-    normals_world = s["normals"] @ chunk_to_world[:3, :3].T
-    pts_world = transform_points(chunk_to_world, s["points"])
-    colors = albedo_fn(pts_world, normals_world, s["labels"], s["colors"], s["instances"])
-    vs = fit_voxsplat(s["points"] - CHUNK_CORNER, voxel_size, gaussians_per_voxel=gaussians_per_voxel,
-                      colors=colors, labels=s["labels"], weights=s["weights"], origin=CHUNK_CORNER)
+    to_chunk = invert_pose(chunk_to_world)
+    v = transform_points(to_chunk, mesh.vertices + mesh.origin) - CHUNK_CORNER
+    tri = v[mesh.faces]
+    box_lo, box_hi = np.zeros(3), np.full(3, CHUNK_SIZE)
+    if region is not None:
+        box_lo = np.maximum(box_lo, np.asarray(region[0], np.float64) - CHUNK_CORNER)
+        box_hi = np.minimum(box_hi, np.asarray(region[1], np.float64) - CHUNK_CORNER)
+    near = np.all((tri.max(1) >= box_lo) & (tri.min(1) < box_hi), axis=1)
+    tri = np.where(near[:, None, None], tri, np.inf)
+    lo_x, hi_x = tri[:, :, 0].min(1), tri[:, :, 0].max(1)
+    spacing = voxel_size / 2.0
+    tile = max(voxel_size, round(tile_m / voxel_size) * voxel_size)
+    parts = []
+    for x0 in np.arange(np.floor(box_lo[0] / voxel_size) * voxel_size, box_hi[0], tile):
+        sel = (hi_x >= x0) & (lo_x < x0 + tile)
+        if not np.any(sel):
+            continue
+        sub = TriangleMesh(v, mesh.faces[sel], mesh.labels[sel], mesh.instances[sel],
+                           None if mesh.colors is None else mesh.colors[sel])
+        s = sub.sample_surface_grid(spacing)
+        p = s["points"]
+        keep = (p[:, 0] >= x0) & (p[:, 0] < x0 + tile) & np.all((p >= box_lo) & (p < box_hi), axis=1)
+        if not np.any(keep):
+            continue
+        face = s["face"][keep]
+        inst = mesh.instances[sel][face]
+        world_p = transform_points(chunk_to_world, p[keep] + CHUNK_CORNER)
+        world_n = s["normals"][keep] @ chunk_to_world[:3, :3].T
+        colors = albedo_fn(world_p, world_n, s["labels"][keep], s["colors"][keep], inst)
+        parts.append(fit_voxsplat(p[keep], voxel_size, gaussians_per_voxel=gaussians_per_voxel, colors=colors,
+                                  labels=s["labels"][keep], weights=s["weights"][keep],
+                                  patch_cov=(s["patch_cov"], face), origin=CHUNK_CORNER))
+    vs = VoxSplat(np.concatenate([q.ijk for q in parts]), np.concatenate([q.params for q in parts]), voxel_size,
+                  CHUNK_CORNER, np.concatenate([q.valid for q in parts]), np.concatenate([q.labels for q in parts]))
     vs.metadata.update({"frame": "chunk", "chunk_corner": CHUNK_CORNER.tolist(),
                         "chunk_to_world": np.asarray(chunk_to_world).tolist()})
     return vs
