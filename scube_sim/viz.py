@@ -19,6 +19,15 @@ def _plt():
     return plt
 
 
+def _save(fig, path: str | Path) -> Path:
+    """Write a figure as PNG atomically and close it."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    _plt().close(fig)
+    return path
+
+
 def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = None,
             values: np.ndarray | None = None, value_name: str = "range [m]", extent: float | None = None,
             title: str = "", point_size: float = 0.3, sensor_xy=(0.0, 0.0)) -> Path:
@@ -50,11 +59,7 @@ def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = No
     ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: float | None = None,
@@ -73,11 +78,7 @@ def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: f
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", cols: int = 3) -> Path:
@@ -94,11 +95,7 @@ def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_size: float, *,
@@ -134,8 +131,4 @@ def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_s
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return path
+    return _save(fig, path)

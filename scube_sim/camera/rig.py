@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from ..lidar.config import ConfigError, Mount, format_validation_error, load_yaml, normalize_name
+from ..lidar.config import ConfigError, Mount, load_yaml, normalize_name, validate_model
 from ..resources import sensors_dir
 from .model import Intrinsics
 
@@ -86,8 +86,4 @@ def load_rig(name_or_path: str | Path) -> RigConfig:
         if key not in paths:
             raise ConfigError(f"unknown camera rig {s!r}; rigs: {', '.join(sorted(q.stem for q in paths.values()))}")
         p = paths[key]
-    data = load_yaml(p)
-    try:
-        return RigConfig.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, str(p))) from None
+    return validate_model(RigConfig, load_yaml(p), str(p), "camera rig settings")

@@ -290,14 +290,19 @@ def format_validation_error(exc: ValidationError, source: str) -> str:
     return "\n".join(lines)
 
 
-def config_from_dict(data: dict, source: str = "<dict>") -> LidarConfig:
-    """Validate a mapping; raises ConfigError naming `source` and the key path."""
+def validate_model(model_cls, data, source: str, what: str = "settings"):
+    """Validate a mapping into a pydantic model; ConfigError names `source` and each key path."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of LiDAR settings, got {type(data).__name__}")
+        raise ConfigError(f"{source}: expected a mapping of {what}, got {type(data).__name__}")
     try:
-        return LidarConfig.model_validate(data)
+        return model_cls.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(format_validation_error(exc, source)) from None
+
+
+def config_from_dict(data: dict, source: str = "<dict>") -> LidarConfig:
+    """Validate a mapping; raises ConfigError naming `source` and the key path."""
+    return validate_model(LidarConfig, data, source, "LiDAR settings")
 
 
 def load_yaml(path: str | Path) -> dict:

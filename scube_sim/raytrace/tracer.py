@@ -370,27 +370,13 @@ class Tracer:
         n = o.shape[0]
         best_t = np.full(n, np.inf)
         best_g = np.full(n, -1, np.int64)
-        t_cur = t_lo.copy()
-        start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
-        d32 = d.astype(np.float32)
-        active = np.nonzero(t_hi >= t_lo)[0]
-        step = np.zeros(n)
-        last_prim = np.full(n, -1, np.int64)
+        walk = _FaceWalk(self, o, d, t_lo, t_hi)
         entry_mode = self.mode == "entry"
-        it = 0
-        while active.size and it < self.max_iterations and len(self.gaussians):
-            it += 1
-            start = (o[active] + t_cur[active, None] * d[active]).astype(np.float32)
-            limit = np.minimum(best_t[active], t_hi[active]) - t_cur[active]
-            tf, prim = self._backend.first_hit(start, d32[active], limit.astype(np.float32))
-            self.stats.casts += 1
-            self.stats.rays_cast += active.size
-            found = prim >= 0
-            active, tf, prim = active[found], tf[found], prim[found]
+        while walk.active.size and walk.iterations < self.max_iterations and len(self.gaussians):
+            active, prim, _ = walk.cast(np.minimum(best_t, t_hi))
             if not active.size:
                 break
-            t_step, _ = self._next_step(active, prim, start[found] + tf[:, None] * d32[active], last_prim, step)
-            ray_idx, g = self._candidates(prim, active, d, start_pt)
+            ray_idx, g = self._candidates(prim, active, d, walk.start_pt)
             t_star, d2, half = self._exact(ray_idx, g, o, d)
             inside = d2 <= self.k * self.k
             if entry_mode:
@@ -410,11 +396,12 @@ class Tracer:
             better = th < best_t[ri]
             best_t[ri[better]] = th[better]
             best_g[ri[better]] = gi[better]
-            t_cur[active] += tf.astype(np.float64) + t_step
-            go_on = t_cur[active] < np.minimum(best_t[active], t_hi[active])
+            go_on = walk.t_cur[active] < np.minimum(best_t[active], t_hi[active])
             if not self.exact_order:
                 go_on &= best_g[active] < 0  # stop at the first exact hit found (see class doc)
-            active = active[go_on]
+            walk.active = active[go_on]
+        active = walk.active
+        it = walk.iterations
         self.stats.unfinished += int(active.size) if it >= self.max_iterations else 0
         return self._gaussian_hits(o, d, best_t, best_g)
 
@@ -485,45 +472,66 @@ class Tracer:
         if hasattr(self._backend, "all_hits"):
             return self._trace_soft_listed(o, d, tmin, tmax, t_lo, t_hi)
         n = o.shape[0]
-        t_cur = t_lo.copy()
-        start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
-        d32 = d.astype(np.float32)
-        active = np.nonzero(t_hi >= t_lo)[0]
-        step = np.zeros(n)
-        last_prim = np.full(n, -1, np.int64)
+        walk = _FaceWalk(self, o, d, t_lo, t_hi)
         log_t_min = np.log(self.soft_min_transmittance)
         log_tr = np.zeros(n)  # log transmittance of the contributions known to be final
         done = []  # finalised contributions (ray, gaussian, t*, alpha) per round
         pend = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
-        it = 0
-        while active.size and it < self.max_iterations and len(self.gaussians):
-            it += 1
-            start = (o[active] + t_cur[active, None] * d[active]).astype(np.float32)
-            limit = t_hi[active] - t_cur[active]
-            tf, prim = self._backend.first_hit(start, d32[active], limit.astype(np.float32))
-            self.stats.casts += 1
-            self.stats.rays_cast += active.size
-            found = prim >= 0
-            active, tf, prim = active[found], tf[found], prim[found]
+        while walk.active.size and walk.iterations < self.max_iterations and len(self.gaussians):
+            active, prim, again = walk.cast(t_hi)
             if not active.size:
                 break
-            t_step, again = self._next_step(active, prim, start[found] + tf[:, None] * d32[active], last_prim, step)
-            ray_idx, g = self._candidates(prim[~again], active[~again], d, start_pt)
+            ray_idx, g = self._candidates(prim[~again], active[~again], d, walk.start_pt)
             pend = tuple(np.concatenate([a, b]) for a, b in
                          zip(pend, self._soft_contributions(ray_idx, g, o, d, tmin, tmax)))
-            t_cur[active] += tf.astype(np.float64) + t_step
             # Any Gaussian not found yet has its proxy entry, hence its t*, beyond this ray's last
             # face: contributions in front of it are final, and once their transmittance is below
             # the threshold the ray is done.
-            final = pend[2] < t_cur[pend[0]] - step[pend[0]]
+            final = pend[2] < walk.t_cur[pend[0]] - walk.step[pend[0]]
             if np.any(final):
                 done.append(tuple(a[final] for a in pend))
                 np.add.at(log_tr, pend[0][final], np.log1p(-pend[3][final]))
                 pend = tuple(a[~final] for a in pend)
-            active = active[(log_tr[active] > log_t_min) & (t_cur[active] < t_hi[active])]
+            walk.active = active[(log_tr[active] > log_t_min) & (walk.t_cur[active] < t_hi[active])]
+        active = walk.active
+        it = walk.iterations
         self.stats.unfinished += int(active.size) if it >= self.max_iterations else 0
         done.append(pend)
         return self._soft_result(n, o, d, done)
+
+
+class _FaceWalk:
+    """Each ray's walk through the proxy faces in order of distance, one Embree cast per step.
+
+    A cast starts at `t_cur` (float64, converted to float32 only for Embree) and finds the next
+    face; the next cast starts just past it (see `Tracer._next_step`)."""
+
+    def __init__(self, tracer: "Tracer", o, d, t_lo, t_hi):
+        self.tracer, self.o, self.d = tracer, o, d
+        self.d32 = d.astype(np.float32)
+        n = o.shape[0]
+        self.t_cur = t_lo.copy()
+        self.start_pt = o + np.where(np.isfinite(t_lo), t_lo, 0.0)[:, None] * d
+        self.step = np.zeros(n)
+        self.last_prim = np.full(n, -1, np.int64)
+        self.active = np.nonzero(t_hi >= t_lo)[0]
+        self.iterations = 0
+
+    def cast(self, far: np.ndarray):
+        """Next face of every active ray before `far` (absolute, (N,)): returns the rays that
+        found one, their face ids, and which of them found the same face as last time."""
+        tr, a = self.tracer, self.active
+        self.iterations += 1
+        start = (self.o[a] + self.t_cur[a, None] * self.d[a]).astype(np.float32)
+        tf, prim = tr._backend.first_hit(start, self.d32[a], (far[a] - self.t_cur[a]).astype(np.float32))
+        tr.stats.casts += 1
+        tr.stats.rays_cast += a.size
+        found = prim >= 0
+        a, tf, prim = a[found], tf[found], prim[found]
+        step, again = tr._next_step(a, prim, start[found] + tf[:, None] * self.d32[a], self.last_prim, self.step)
+        self.t_cur[a] += tf.astype(np.float64) + step
+        self.active = a
+        return a, prim, again
 
 
 def composite_front_to_back(ray, t, alpha, gid, n, min_transmittance):

@@ -54,21 +54,12 @@ class WorldConfig(BaseModel):
     @classmethod
     def from_yaml(cls, path) -> "WorldConfig":
         """Read the `world:` section of a scenario file (or a file that is only that section)."""
-        from pydantic import ValidationError
-
-        from ..lidar.config import ConfigError, format_validation_error, load_yaml
+        from ..lidar.config import load_yaml, validate_model
 
         data = load_yaml(path)
         if isinstance(data, dict) and "world" in data:
-            data, where = data["world"], f"{path} (world)"
-        else:
-            where = str(path)
-        if not isinstance(data, dict):
-            raise ConfigError(f"{where}: expected a mapping of world settings")
-        try:
-            return cls.model_validate(data)
-        except ValidationError as exc:
-            raise ConfigError(format_validation_error(exc, where)) from None
+            return validate_model(cls, data["world"], f"{path} (world)", "world settings")
+        return validate_model(cls, data, str(path), "world settings")
 
 
 @dataclass

@@ -74,6 +74,21 @@ def chunk_samples(mesh: TriangleMesh, chunk_to_world: np.ndarray, spacing: float
     return s
 
 
+def _majority_grid(key: np.ndarray, labels: np.ndarray, weights: np.ndarray, n: int, voxel_size: float,
+                   area_scale: float = 1.0) -> VoxelGrid:
+    """Flat voxel keys (i * n + j) * n + k with a label and a weight each -> a VoxelGrid whose
+    label per voxel is the one with the most weight (ties: the smaller id)."""
+    up, inv = np.unique(key * 64 + labels.astype(np.int64), return_inverse=True)
+    w = np.bincount(inv.reshape(-1), weights=weights)
+    pkey, plab = up // 64, up % 64
+    order = np.lexsort((plab, -w, pkey))
+    first = np.r_[True, pkey[order][1:] != pkey[order][:-1]]
+    vox, vlab = pkey[order][first], plab[order][first]
+    area = np.bincount(np.searchsorted(vox, pkey), weights=w, minlength=len(vox)) * area_scale
+    ijk = np.stack([vox // (n * n), (vox // n) % n, vox % n], 1)
+    return VoxelGrid(ijk.astype(np.int32), vlab.astype(np.int16), area.astype(np.float32), float(voxel_size))
+
+
 def voxelize_mesh(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: float,
                   batch: int = 4_000_000) -> VoxelGrid:
     """Every voxel of the chunk that the mesh's surface passes through (conservative).
@@ -124,16 +139,8 @@ def voxelize_mesh(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: fl
             first = last
     if not keys:
         return VoxelGrid(np.zeros((0, 3), np.int32), np.zeros(0, np.int16), np.zeros(0, np.float32), float(voxel_size))
-    key, lab, wt = np.concatenate(keys), np.concatenate(labs), np.concatenate(wts)
-    up, inv = np.unique(key * 64 + lab, return_inverse=True)
-    w = np.bincount(inv.reshape(-1), weights=wt)
-    pkey, plab = up // 64, up % 64
-    order = np.lexsort((plab, -w, pkey))
-    first_ = np.r_[True, pkey[order][1:] != pkey[order][:-1]]
-    vox, vlab = pkey[order][first_], plab[order][first_]
-    area = np.bincount(np.searchsorted(vox, pkey), weights=w, minlength=len(vox)) * voxel_size**2
-    ijk_out = np.stack([vox // (n * n), (vox // n) % n, vox % n], 1)
-    return VoxelGrid(ijk_out.astype(np.int32), vlab.astype(np.int16), area.astype(np.float32), float(voxel_size))
+    return _majority_grid(np.concatenate(keys), np.concatenate(labs), np.concatenate(wts), n, voxel_size,
+                          area_scale=voxel_size**2)
 
 
 def _scan_columns(tri, nr, lo, hi, cnt, a, u, w, n):
@@ -185,17 +192,7 @@ def voxelize(points: np.ndarray, labels: np.ndarray, weights: np.ndarray, voxel_
     ok = np.all((ijk >= 0) & (ijk < n), axis=1)
     ijk, labels, weights = ijk[ok], labels[ok], weights[ok]
     key = (ijk[:, 0] * n + ijk[:, 1]) * n + ijk[:, 2]
-    pair = key * 64 + labels.astype(np.int64)
-    up, inv = np.unique(pair, return_inverse=True)
-    w = np.bincount(inv.reshape(-1), weights=weights)
-    pkey, plab = up // 64, up % 64
-    order = np.lexsort((plab, -w, pkey))  # per voxel: heaviest label first (ties: smaller id)
-    first = np.r_[True, pkey[order][1:] != pkey[order][:-1]]
-    vox = pkey[order][first]
-    lab = plab[order][first]
-    area = np.bincount(np.searchsorted(vox, pkey), weights=w, minlength=len(vox))
-    ijk_out = np.stack([vox // (n * n), (vox // n) % n, vox % n], 1)
-    return VoxelGrid(ijk_out.astype(np.int32), lab.astype(np.int16), area.astype(np.float32), float(voxel_size))
+    return _majority_grid(key, labels, weights, n, voxel_size)
 
 
 def coarsen(fine: VoxelGrid, factor: int) -> VoxelGrid:
@@ -204,21 +201,13 @@ def coarsen(fine: VoxelGrid, factor: int) -> VoxelGrid:
     ijk = fine.ijk.astype(np.int64) // factor
     n = fine.dims // factor
     key = (ijk[:, 0] * n + ijk[:, 1]) * n + ijk[:, 2]
-    pair = key * 64 + fine.labels.astype(np.int64)
-    up, inv = np.unique(pair, return_inverse=True)
-    w = np.bincount(inv.reshape(-1), weights=fine.area)
-    pkey, plab = up // 64, up % 64
-    order = np.lexsort((plab, -w, pkey))
-    first = np.r_[True, pkey[order][1:] != pkey[order][:-1]]
-    vox, lab = pkey[order][first], plab[order][first]
-    area = np.bincount(np.searchsorted(vox, pkey), weights=w, minlength=len(vox))
-    vis = None
+    grid = _majority_grid(key, fine.labels, fine.area, n, fine.voxel_size * factor)
     if fine.visible is not None:
-        vis = np.zeros(len(vox), bool)
-        vis[np.searchsorted(vox, key[fine.visible])] = True
-    ijk_out = np.stack([vox // (n * n), (vox // n) % n, vox % n], 1)
-    return VoxelGrid(ijk_out.astype(np.int32), lab.astype(np.int16), area.astype(np.float32),
-                     fine.voxel_size * factor, vis)
+        g = grid.ijk.astype(np.int64)
+        vox = (g[:, 0] * n + g[:, 1]) * n + g[:, 2]
+        grid.visible = np.zeros(len(grid), bool)
+        grid.visible[np.searchsorted(vox, key[fine.visible])] = True
+    return grid
 
 
 def mark_visible(grid: VoxelGrid, seen_points: np.ndarray) -> np.ndarray:
@@ -292,3 +281,17 @@ def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: floa
     vs.metadata.update({"frame": "chunk", "chunk_corner": CHUNK_CORNER.tolist(),
                         "chunk_to_world": np.asarray(chunk_to_world).tolist()})
     return vs
+
+
+def chunk_frames(world, spacing_m: float = 80.0) -> list[np.ndarray]:
+    """Chunk-to-world poses along a route longer than one chunk: the ego's lane of the main road
+    every `spacing_m` metres (consecutive chunks overlap by CHUNK_SIZE - spacing along the road),
+    from the ego's start while a whole chunk still fits on the road ahead."""
+    from .generator import _poses_along
+
+    road = world.layout.main
+    s0 = 20.0  # where the ego starts on its road (generator convention)
+    lane = -(road.median / 2 + road.lane_width / 2)
+    last = road.length - (CHUNK_SIZE + CHUNK_CORNER[0])
+    s = np.arange(s0, max(last, s0) + 1e-9, spacing_m)
+    return list(_poses_along(road, s, lane, 0.0))
