@@ -25,7 +25,7 @@ from scube_sim.worlds.groundtruth import gt_voxsplat
 
 from .common import RESULTS, write_results
 
-REGION = (np.array([-10.24, -25.6, -3.2]), np.array([40.96, 25.6, 40.0]))
+REGION = (np.array([-10.24, -25.6, -3.23]), np.array([40.96, 25.6, 40.0]))
 SCENARIOS = ("urban-block", "suburban")
 
 

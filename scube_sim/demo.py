@@ -27,7 +27,7 @@ from .worlds.groundtruth import gt_voxsplat
 # The embedded default scenario (the same as scenarios/urban-block.yaml).
 DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
 # The demo fits the 51.2 m x 51.2 m around the ego (the whole chunk at 0.2 m holds ~3 M Gaussians).
-REGION = (np.array([-10.24, -25.6, -3.2]), np.array([40.96, 25.6, 40.0]))
+REGION = (np.array([-10.24, -25.6, -3.23]), np.array([40.96, 25.6, 40.0]))
 
 
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,

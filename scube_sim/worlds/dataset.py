@@ -92,7 +92,6 @@ class _SceneAt:
 
 def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     """Generate one sample in memory: {'meta', 'images', 'frames', 'voxels', 'lidar'}."""
-    t_start = time.perf_counter()
     wcfg = sample_world_config(split, index, cfg)
     world = generate_world(wcfg)
     rig = load_rig(cfg.rig)
@@ -142,7 +141,6 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
         "lidar": {"sensor": cfg.lidar, "pose_start": sweep.pose_start.tolist(), "pose_end": sweep.pose_end.tolist(),
                   "t_start": sweep.t_start, "t_end": sweep.t_end},
         "voxels": {"fine": len(fine), "coarse": len(coarse), "fine_visible_fraction": float(fine.visible.mean())},
-        "seconds": round(time.perf_counter() - t_start, 3),
     }
     voxels = {}
     for name, g in (("fine", fine), ("coarse", coarse)):

@@ -206,11 +206,9 @@ def _ground(layout: Layout, x0, x1, y0, y1, footprints: list[np.ndarray]) -> Tri
     c0, c1, c2, c3 = idx[ci, cj], idx[ci + 1, cj], idx[ci + 1, cj + 1], idx[ci, cj + 1]
     fine = np.vstack([np.c_[c0, c1, c2], np.c_[c0, c2, c3]])
     faces = np.vstack([coarse, fine])
-    centre = v[faces].mean(axis=1)
-    keep = np.ones(len(faces), bool)
-    for fp in footprints:
-        keep &= ~_inside_polygon(centre[:, :2], fp)
-    faces = faces[keep]
+    # Drop only cells entirely under a building: a cell straddling a wall stays (its covered part
+    # is hidden), so the ground meets every wall without a gap.
+    faces = faces[~np.all(inside[faces], axis=1)]
     fc = cls[faces]  # (F, 3) classes of the corners
     zspan = np.ptp(v[faces][:, :, 2], axis=1)
     majority = np.where((fc[:, 0] == fc[:, 1]) | (fc[:, 0] == fc[:, 2]), fc[:, 0], fc[:, 1])
@@ -593,8 +591,9 @@ def _extent(layout: Layout, length: float, margin: float):
     pts = np.vstack([r.centerline for r in layout.roads])
     lo, hi = pts.min(0), pts.max(0)
     half = min(length, 102.4) / 2
+    # Cover the ego's chunk even where the roads stop short of it (a T junction's main road).
     lo = np.minimum(lo, [-20.0, -half]) - margin
-    hi = np.maximum(hi, [20.0, half]) + margin
+    hi = np.maximum(hi, [min(length, 102.4), half]) + margin
     return lo, hi
 
 
