@@ -86,22 +86,29 @@ _BOX_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5,
 PROXY_KINDS = ("octahedron", "icosahedron", "voxel_box")
 
 
-def template_rotations(index: np.ndarray) -> np.ndarray:
-    """(N,) integer ids -> (N, 3, 3) rotations, deterministic and different for neighbouring ids.
+def template_rotations(index: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(N,) integer ids and (N,) template axes (0, 1, 2) -> (N, 3, 3) rotations about those axes
+    by angles that differ between neighbouring ids (a golden-ratio sequence).
 
-    Each per-Gaussian proxy template is turned by its own rotation (any rotation of a template
-    that contains the unit sphere still contains it). Without this, Gaussians fitted on a plane
-    share orientation and size, and their proxies' faces lie exactly in common planes: a ray then
-    meets several faces at the same distance, and Embree reports only one of them. Shoemake's
-    uniform quaternion from a Kronecker (golden-ratio) sequence."""
-    i = np.asarray(index, np.float64)[:, None]
-    u = np.mod(i * np.array([0.7548776662466927, 0.5698402909980532, 0.3221518669916131]) + 0.5, 1.0)
-    a, b = np.sqrt(1 - u[:, 0]), np.sqrt(u[:, 0])
-    w, x = a * np.sin(2 * np.pi * u[:, 1]), a * np.cos(2 * np.pi * u[:, 1])
-    y, z = b * np.sin(2 * np.pi * u[:, 2]), b * np.cos(2 * np.pi * u[:, 2])
-    from ..transforms import quat_to_rotmat
-
-    return quat_to_rotmat(np.stack([w, x, y, z], 1)).reshape(-1, 3, 3)
+    Each per-Gaussian proxy template is turned about its Gaussian's flattest axis (any rotation of
+    a template that contains the unit sphere still contains it). Without this, Gaussians fitted on
+    a plane share orientation and size, and their proxies' faces lie exactly in common planes: a
+    ray then meets several faces at the same distance, and Embree reports only one of them. Turning
+    about the flattest axis keeps a flat Gaussian's proxy flat, which keeps the BVH tight."""
+    theta = 2 * np.pi * np.mod(np.asarray(index, np.float64) * 0.6180339887498949 + 0.5, 1.0)
+    c, s = np.cos(theta), np.sin(theta)
+    n = theta.shape[0]
+    out = np.zeros((n, 3, 3))
+    axis = np.asarray(axis)
+    for k in range(3):
+        sel = axis == k
+        i, j = [m for m in range(3) if m != k]
+        out[sel, k, k] = 1.0
+        out[sel, i, i] = c[sel]
+        out[sel, j, j] = c[sel]
+        out[sel, i, j] = -s[sel]
+        out[sel, j, i] = s[sel]
+    return out
 
 
 def _template_mesh(template_v, template_f, centers, axes_scaled):
@@ -141,13 +148,13 @@ def gaussian_proxies(kind: str, means, rotations, scales, k: float, pad: float):
     Returns (vertices (P, 3) float32, faces (F, 3) int32, faces_per_proxy, frame_scale (N, 3)).
     The proxy of Gaussian i owns faces [i * fpp, (i + 1) * fpp). Template coordinates of a point
     x are ``Q_i^T (frame_scale * (A (x - mu)))`` with A = S^-1 R^T (`unit_frame_matrices`) and
-    Q_i = template_rotations(i). `pad` absorbs float32 rounding of rays and vertices.
+    Q_i = template_rotations(i, argmin(s_i)). `pad` absorbs float32 rounding of rays and vertices.
     """
     tv, tf, scale = _template(kind)
     s = np.asarray(scales, np.float64)
     semi = k * s + pad
     axes = rotations * (scale * semi)[:, None, :]
-    axes = axes @ template_rotations(np.arange(s.shape[0]))
+    axes = axes @ template_rotations(np.arange(s.shape[0]), np.argmin(s, axis=1))
     v, f = _template_mesh(tv, tf, np.asarray(means, np.float64), axes)
     return v, f, tf.shape[0], s / (scale * semi)
 

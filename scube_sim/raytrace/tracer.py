@@ -36,7 +36,7 @@ MODES = ("entry", "max_response", "soft")
 # this 2-core machine for every scene size and proxy; see README "Tracer benchmark".
 DEFAULT_BACKEND = "open3d"
 MIN_SCALE = 1e-9  # metres
-STEP_ULPS = 0.5  # first re-cast step past a face, in float32 ulps of the face position (grows on a re-hit)
+STEP_ULPS = 1.0  # first re-cast step past a face, in float32 ulps of the face position (grows on a re-hit)
 
 
 @dataclass
@@ -328,7 +328,8 @@ class Tracer:
             return (x if is_dir else x - self._box_center[owner]) / self._box_half[owner]
         v = x if is_dir else x - self._mu[owner]
         y = self._frame_scale[owner] * gm._matvec(self._a[owner], v)
-        return np.einsum("nji,nj->ni", gm.template_rotations(owner), y)  # Q^T y
+        q = gm.template_rotations(owner, np.argmin(self.gaussians.scales[owner], axis=1))
+        return np.einsum("nji,nj->ni", q, y)  # Q^T y
 
     def _candidates(self, prim, rays, d, start):
         """Proxy faces -> (ray index, Gaussian index) pairs to test exactly.
