@@ -110,6 +110,8 @@ class Intrinsics:
                 f = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - theta_d
                 df = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
                 theta = np.clip(theta - f / np.where(np.abs(df) > 1e-12, df, 1e-12), 0.0, np.pi / 2 - 1e-9)
+                if np.abs(f).max(initial=0.0) < 1e-14:
+                    break
             scale = np.where(theta_d > 1e-12, np.tan(theta) / np.maximum(theta_d, 1e-12), 1.0)
             return xd * scale, yd * scale
         k1, k2, p1, p2, k3 = self._coeffs()
@@ -127,6 +129,8 @@ class Intrinsics:
             det = np.where(np.abs(det) > 1e-12, det, 1e-12)
             x = x - (j22 * ex - j12 * ey) / det
             y = y - (j11 * ey - j12 * ex) / det
+            if max(np.abs(ex).max(initial=0.0), np.abs(ey).max(initial=0.0)) < 1e-14:
+                break  # converged (quadratically): a few steps for real lenses
         return x, y
 
     # --- rays and projection -----------------------------------------------------------------
