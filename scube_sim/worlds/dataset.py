@@ -295,3 +295,26 @@ def load_sample(folder: Path) -> dict:
     with np.load(folder / "lidar.npz", allow_pickle=False) as z:
         lidar = z["points"]
     return {"meta": meta, "images": images, "frames": frames, "voxels": voxels, "lidar": lidar}
+
+
+def sample_frames(sample: dict, frame: int = 0) -> "Frames":
+    """The `Frames` (the converter's camera input) of frame `frame` (an index into the sample's
+    frame offsets: 0 is the input instant T) of a loaded sample, with depth, semantics and sky."""
+    from ..camera.model import Intrinsics
+    from ..frames import CameraImage, Frames
+    from ..labels import label_id
+
+    meta = sample["meta"]
+    fm = meta["frames"][frame]
+    k = fm["offset"]
+    images = []
+    for cam in fm["cameras"]:
+        d = cam["intrinsics"]
+        intr = Intrinsics(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d["model"], tuple(d["dist"]))
+        sem = sample["frames"][f"semantic_{k:02d}_{cam['name']}"].astype(np.int16)
+        images.append(CameraImage(cam["name"], sample["images"][f"rgb_{k:02d}_{cam['name']}.png"], intr,
+                                  np.asarray(cam["cam_to_world"]), float(cam["timestamp"]),
+                                  depth=sample["frames"][f"depth_{k:02d}_{cam['name']}"].astype(np.float32),
+                                  semantic=sem, sky=sem == label_id("sky")))
+    return Frames(images, np.asarray(fm["ego_pose"]), float(fm["time"]),
+                  {"split": meta["split"], "index": meta["index"], "frame_offset": k})

@@ -342,3 +342,21 @@ def test_voxels_holding_seen_road_points_are_marked_visible(dataset_dir):
     assert len(road) > 100
     unseen = [n for n in road if not any(k[n] in table and table[k[n]][1] for k in keys)]
     assert not unseen, f"{len(unseen)} of {len(road)} seen road points lie in voxels not marked visible"
+
+def test_sample_frames_are_the_converters_input(dataset_dir):
+    """`sample_frames` gives the shared camera input type: per image its pixels, intrinsics,
+    own pose and own timestamp (the rig's firing offsets), and the set's ego pose."""
+    from scube_sim.camera.rig import load_rig
+    from scube_sim.worlds.dataset import sample_frames
+
+    s = load_sample(dataset_dir / "train" / f"{FAST:06d}")
+    rig = load_rig(CFG.rig)
+    for f, offset in enumerate(CFG.frame_offsets):
+        frames = sample_frames(s, f)
+        assert frames.names == [c.name for c in rig.cameras]
+        t_ref = offset / CFG.frame_rate_hz
+        assert frames.timestamp == pytest.approx(t_ref)
+        for im, cam in zip(frames.images, rig.cameras):
+            assert im.timestamp == pytest.approx(t_ref + cam.time_offset_s)
+            assert im.image.shape[:2] == (im.intrinsics.height, im.intrinsics.width)
+            np.testing.assert_array_equal(im.sky, ~np.isfinite(im.depth))
