@@ -42,3 +42,17 @@ def require(path: Path) -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """OpenCV camera (x right, y down, z forward) -> world pose looking from eye at target."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    t = np.eye(4)
+    t[:3, :3] = np.column_stack([x, y, z])
+    t[:3, 3] = eye
+    return t

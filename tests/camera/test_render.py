@@ -16,23 +16,10 @@ from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.worlds import primitives as pr
 from scube_sim.worlds.generator import WorldConfig, generate_world
+from tests.conftest import look_at
 
 SKY = label_id("sky")
 KEYS = ("rgb", "depth", "semantic", "instance", "sky")
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenCV camera (x right, y down, z forward) -> world pose looking from eye at target."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    t = np.eye(4)
-    t[:3, :3] = np.column_stack([x, y, z])
-    t[:3, 3] = eye
-    return t
 
 
 def pinhole_dirs(intr: Intrinsics, cam_to_world: np.ndarray) -> np.ndarray:

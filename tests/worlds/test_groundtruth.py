@@ -22,6 +22,7 @@ from scube_sim.worlds.groundtruth import (CHUNK_CORNER, CHUNK_SIZE, VoxelGrid, c
                                           depth_to_points, gt_voxsplat, mark_visible, voxelize,
                                           voxelize_mesh)
 from scube_sim.worlds.textures import albedo
+from tests.conftest import look_at
 
 ROAD, BUILDING, CAR = label_id("road"), label_id("building"), label_id("car")
 
@@ -32,20 +33,6 @@ ROAD, BUILDING, CAR = label_id("road"), label_id("building"), label_id("car")
 def yaw_pose(yaw: float, t) -> np.ndarray:
     c, s = np.cos(yaw), np.sin(yaw)
     return make_pose(np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), t)
-
-
-def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
-    """OpenCV camera (x right, y down, z forward) -> world, looking from eye at target."""
-    eye, target = np.asarray(eye, float), np.asarray(target, float)
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    t = np.eye(4)
-    t[:3, :3] = np.column_stack([x, y, z])
-    t[:3, 3] = eye
-    return t
 
 
 def grid_set(grid: VoxelGrid) -> set[tuple[int, int, int]]:
