@@ -156,7 +156,8 @@ class Lidar:
     ) -> Sweep:
         """Trace one sweep.
 
-        tracer: a Tracer, or several (e.g. a static scene and its actors): the nearest hit counts.
+        tracer: a Tracer, several (the nearest hit counts), or a scene whose `trace_world` takes
+        the rays' absolute fire times (`accepts_times`, e.g. `sim.scene.SimScene` with actors).
         pose_start / pose_end: (4, 4) float64 sensor-to-world poses at the sweep's start and end
         (end defaults to start: a static sensor). pose_fn: alternatively, absolute times (N,) ->
         (N, 4, 4) sensor-to-world poses. t_start: absolute seconds of the first fire.
@@ -212,6 +213,9 @@ class Lidar:
             t_far = np.minimum(t_far, t_body)
         if isinstance(tracer, (list, tuple)):
             hits = nearest_hits(list(tracer), o_w, d_w, 0.0, t_far)
+        elif getattr(tracer, "accepts_times", False):
+            # A scene with moving parts places them at each ray's own fire time.
+            hits = tracer.trace_world(o_w, d_w, 0.0, t_far, times=t_start + t_sub)
         else:
             hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
         rng_sub = hits.t.copy()

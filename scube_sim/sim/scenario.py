@@ -1,0 +1,322 @@
+"""Scenario files: what to simulate, from where, with which sensors, into which outputs.
+
+A scenario is YAML validated by pydantic (an unknown key or a bad value names the file and the key
+path). Relative paths are relative to the scenario file; a path starting with `shared:` is looked
+up in the third-party data folder (SCUBE_SIM_SHARED_DATA, default `../shared/data` beside the
+repository). `build_run` turns a scenario into a ready `Simulator`, its pose source and time span.
+
+    name: lane-change
+    seed: 0
+    duration_s: 8              # default: the trajectory's span
+    tick_hz: 10
+    scene:                     # exactly one of world / voxsplat / ply / chunks
+      world: {style: boulevard, seed: 5, layout: straight, length_m: 200}
+      representation: voxsplat # or mesh (the world's exact triangles)
+      voxel_size: 0.4
+    trajectory:
+      source: world            # world | file | can
+      edit: {lateral_offset_m: 3.4, lateral_ramp_s: [2, 5]}
+    sensors:
+      - {preset: hdl64e}
+    effects: {noise: true, drops: true, motion_distortion: true, divergence: true}
+    outputs: {files: [pcd], usd: replay.usdc}
+"""
+
+from __future__ import annotations
+
+import copy
+import os
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from ..lidar.config import ConfigError, LidarConfig, Mount, load_lidar_config, load_yaml, validate_model
+from ..worlds.generator import WorldConfig
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ChunkEntry(_Strict):
+    path: str
+    pose: Mount = Mount()  # chunk-to-world: metres and degrees
+
+
+class SceneSpec(_Strict):
+    world: WorldConfig | None = None
+    representation: Literal["voxsplat", "mesh"] = "voxsplat"
+    voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
+    gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
+    depth: Literal["entry", "max_response", "soft"] = "max_response"
+    chunk_spacing_m: float = Field(default=80.0, gt=10, le=102.4)
+    voxsplat: str | None = None
+    ply: str | None = None
+    chunks: list[ChunkEntry] | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        given = [k for k in ("world", "voxsplat", "ply", "chunks") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of world, voxsplat, ply or chunks (got {given or 'none'})")
+        return self
+
+
+class CanSpec(_Strict):
+    log: str
+    dbc: str
+    start_s: float = Field(default=0.0, ge=0)
+    duration_s: float = Field(default=20.0, gt=0)
+    realtime: bool = False
+    speed: float = Field(default=1.0, gt=0)
+    wheelbase_m: float | None = Field(default=None, gt=0)
+    steering_ratio: float | None = Field(default=None, gt=0)
+
+
+class EditSpec(_Strict):
+    lateral_offset_m: float = 0.0
+    lateral_ramp_s: tuple[float, float] | None = None
+    speed_scale: float = Field(default=1.0, gt=0)
+    time_shift_s: float = 0.0
+
+
+class TrajectorySpec(_Strict):
+    source: Literal["world", "file", "can"] = "world"
+    file: str | None = None
+    rate_hz: float = Field(default=10.0, gt=0)
+    can: CanSpec | None = None
+    edit: EditSpec | None = None
+
+    @model_validator(mode="after")
+    def _needs(self):
+        if self.source == "file" and not self.file:
+            raise ValueError("source 'file' needs 'file'")
+        if self.source == "can" and self.can is None:
+            raise ValueError("source 'can' needs a 'can' section")
+        return self
+
+
+class SensorSpec(_Strict):
+    preset: str
+    name: str | None = None
+    rate_hz: float | None = Field(default=None, gt=0)
+    mount: Mount | None = None
+    phase_s: float = 0.0
+    overrides: dict = Field(default_factory=dict)
+
+
+class EffectsSpec(_Strict):
+    noise: bool = True
+    drops: bool = True
+    motion_distortion: bool = True
+    divergence: bool = True
+    output: Literal["raw", "compensated"] | None = None
+
+
+class CanOutputSpec(_Strict):
+    interface: str = "virtual"
+    channel: str = "scube-sim"
+    arbitration_id: int = Field(default=0x5F0, ge=0, le=0x1FFFFFFF)
+
+
+class OutputsSpec(_Strict):
+    files: list[Literal["pcd", "bin", "npz", "ply"]] = Field(default_factory=lambda: ["pcd"])
+    usd: str | None = "replay.usdc"
+    usd_clips: bool = False
+    frames_per_clip: int = Field(default=100, ge=1)
+    usd_scene: bool = True
+    can: CanOutputSpec | None = None
+
+
+class Scenario(_Strict):
+    name: str
+    description: str = ""
+    seed: int = 0
+    duration_s: float | None = Field(default=None, gt=0)
+    tick_hz: float = Field(default=10.0, gt=0, le=1000)
+    scene: SceneSpec
+    trajectory: TrajectorySpec = TrajectorySpec()
+    actors: Literal["world", "none"] = "world"
+    sensors: list[SensorSpec] = Field(min_length=1)
+    effects: EffectsSpec = EffectsSpec()
+    outputs: OutputsSpec = OutputsSpec()
+
+
+def shared_data_dir() -> Path:
+    env = os.environ.get("SCUBE_SIM_SHARED_DATA")
+    return Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def resolve_path(p: str, base: Path) -> Path:
+    """A scenario path: `shared:<rel>` in the third-party data folder, else relative to `base`."""
+    if p.startswith("shared:"):
+        return shared_data_dir() / p[len("shared:"):].lstrip("/")
+    q = Path(os.path.expanduser(p))
+    return q if q.is_absolute() else (base / q).resolve()
+
+
+def load_scenario(path: str | Path) -> tuple[Scenario, Path]:
+    """Validate a scenario file; returns it and the folder its relative paths refer to."""
+    path = Path(path)
+    sc = validate_model(Scenario, load_yaml(path), str(path), "scenario settings")
+    return sc, path.resolve().parent
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str) -> LidarConfig:
+    """A sensor's LiDAR config: the preset, the scenario's overrides, then the effects switches."""
+    from ..lidar.config import config_from_dict
+
+    preset = str(resolve_path(spec.preset, base)) if spec.preset.endswith((".yaml", ".yml")) else spec.preset
+    cfg = load_lidar_config(preset)
+    data = _merge(cfg.model_dump(mode="json"), spec.overrides)
+    if not effects.noise:
+        data["noise"] = {"range_sigma_m": 0.0, "range_sigma_rel": 0.0, "quantization_m": 0.0}
+    if not effects.drops:
+        data["drop"] = {"random_rate": 0.0, "max_incidence_deg": 90.0, "min_intensity": 0.0}
+    if not effects.divergence:
+        data["beam"]["samples"] = 1
+    if effects.output is not None:
+        data["motion"]["output"] = effects.output
+    if spec.mount is not None:
+        data["mount"] = spec.mount.model_dump(mode="json")
+    return config_from_dict(data, f"{where} (preset {spec.preset!r} with overrides)")
+
+
+class _Static:
+    """A pose source that stays put (motion distortion switched off): each sweep sees the ego at
+    its sweep's end instant."""
+
+    def __init__(self, source):
+        self.source = source
+        self.t_start, self.t_end = source.t_start, source.t_end
+
+    def poses_at(self, times):
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        return np.broadcast_to(self.source.poses_at(times[-1:])[0], (times.shape[0], 4, 4)).copy()
+
+
+def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
+    """A scenario -> (Simulator, pose source, t_start, t_end). Fits and caches VoxSplat chunks of
+    procedural worlds under `out/scene_chunks/` (reused by later runs with the same settings)."""
+    from ..raytrace.tracer import Tracer
+    from ..scene import load_scene
+    from ..worlds.generator import generate_world
+    from .scene import ChunkSet, ChunkSpec, Part, SimScene, track_pose_fn
+    from .simulator import LidarSensor, Simulator
+    from .sinks import FileSink, RunInfo
+    from .sources import EditedTrajectory, TrajectorySource
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    configs = [sensor_config(s, sc.effects, base, f"sensors[{i}]") for i, s in enumerate(sc.sensors)]
+    reach = max(c.range.max_m for c in configs)
+    tracer_kw = {"mode": sc.scene.depth}
+
+    world = None
+    static, actors, chunks, boxes, run_scene = [], [], None, [], None
+    if sc.scene.world is not None:
+        wcfg = sc.scene.world
+        need = (sc.duration_s or wcfg.duration_s) + 1.0
+        if wcfg.duration_s < need and sc.trajectory.source == "world":
+            wcfg = wcfg.model_copy(update={"duration_s": need})
+        world = generate_world(wcfg)
+        boxes = world.boxes_static
+        if sc.scene.representation == "mesh":
+            static.append(Part(Tracer(world.static), name="world"))
+        else:
+            chunks = ChunkSet(_world_chunks(world, sc.scene, out, progress), reach, tracer_kw)
+        if sc.actors == "world":
+            actors = [Part(Tracer(a.mesh), pose_fn=track_pose_fn(a.times, a.poses), instance=a.instance,
+                           label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
+    elif sc.scene.voxsplat is not None or sc.scene.ply is not None:
+        path = resolve_path(sc.scene.voxsplat or sc.scene.ply, base)
+        run_scene = load_scene(path)
+        static.append(Part(Tracer(run_scene, **tracer_kw), name=path.stem))
+    else:
+        specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in sc.scene.chunks]
+        for s in specs:
+            if not s.path.is_file():
+                raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
+        chunks = ChunkSet(specs, reach, tracer_kw)
+    scene = SimScene(static=static, actors=actors, chunks=chunks, static_boxes=boxes)
+
+    # Trajectory.
+    tr = sc.trajectory
+    if tr.source == "world":
+        if world is None:
+            raise ConfigError("trajectory.source 'world' needs scene.world")
+        source = TrajectorySource(world.ego_times, world.ego_poses, "world ego path")
+    elif tr.source == "file":
+        source = TrajectorySource.from_file(resolve_path(tr.file, base), tr.rate_hz)
+    else:
+        from .can import CanPoseSource
+
+        c = tr.can
+        start = world.ego_pose_at(0.0) if world is not None else np.eye(4)
+        kw = {k: v for k, v in (("wheelbase_m", c.wheelbase_m), ("steering_ratio", c.steering_ratio)) if v is not None}
+        source = CanPoseSource.from_log(resolve_path(c.log, base), resolve_path(c.dbc, base), start=c.start_s,
+                                        duration=c.duration_s, start_pose=start, realtime=c.realtime,
+                                        speed=c.speed, **kw)
+    if tr.edit is not None:
+        e = tr.edit
+        source = EditedTrajectory(source, lateral_offset_m=e.lateral_offset_m, lateral_ramp=e.lateral_ramp_s,
+                                  speed_scale=e.speed_scale, time_shift=e.time_shift_s)
+    if not sc.effects.motion_distortion:
+        source = _Static(source)
+    t0 = source.t_start
+    t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
+
+    sensors = [LidarSensor.from_config(cfg, spec.name, rate_hz=spec.rate_hz, phase=spec.phase_s)
+               for cfg, spec in zip(configs, sc.sensors)]
+    sinks = []
+    if sc.outputs.files:
+        sinks.append(FileSink(out / "frames", sc.outputs.files))
+    if sc.outputs.usd:
+        from .usd_sink import UsdSink
+
+        sinks.append(UsdSink(out / sc.outputs.usd, clips=sc.outputs.usd_clips,
+                             frames_per_clip=sc.outputs.frames_per_clip, include_scene=sc.outputs.usd_scene))
+    if sc.outputs.can is not None:
+        from .can import CanFrameSink
+
+        o = sc.outputs.can
+        sinks.append(CanFrameSink(interface=o.interface, channel=o.channel, arbitration_id=o.arbitration_id))
+    info = RunInfo(scene=run_scene, metadata={"scenario": sc.model_dump(mode="json")},
+                   time_codes_per_second=100.0)
+    sim = Simulator(scene, sensors, sinks, seed=sc.seed, run_info=info)
+    return sim, source, t0, t1
+
+
+def _world_chunks(world, spec: SceneSpec, out: Path, progress=None) -> list:
+    """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk."""
+    import json
+
+    from ..worlds.groundtruth import chunk_frames, gt_voxsplat
+    from .scene import ChunkSpec
+
+    folder = out / "scene_chunks"
+    folder.mkdir(parents=True, exist_ok=True)
+    key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,
+           "M": spec.gaussians_per_voxel, "spacing": spec.chunk_spacing_m}
+    frames = chunk_frames(world, spec.chunk_spacing_m)
+    specs = []
+    for i, c2w in enumerate(frames):
+        path = folder / f"chunk_{i:03d}.npz"
+        meta_path = folder / f"chunk_{i:03d}.json"
+        if not (path.exists() and meta_path.exists() and json.loads(meta_path.read_text()) == key):
+            if progress:
+                progress(f"fitting VoxSplat chunk {i + 1}/{len(frames)}")
+            vs = gt_voxsplat(world.static, c2w, spec.voxel_size, gaussians_per_voxel=spec.gaussians_per_voxel)
+            vs.save(path)
+            meta_path.write_text(json.dumps(key))
+        specs.append(ChunkSpec(path, np.asarray(c2w)))
+    return specs
