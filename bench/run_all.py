@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import sys
 
-from . import bench_tracer
+from . import bench_representation, bench_sim, bench_tracer
 
 
 def main() -> None:
     quick = "--quick" in sys.argv
-    sys.argv = [sys.argv[0]] + (["--quick"] if quick else [])
-    bench_tracer.main()
+    for module in (bench_tracer, bench_representation, bench_sim):
+        sys.argv = [sys.argv[0]] + (["--quick"] if quick else [])
+        module.main()
 
 
 if __name__ == "__main__":

@@ -6,6 +6,10 @@ carries a double-precision ``xformOp:translate`` to its float64 local origin and
 positions as float32 relative to it, so scenes at 1e6 m keep sub-millimetre positions (float32
 alone resolves only 6 cm there). Quaternions: our arrays are wxyz like ``Gf.Quatf`` and .usda
 text, but numpy views of ``Vt.QuatfArray`` are xyzw; the reordering happens only here.
+
+The pieces (`set_stage_metadata`, `add_gaussians`, `add_scene`, `add_points_prim`,
+`primvar_type`, `to_vt_array`, `matrix4d`, `write_layer`) are public so that other writers (the
+simulator's `UsdSink`) build stages with the same conventions.
 """
 
 from __future__ import annotations
@@ -20,11 +24,16 @@ from ..voxsplat import Gaussians, VoxSplat
 from .atomic import atomic_path
 from .pointcloud import as_structured
 
-__all__ = ["export_usd", "GAUSSIANS_PATH", "POINTS_PATH"]
+__all__ = [
+    "export_usd", "GAUSSIANS_PATH", "POINTS_PATH", "USD_SUFFIXES", "check_usd_suffix", "set_stage_metadata",
+    "add_gaussians", "add_scene", "add_points_prim", "points_extent", "primvar_type", "declare_primvar",
+    "to_vt_array", "vec3f", "matrix4d", "write_layer",
+]
 
 GAUSSIANS_PATH = "/World/Gaussians"
 POINTS_PATH = "/World/Points"
-_SUFFIXES = (".usda", ".usdc", ".usd")
+USD_SUFFIXES = (".usda", ".usdc", ".usd")
+_SUFFIXES = USD_SUFFIXES
 _KSIGMA = 3.0  # extent = the 3-sigma ellipsoids' bounding box
 
 
@@ -45,10 +54,50 @@ def _vt_types():
     }
 
 
-def _vec3f(a: np.ndarray):
+def check_usd_suffix(path: Path) -> str:
+    """The lower-case suffix of `path`, which must be a USD one (it picks text or crate)."""
+    suffix = path.suffix.lower()
+    if suffix not in USD_SUFFIXES:
+        raise ValueError(f"{path}: unknown USD suffix {path.suffix!r}; use one of {USD_SUFFIXES}")
+    return suffix
+
+
+def set_stage_metadata(stage, *, documentation: str = "Exported by scube_sim", time_codes_per_second=None):
+    """upAxis Z, metersPerUnit 1, ``/World`` (an Xform) as the default prim; optionally the
+    time base (timeCodesPerSecond, and framesPerSecond the same so playback runs in real time).
+    Returns the /World prim."""
+    from pxr import UsdGeom
+
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.LinearUnits.meters)
+    world = UsdGeom.Xform.Define(stage, "/World")
+    stage.SetDefaultPrim(world.GetPrim())
+    stage.GetRootLayer().documentation = documentation
+    if time_codes_per_second is not None:
+        tcps = float(time_codes_per_second)
+        if not (np.isfinite(tcps) and tcps > 0):
+            raise ValueError(f"time_codes_per_second must be finite and > 0, got {time_codes_per_second!r}")
+        stage.SetTimeCodesPerSecond(tcps)
+        stage.SetFramesPerSecond(tcps)
+    return world.GetPrim()
+
+
+def vec3f(a: np.ndarray):
+    """(N, 3) -> Vt.Vec3fArray (float32)."""
     from pxr import Vt
 
     return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3))
+
+
+_vec3f = vec3f
+
+
+def matrix4d(pose: np.ndarray):
+    """(4, 4) float64 column-vector pose -> Gf.Matrix4d (row-vector convention: the transpose),
+    exact in double precision."""
+    from pxr import Gf
+
+    return Gf.Matrix4d(np.asarray(pose, np.float64).T.tolist())
 
 
 def _quatf_wxyz(q: np.ndarray):
@@ -58,24 +107,45 @@ def _quatf_wxyz(q: np.ndarray):
     return Vt.QuatfArray.FromNumpy(xyzw)
 
 
-def _add_primvar(prim, name: str, values: np.ndarray, interpolation: str, source_name: str | None = None):
-    """Author primvars:<name> from a (N,) or (N, k) array (k -> elementSize)."""
-    from pxr import UsdGeom
-
-    values = np.asarray(values)
-    key = (values.dtype.kind, values.dtype.itemsize)
+def primvar_type(dtype, what: str = "field", who: str = "export_usd"):
+    """(Sdf value type name, Vt array class, numpy storage dtype) for a numpy scalar dtype."""
+    dtype = np.dtype(dtype)
+    key = (dtype.kind, dtype.itemsize)
     types = _vt_types()
     if key not in types:
-        raise ValueError(f"export_usd: field {source_name or name!r} has dtype {values.dtype}, "
-                         f"which USD primvars cannot hold")
-    type_name, vt_array, np_type = types[key]
-    element_size = int(np.prod(values.shape[1:])) if values.ndim > 1 else 1
+        raise ValueError(f"{who}: {what} has dtype {dtype}, which USD primvars cannot hold")
+    return types[key]
+
+
+def to_vt_array(values: np.ndarray):
+    """A flat Vt array of the matching (possibly widened, exactly) type."""
+    values = np.asarray(values)
+    _, vt_array, np_type = primvar_type(values.dtype)
+    return vt_array.FromNumpy(np.ascontiguousarray(values, dtype=np_type).reshape(-1))
+
+
+def declare_primvar(prim, name: str, dtype, interpolation: str, element_size: int = 1,
+                    source_name: str | None = None, who: str = "export_usd"):
+    """Create primvars:<name> (no value) for values of numpy `dtype`; the original dtype goes to
+    the attribute's customData "scube_sim:dtype" (and the field name to "scube_sim:field")."""
+    from pxr import UsdGeom
+
+    dtype = np.dtype(dtype)
+    type_name, _, _ = primvar_type(dtype, f"field {source_name or name!r}", who)
     pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(name, type_name, interpolation, element_size)
-    pv.Set(vt_array.FromNumpy(np.ascontiguousarray(values, dtype=np_type).reshape(-1)))
     attr = pv.GetAttr()
-    attr.SetCustomDataByKey("scube_sim:dtype", values.dtype.newbyteorder("=").str)
+    attr.SetCustomDataByKey("scube_sim:dtype", dtype.newbyteorder("=").str)
     if source_name is not None and source_name != name:
         attr.SetCustomDataByKey("scube_sim:field", source_name)
+    return pv
+
+
+def _add_primvar(prim, name: str, values: np.ndarray, interpolation: str, source_name: str | None = None):
+    """Author primvars:<name> from a (N,) or (N, k) array (k -> elementSize)."""
+    values = np.asarray(values)
+    element_size = int(np.prod(values.shape[1:])) if values.ndim > 1 else 1
+    pv = declare_primvar(prim, name, values.dtype, interpolation, element_size, source_name)
+    pv.Set(to_vt_array(values))
     return pv
 
 
@@ -95,11 +165,13 @@ def _gaussian_extent(local: np.ndarray, scales: np.ndarray, quats: np.ndarray) -
     return np.stack([(local - half).min(0), (local + half).max(0)])
 
 
-def _add_gaussians(stage, g: Gaussians, labels: np.ndarray | None, voxel_size: float | None):
+def add_gaussians(stage, path: str, g: Gaussians, labels: np.ndarray | None = None,
+                  voxel_size: float | None = None):
+    """Define `path` as a ParticleField3DGaussianSplat holding `g` (see `export_usd`); returns it."""
     from pxr import Vt, UsdGeom, UsdVol
 
     g.check_finite("export_usd")
-    pf = UsdVol.ParticleField3DGaussianSplat.Define(stage, GAUSSIANS_PATH)
+    pf = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
     _set_translate(pf, np.asarray(g.origin, np.float64))
     pf.CreatePositionsAttr(_vec3f(g.means))
     pf.CreateOrientationsAttr(_quatf_wxyz(normalize_quat(g.quats)))
@@ -118,6 +190,48 @@ def _add_gaussians(stage, g: Gaussians, labels: np.ndarray | None, voxel_size: f
         pf.CreateExtentAttr(_vec3f(_gaussian_extent(g.means, g.scales, g.quats)))
     if voxel_size is not None:
         prim.SetCustomDataByKey("scube_sim:voxel_size", float(voxel_size))
+    return pf
+
+
+def _add_gaussians(stage, g: Gaussians, labels: np.ndarray | None, voxel_size: float | None):
+    return add_gaussians(stage, GAUSSIANS_PATH, g, labels, voxel_size)
+
+
+def add_scene(stage, path: str, scene):
+    """A VoxSplat (with per-Gaussian labels and the voxel size) or Gaussians at `path`; returns
+    the ParticleField3DGaussianSplat, or None for any other scene type (nothing authored)."""
+    if isinstance(scene, VoxSplat):
+        g = scene.gaussians()
+        return add_gaussians(stage, path, g, scene.labels[g.voxel], scene.voxel_size)
+    if isinstance(scene, Gaussians):
+        return add_gaussians(stage, path, scene)
+    return None
+
+
+def add_points_prim(stage, path: str, *, width: float = 0.05, primvars: dict | None = None,
+                    extent: bool = True, who: str = "export_usd"):
+    """Define `path` as a UsdGeom.Points with constant `width`, an (unset) points attribute,
+    optionally an (unset) extent, and vertex primvars declared (no values) from
+    `primvars`: name -> numpy dtype. For writers that author values later (e.g. time samples)."""
+    from pxr import Tf, Vt, UsdGeom
+
+    geom = UsdGeom.Points.Define(stage, path)
+    geom.CreatePointsAttr()
+    geom.CreateWidthsAttr(Vt.FloatArray([float(width)]))
+    geom.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+    if extent:
+        geom.CreateExtentAttr()
+    for field, dtype in (primvars or {}).items():
+        declare_primvar(geom.GetPrim(), Tf.MakeValidIdentifier(field), dtype, UsdGeom.Tokens.vertex,
+                        source_name=field, who=who)
+    return geom
+
+
+def points_extent(local: np.ndarray, width: float) -> np.ndarray:
+    """(2, 3) float32 box of (N, 3) points padded by half the width; a zero box when N == 0."""
+    if len(local) == 0:
+        return np.zeros((2, 3), np.float32)
+    return np.stack([local.min(0) - width / 2, local.max(0) + width / 2]).astype(np.float32)
 
 
 def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
@@ -163,9 +277,10 @@ def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
             raise ValueError(f"export_usd: point_colors[{name!r}]: expected (3,) or ({len(local)}, 3), got {c.shape}")
 
 
-def _write_layer(layer, path: Path) -> None:
+def write_layer(layer, path: str | Path) -> Path:
     """Export `layer` to `path` atomically. USD picks the file format from the suffix, so the
     export goes to a temporary name that keeps it, then moves onto atomic_path's temporary."""
+    path = Path(path)
     with atomic_path(path) as tmp:
         usd_tmp = tmp.with_name(tmp.name + path.suffix)
         try:
@@ -174,6 +289,10 @@ def _write_layer(layer, path: Path) -> None:
             os.replace(usd_tmp, tmp)
         finally:
             usd_tmp.unlink(missing_ok=True)
+    return path
+
+
+_write_layer = write_layer
 
 
 def export_usd(
@@ -201,9 +320,7 @@ def export_usd(
     from pxr import Tf, Usd, UsdGeom
 
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in _SUFFIXES:
-        raise ValueError(f"{path}: unknown USD suffix {path.suffix!r}; use one of {_SUFFIXES}")
+    suffix = check_usd_suffix(path)
     if voxsplat is not None and gaussians is not None:
         raise ValueError("export_usd: pass voxsplat or gaussians, not both")
     points = dict(points or {})
@@ -213,11 +330,7 @@ def export_usd(
 
     # The in-memory layer's identifier fixes its file format (text or crate) as well.
     stage = Usd.Stage.CreateInMemory(f"scube_sim_export{suffix}")
-    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
-    UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.LinearUnits.meters)
-    world = UsdGeom.Xform.Define(stage, "/World")
-    stage.SetDefaultPrim(world.GetPrim())
-    stage.GetRootLayer().documentation = "Exported by scube_sim"
+    set_stage_metadata(stage)
 
     if voxsplat is not None:
         g = voxsplat.gaussians()
@@ -234,5 +347,5 @@ def export_usd(
             seen[prim_name] = name
             _add_points(stage, name, cloud, point_width, (point_colors or {}).get(name),
                         (points_poses or {}).get(name))
-    _write_layer(stage.GetRootLayer(), path)
+    write_layer(stage.GetRootLayer(), path)
     return path

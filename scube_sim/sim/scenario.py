@@ -51,7 +51,7 @@ class SceneSpec(_Strict):
     voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     depth: Literal["entry", "max_response", "soft"] = "max_response"
-    chunk_spacing_m: float = Field(default=80.0, gt=10, le=102.4)
+    chunk_spacing_m: float = Field(default=96.0, gt=10, le=102.4)
     voxsplat: str | None = None
     ply: str | None = None
     chunks: list[ChunkEntry] | None = None
@@ -258,14 +258,7 @@ def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
     elif tr.source == "file":
         source = TrajectorySource.from_file(resolve_path(tr.file, base), tr.rate_hz)
     else:
-        from .can import CanPoseSource
-
-        c = tr.can
-        start = world.ego_pose_at(0.0) if world is not None else np.eye(4)
-        kw = {k: v for k, v in (("wheelbase_m", c.wheelbase_m), ("steering_ratio", c.steering_ratio)) if v is not None}
-        source = CanPoseSource.from_log(resolve_path(c.log, base), resolve_path(c.dbc, base), start=c.start_s,
-                                        duration=c.duration_s, start_pose=start, realtime=c.realtime,
-                                        speed=c.speed, **kw)
+        source = _can_source(tr.can, base, world.ego_pose_at(0.0) if world is not None else np.eye(4))
     if tr.edit is not None:
         e = tr.edit
         source = EditedTrajectory(source, lateral_offset_m=e.lateral_offset_m, lateral_ramp=e.lateral_ramp_s,
@@ -284,7 +277,7 @@ def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
         from .usd_sink import UsdSink
 
         sinks.append(UsdSink(out / sc.outputs.usd, clips=sc.outputs.usd_clips,
-                             frames_per_clip=sc.outputs.frames_per_clip, include_scene=sc.outputs.usd_scene))
+                             frames_per_clip=sc.outputs.frames_per_clip, write_scene=sc.outputs.usd_scene))
     if sc.outputs.can is not None:
         from .can import CanFrameSink
 
@@ -294,6 +287,39 @@ def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
                    time_codes_per_second=100.0)
     sim = Simulator(scene, sensors, sinks, seed=sc.seed, run_info=info)
     return sim, source, t0, t1
+
+
+class _CanSource:
+    """A CAN pose source as a scenario trajectory (source time 0 = the window's start). Read at
+    once, or, with `realtime`, paced by the log: asking for a pose waits until the replayed
+    messages have reached that time."""
+
+    def __init__(self, can_source, duration: float):
+        self.can = can_source
+        self.t_start, self.t_end = 0.0, float(duration)
+
+    def poses_at(self, times) -> np.ndarray:
+        import time as _time
+
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        while self.can.realtime and not self.can.finished and self.can.duration < times.max():
+            self.can.poll()
+            _time.sleep(0.002)
+        return np.asarray(self.can.pose_at(times)).reshape(-1, 4, 4)
+
+
+def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> _CanSource:
+    from .can import CanPoseSource, DeadReckoner
+
+    kw = {}
+    if c.wheelbase_m is not None:
+        kw["wheelbase"] = c.wheelbase_m
+    if c.steering_ratio is not None:
+        kw["steer_ratio"] = c.steering_ratio
+    src = CanPoseSource.from_log(resolve_path(c.log, base), resolve_path(c.dbc, base),
+                                 reckoner=DeadReckoner(start_pose=start_pose, **kw), start=c.start_s,
+                                 stop=c.start_s + c.duration_s, realtime=c.realtime, speed=c.speed)
+    return _CanSource(src, c.duration_s if c.realtime else min(c.duration_s, src.duration))
 
 
 def _world_chunks(world, spec: SceneSpec, out: Path, progress=None) -> list:

@@ -280,3 +280,23 @@ def test_trajectory_files(tmp_path):
         TrajectorySource.from_file(bad)
     with pytest.raises(ValueError, match="strictly increasing"):
         TrajectorySource([0.0, 0.0], [np.eye(4), np.eye(4)])
+
+
+@pytest.mark.parametrize("output", ["raw", "compensated"])
+def test_ego_at_20_mps_skews_a_wall_and_compensation_removes_it(output):
+    """Host-driven at 20 m/s towards a wall 30 m ahead: a ray fired tau seconds into the sweep
+    sees the wall (30 - 0.1) - x_ego(tau) ahead; compensated output puts every point back in the
+    sensor frame at the sweep start, where the wall is a plane."""
+    v = 20.0
+    wall = pr.box([30.0, 0.0, 0.0], [0.2, 80.0, 10.0], label=WALL)
+    cfg = ring_lidar(columns=3600, motion={"output": output, "reference": "start"})
+    sim = Simulator(SimScene(static=[Part(Tracer(wall))]), [LidarSensor.from_config(cfg, mount=np.eye(4))])
+    sim.step(0.0, np.eye(4))
+    f = sim.step(0.1, make_pose(None, [v * 0.1, 0, 0]))
+    s = f.sensors["ring"][0]
+    p = s.points
+    ahead = np.abs(p["azimuth"]) < np.deg2rad(30)
+    tau = p["time"][ahead].astype(np.float64)
+    want = 29.9 - v * tau if output == "raw" else np.full(tau.shape, 29.9)
+    np.testing.assert_allclose(p["x"][ahead], want, atol=2e-4)
+    np.testing.assert_allclose(s.pose_start[:3, 3], [0, 0, 0], atol=1e-12)
