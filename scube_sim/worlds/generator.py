@@ -53,10 +53,13 @@ class WorldConfig(BaseModel):
 
     @classmethod
     def from_yaml(cls, path) -> "WorldConfig":
-        """Read the `world:` section of a scenario file (or a file that is only that section)."""
+        """Read a scenario file's `scene.world` section (or a top-level `world:` section, or a
+        file that is only that section)."""
         from ..lidar.config import load_yaml, validate_model
 
         data = load_yaml(path)
+        if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "world" in data["scene"]:
+            return validate_model(cls, data["scene"]["world"], f"{path} (scene.world)", "world settings")
         if isinstance(data, dict) and "world" in data:
             return validate_model(cls, data["world"], f"{path} (world)", "world settings")
         return validate_model(cls, data, str(path), "world settings")

@@ -421,7 +421,8 @@ def test_scenarios_load(path):
     import yaml
 
     cfg = WorldConfig.from_yaml(path)
-    raw = yaml.safe_load(path.read_text())["world"]
+    data = yaml.safe_load(path.read_text())
+    raw = data["scene"]["world"] if "scene" in data else data["world"]
     for key, value in raw.items():
         assert getattr(cfg, key) == value
     assert cfg.style in STYLES
