@@ -1,0 +1,221 @@
+"""What every dataset adapter yields: `Sample`s of posed camera `Frames`, real LiDAR sweeps and 3D boxes.
+
+Frames follow `scube_sim.frames` (OpenCV cameras, camera-to-world poses, seconds). World frame:
+the dataset's own global/map frame where it has one; otherwise the first sweep's sensor frame.
+Poses are (4, 4) float64 `T_parent_child` (see `scube_sim.transforms`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator, Protocol
+
+import numpy as np
+
+from ..frames import Frames
+from ..lidar.config import LidarConfig
+from ..transforms import check_pose, invert_pose, transform_points
+
+PoseFn = Callable[[np.ndarray], np.ndarray]  # absolute times (K,) s -> (K, 4, 4) sensor-to-world
+
+
+class DatasetError(ValueError):
+    """Bad or missing dataset content; the message names the file (and key) and what was expected."""
+
+
+@dataclass
+class LidarSpec:
+    """A LiDAR of the rig: its model (a preset or a config built from the dataset's calibration)
+    and its (4, 4) sensor-to-ego mount."""
+
+    name: str
+    config: LidarConfig
+    sensor_to_ego: np.ndarray
+
+    def __post_init__(self):
+        self.sensor_to_ego = check_pose(self.sensor_to_ego, f"lidar {self.name!r}: sensor_to_ego")
+
+
+@dataclass
+class LidarSweep:
+    """One real sweep of one sensor.
+
+    points (N, 3) float64 metres, sensor frame. If `motion_compensated`, every point is expressed
+    in the sensor frame at `timestamp`; otherwise each point is in the sensor frame at its own fire
+    time `timestamp + time_offset` (raw, as the sensor measured it) and `pose_fn` must be given.
+    sensor_to_world (4, 4): the sensor pose at `timestamp` (s). intensity (N,) float32 as stored
+    by the dataset (its scale differs: see `intensity_max`); ring (N,) int16 laser index;
+    time_offset (N,) float64 seconds relative to `timestamp`; pose_fn: absolute times ->
+    sensor-to-world poses, where the dataset has a pose stream (for per-point timing).
+    """
+
+    sensor: str
+    points: np.ndarray
+    sensor_to_world: np.ndarray
+    timestamp: float
+    intensity: np.ndarray | None = None
+    intensity_max: float = 1.0
+    ring: np.ndarray | None = None
+    time_offset: np.ndarray | None = None
+    motion_compensated: bool = True
+    pose_fn: PoseFn | None = None
+
+    def __post_init__(self):
+        self.points = np.asarray(self.points, np.float64).reshape(-1, 3)
+        self.sensor_to_world = check_pose(self.sensor_to_world, f"sweep {self.sensor!r}: sensor_to_world")
+        n = self.points.shape[0]
+        for name in ("intensity", "ring", "time_offset"):
+            v = getattr(self, name)
+            if v is not None and np.shape(v) != (n,):
+                raise ValueError(f"sweep {self.sensor!r}: {name} has shape {np.shape(v)}, expected ({n},)")
+        if not self.motion_compensated and (self.time_offset is None or self.pose_fn is None):
+            raise ValueError(f"sweep {self.sensor!r}: raw (not motion-compensated) points need time_offset and pose_fn")
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+    def point_poses(self) -> np.ndarray:
+        """(N, 4, 4) sensor-to-world pose of each point's frame (the sweep pose when compensated)."""
+        if self.motion_compensated:
+            return np.broadcast_to(self.sensor_to_world, (len(self), 4, 4))
+        return np.asarray(self.pose_fn(self.timestamp + self.time_offset), np.float64)
+
+    def world_points(self) -> np.ndarray:
+        """(N, 3) float64 metres, world frame (per-point poses for raw sweeps)."""
+        if self.motion_compensated:
+            return transform_points(self.sensor_to_world, self.points)
+        return transform_points(self.point_poses(), self.points)
+
+    def compensated(self) -> "LidarSweep":
+        """The same sweep with every point moved into the sensor frame at `timestamp`."""
+        if self.motion_compensated:
+            return self
+        local = transform_points(invert_pose(self.sensor_to_world), self.world_points())
+        return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
+                          self.intensity_max, self.ring, self.time_offset, True, self.pose_fn)
+
+    def subset(self, mask) -> "LidarSweep":
+        pick = lambda a: None if a is None else a[mask]  # noqa: E731
+        return LidarSweep(self.sensor, self.points[mask], self.sensor_to_world, self.timestamp,
+                          pick(self.intensity), self.intensity_max, pick(self.ring), pick(self.time_offset),
+                          self.motion_compensated, self.pose_fn)
+
+
+@dataclass
+class Box:
+    """An oriented 3D box in the world frame: center (3,) metres, size (3,) length/width/height
+    along the box's x/y/z, rotation (3, 3) box-to-world. label: the dataset's class name;
+    label_id: our label table id (`scube_sim.labels`); velocity (3,) m/s world, NaN if unknown."""
+
+    center: np.ndarray
+    size: np.ndarray
+    rotation: np.ndarray
+    label: str
+    label_id: int = 0
+    velocity: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    track_id: str = ""
+
+    @property
+    def speed(self) -> float:
+        return float(np.linalg.norm(self.velocity)) if np.all(np.isfinite(self.velocity)) else float("nan")
+
+    def box_to_world(self) -> np.ndarray:
+        t = np.eye(4)
+        t[:3, :3], t[:3, 3] = self.rotation, self.center
+        return t
+
+
+def points_in_boxes(points: np.ndarray, boxes: list[Box], margin: float = 0.0) -> np.ndarray:
+    """(N,) int64 index of the first box containing each world point (-1: none). margin: metres
+    added on every side (LiDAR points on a box's surface lie just outside a tight label)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = np.full(p.shape[0], -1, np.int64)
+    for i, b in enumerate(boxes):
+        half = 0.5 * np.asarray(b.size, np.float64) + margin
+        r = np.linalg.norm(half)
+        cand = np.flatnonzero((out < 0) & (np.sum((p - b.center) ** 2, axis=1) <= r * r))
+        if cand.size == 0:
+            continue
+        local = (p[cand] - b.center) @ np.asarray(b.rotation, np.float64)
+        inside = np.all(np.abs(local) <= half, axis=1)
+        out[cand[inside]] = i
+    return out
+
+
+@dataclass
+class Sample:
+    """One instant of a log. frames: the camera images (None where the set has no images);
+    sweeps: real LiDAR sweeps (empty where the set has none); lidars: the rig's LiDAR models by
+    sensor name; boxes: labelled objects; ego_pose (4, 4) ego-to-world at `timestamp`."""
+
+    name: str
+    timestamp: float
+    ego_pose: np.ndarray
+    frames: Frames | None = None
+    sweeps: list[LidarSweep] = field(default_factory=list)
+    lidars: dict[str, LidarSpec] = field(default_factory=dict)
+    boxes: list[Box] = field(default_factory=list)
+    metadata: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        self.ego_pose = check_pose(self.ego_pose, f"sample {self.name!r}: ego_pose")
+
+    def sweep(self, sensor: str | None = None) -> LidarSweep:
+        """The sweep of `sensor` (default: the only or first sweep)."""
+        if not self.sweeps:
+            raise DatasetError(f"sample {self.name!r} has no LiDAR sweep")
+        if sensor is None:
+            return self.sweeps[0]
+        for s in self.sweeps:
+            if s.sensor == sensor:
+                return s
+        raise KeyError(f"sample {self.name!r}: no sweep of sensor {sensor!r}; have {[s.sensor for s in self.sweeps]}")
+
+
+class Dataset(Protocol):
+    """An adapter: `len(ds)` samples, `ds[i]` -> Sample (loaded on access), in time order."""
+
+    name: str
+    root: Path
+    poses_from_icp: bool  # True when the set has no poses and they were registered by ICP
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, index: int) -> Sample: ...
+
+    def __iter__(self) -> Iterator[Sample]: ...
+
+
+def require_file(path: Path, what: str) -> Path:
+    """`path` if it is a file, else a DatasetError saying which file of the set is missing."""
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing {what}")
+    return path
+
+
+def require_key(mapping, key, source: str, what: str = "key"):
+    """mapping[key] or a DatasetError naming the file and the key."""
+    try:
+        return mapping[key]
+    except (KeyError, IndexError, TypeError):
+        raise DatasetError(f"{source}: missing {what} {key!r}") from None
+
+
+def as_matrix(value, shape: tuple[int, ...], source: str, key: str) -> np.ndarray:
+    """value as a finite float64 array of `shape`, or a DatasetError naming the file and key."""
+    try:
+        a = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{source}: {key} is not numeric") from None
+    if a.shape != shape:
+        raise DatasetError(f"{source}: {key} has shape {a.shape}, expected {shape}")
+    if not np.all(np.isfinite(a)):
+        raise DatasetError(f"{source}: {key} holds NaN or Inf")
+    return a
+
+
+def index_check(index: int, n: int, name: str) -> int:
+    if not -n <= index < n:
+        raise IndexError(f"{name}: sample {index} out of range (have {n})")
+    return index % n
