@@ -132,3 +132,39 @@ def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_s
         fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", error_m: float = 0.5,
+                 mismatch: np.ndarray | None = None) -> Path:
+    """Range images one above the other: the ranges (turbo, shared scale, black = no return) and
+    any row named 'error ...' as a signed difference (blue nearer, red farther, clipped at
+    +-`error_m`); `mismatch` (rows, cols) bool marks in black the cells where only one of the
+    two returns, white where neither does."""
+    plt = _plt()
+    n = len(images)
+    fig, axes = plt.subplots(n, 1, figsize=(14, 1.9 * n + 0.8), dpi=110, squeeze=False)
+    ranges = [v for k, v in images.items() if not k.startswith("error")]
+    finite = np.concatenate([r[np.isfinite(r)] for r in ranges]) if ranges else np.zeros(1)
+    vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+    for ax, (name, img) in zip(axes[:, 0], images.items()):
+        if name.startswith("error"):
+            cmap = plt.get_cmap("coolwarm").copy()
+            cmap.set_bad("white")
+            im = ax.imshow(np.clip(img, -error_m, error_m), aspect="auto", interpolation="nearest", cmap=cmap,
+                           vmin=-error_m, vmax=error_m)
+            if mismatch is not None:
+                ax.imshow(np.where(mismatch, 0.0, np.nan), aspect="auto", interpolation="nearest", cmap="gray",
+                          vmin=0, vmax=1)
+            fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="m (black: one returns)")
+        else:
+            cmap = plt.get_cmap("turbo").copy()
+            cmap.set_bad("black")
+            im = ax.imshow(img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=0, vmax=vmax)
+            fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="range [m]")
+        ax.set_title(name, fontsize=9, loc="left")
+        ax.set_yticks([])
+    axes[-1, 0].set_xlabel("column (azimuth)")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

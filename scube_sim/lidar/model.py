@@ -125,9 +125,10 @@ def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np
 class Lidar:
     """A configured LiDAR. `scan` traces one sweep; the pattern is computed once."""
 
-    def __init__(self, config: LidarConfig):
+    def __init__(self, config: LidarConfig, pattern: ScanPattern | None = None):
+        """pattern: optionally the rays to fire instead of the config's (e.g. `replay_pattern`)."""
         self.config = config
-        self.pattern: ScanPattern = make_pattern(config)
+        self.pattern: ScanPattern = make_pattern(config) if pattern is None else pattern
         b = config.beam
         self._sub_rho, self._sub_phi, self._sub_w = _subray_offsets(b.samples, b.divergence_mrad * 1e-3)
         refl = LABEL_REFLECTIVITY.astype(np.float64).copy()

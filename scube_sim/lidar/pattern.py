@@ -144,6 +144,29 @@ def emitter_pattern(p: EmitterPattern) -> ScanPattern:
                        az[order], el[order], p.period_s, 0, np.zeros(0))
 
 
+def replay_pattern(directions: np.ndarray, time: np.ndarray | None = None, ring: np.ndarray | None = None, *,
+                   period_s: float = 0.1) -> ScanPattern:
+    """The rays of a recorded sweep, to simulate it ray for ray.
+
+    directions (N, 3) sensor frame (normalised here); time (N,) seconds after the sweep start
+    (default 0); ring (N,) channel ids. `column` holds each ray's index in the input, so returns
+    map back to the recorded points."""
+    d = np.asarray(directions, np.float64).reshape(-1, 3)
+    norm = np.linalg.norm(d, axis=1)
+    if not np.all(np.isfinite(d)) or np.any(norm == 0):
+        raise ValueError("replay_pattern: directions must be finite and non-zero")
+    if d.shape[0] > np.iinfo(np.int32).max:
+        raise ValueError("replay_pattern: too many rays")
+    d = d / norm[:, None]
+    n = d.shape[0]
+    t = np.zeros(n) if time is None else np.asarray(time, np.float64).reshape(n)
+    rg = np.zeros(n, np.uint16) if ring is None else np.asarray(ring).astype(np.uint16).reshape(n)
+    az = np.arctan2(d[:, 1], d[:, 0])
+    el = np.arcsin(np.clip(d[:, 2], -1.0, 1.0))
+    period = max(float(period_s), float(t.max(initial=0.0)))
+    return ScanPattern(d, np.zeros((n, 3)), t, rg, np.arange(n, dtype=np.int32), az, el, period, 0, np.zeros(0))
+
+
 def make_pattern(cfg: LidarConfig) -> ScanPattern:
     if isinstance(cfg.pattern, SpinningPattern):
         return spinning_pattern(cfg.pattern)
