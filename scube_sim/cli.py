@@ -43,7 +43,7 @@ def _run(fn):
 
     try:
         return fn()
-    except (CliError, ConfigError, FileNotFoundError, ValueError, KeyError) as exc:
+    except (CliError, ConfigError, FileNotFoundError, ValueError, KeyError, IndexError) as exc:
         msg = str(exc).strip().splitlines()
         _fail(msg[0] if len(msg) == 1 else "; ".join(msg))
     except OSError as exc:
@@ -222,6 +222,32 @@ def _int_list(text: str, flag: str) -> list[int]:
     return vals
 
 
+@app.command("convert")
+def convert_cmd(
+    path: Path = typer.Argument(..., help="dataset folder"),
+    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | argoverse2 | waymo"),
+    output: Path = typer.Option(..., "-o", "--output", help="folder to write (docs/dataset-folder-format.md)"),
+    points_format: str = typer.Option("npz", "--points", help="npz (exact float64) | pcd | ply | bin"),
+    image_format: str = typer.Option("png", "--images", help="png (lossless) | jpg"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing folder dataset"),
+) -> None:
+    """Convert a dataset to scube-sim's generic folder format (what other datasets convert to)."""
+
+    def body():
+        from rich.progress import track
+
+        from .datasets import open_dataset
+        from .datasets.folder import write_folder_dataset
+
+        ds = open_dataset(dataset, path)
+        samples = track((ds[i] for i in range(len(ds))), total=len(ds), description=f"converting {ds.name}")
+        write_folder_dataset(samples, output, points_format=points_format, image_format=image_format,
+                             name=ds.name, overwrite=overwrite)
+        typer.echo(f"{ds.name}: {len(ds)} sample(s) -> {output}")
+
+    _run(body)
+
+
 @app.command("build")
 def build_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
@@ -236,6 +262,7 @@ def build_cmd(
     patch_scale: float = typer.Option(0.5, "--patch-scale", help="share of the neighbourhood spread each point covers"),
     max_patch_sigma: float = typer.Option(0.03, "--max-patch-sigma", help="cap on a point's patch (std, metres)"),
     max_normal_scale: float = typer.Option(0.02, "--max-normal-scale", help="cap on Gaussian thickness (std, metres)"),
+    all_points: bool = typer.Option(False, "--all-points/--mesh-points", help="every return adds its own patch, not only those in no triangle"),
     color: bool = typer.Option(True, "--color/--no-color", help="colour from the camera images, where present"),
 ) -> None:
     """Build a VoxSplat from real LiDAR sweeps (accumulate, remove moving objects, fit, colour)."""
@@ -250,7 +277,8 @@ def build_cmd(
                             sensors=[s for s in sensors.split(",") if s] if sensors else None,
                             remove=remove, carve_with=_int_list(carve_with, "--carve-with"), voxel_size=voxel_size,
                             gaussians_per_voxel=gaussians_per_voxel, patch_scale=patch_scale,
-                            max_patch_sigma=max_patch_sigma, max_normal_scale=max_normal_scale, color=color)
+                            max_patch_sigma=max_patch_sigma, max_normal_scale=max_normal_scale,
+                            all_points=all_points, color=color)
         if not opts.samples:
             raise CliError("--samples: give at least one sample index")
         t0 = time.perf_counter()
@@ -278,6 +306,8 @@ def fidelity_cmd(
     mode: str = typer.Option("max_response", "--mode", help="tracer depth: max_response | entry"),
     baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="voxel cubes and Poisson next to the VoxSplat"),
     noise: bool = typer.Option(False, "--noise/--no-noise", help="add the sensor model's range noise"),
+    raw: bool = typer.Option(False, "--raw", help="compare with the sweep as measured (undo motion compensation): tests the motion model"),
+    static_from: str = typer.Option("", "--static-from", help="sample indices whose sweeps find returns on moving objects; adds [static rays] rows"),
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
 
@@ -289,7 +319,7 @@ def fidelity_cmd(
         ds = open_dataset(dataset, path)
         vs = VoxSplat.load(scene)
         res = run_fidelity(ds, vs, sample=sample, sensor=sensor, mode=mode, baselines=baselines, noise=noise,
-                           progress=lambda m: typer.echo(m + " ..."))
+                           static_from=_int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."))
         paths = write_report(res, output)
         typer.echo(res.markdown())
         typer.echo(f"-> {paths['markdown']}, {paths['png']}")

@@ -206,8 +206,13 @@ def _nn(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return cKDTree(b).query(a, k=1)[0]
 
 
-def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20)) -> dict:
-    """Ray-for-ray and cloud metrics (see the module docstring for the conventions)."""
+def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20), mask: np.ndarray | None = None) -> dict:
+    """Ray-for-ray and cloud metrics (see the module docstring for the conventions); `mask`
+    (N,) bool restricts them to some rays."""
+    if mask is not None:
+        rays = RealRays(rays.directions[mask], rays.range[mask], rays.time[mask], rays.intensity[mask],
+                        rays.row[mask], rays.col[mask], rays.rows, rays.cols, rays.no_returns_known, rays.notes)
+        sim = SimRays(sim.range[mask], sim.intensity[mask], sim.label[mask])
     real_hit, sim_hit = rays.hit, sim.hit
     both = real_hit & sim_hit
     err = sim.range[both] - rays.range[both]
@@ -311,19 +316,42 @@ class FidelityResult:
         return "\n".join([f"# LiDAR fidelity ({ctx})", "", *lines, "", *[f"- {n}" for n in self.notes], ""])
 
 
+def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensors=None) -> np.ndarray:
+    """(N,) bool: real returns on objects that moved, found without labels: points of `sweep`
+    that the other samples' sweeps saw through (free space then), grown to whole objects."""
+    from .reconstruct import free_space_mask, grow_to_objects
+
+    pts = rays.directions[rays.hit] * rays.range[rays.hit, None]
+    world = pts @ sweep.sensor_to_world[:3, :3].T + sweep.sensor_to_world[:3, 3]
+    seeds = np.zeros(len(pts), bool)
+    for j in others:
+        for sw in ds[j].sweeps:
+            if sensors is None or sw.sensor in sensors:
+                seeds |= free_space_mask(world, sw)
+    moving = np.zeros(len(rays), bool)
+    moving[np.flatnonzero(rays.hit)] = grow_to_objects(pts, seeds)
+    return moving
+
+
 def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str = "max_response",
                  baselines: bool = True, noise: bool = False, min_range: float = 1.0, seed: int = 0,
-                 progress=None) -> FidelityResult:
+                 static_from: list[int] | None = None, raw: bool = False, progress=None) -> FidelityResult:
     """Compare a VoxSplat `scene` with the real sweep of `sensor` in `ds[sample]`, next to the
     two baselines (0.1 m voxel cubes and an open3d Poisson surface of the points the scene was
     built from: rebuilt here from the build options stored in the scene), all traced on the
-    same rays in the same run. Raw sweeps are also replayed without the motion model."""
+    same rays in the same run. Raw sweeps are also replayed without the motion model.
+    static_from: sample indices whose sweeps find the real returns on moving objects (see
+    `moving_rays`); every row is then also given on the static rays only. raw: compare with the
+    sweep as measured (motion compensation undone with the set's per-point times and poses), so
+    the simulator's motion model is tested; compensated sets are otherwise replayed as stored."""
     from .raytrace.tracer import Tracer
     from .reconstruct import BuildOptions, accumulate_from_dataset, surface_patches
 
     step = progress or (lambda msg: None)
     smp = ds[sample]
     sweep = smp.sweep(sensor)
+    if raw:
+        sweep = sweep.raw()
     if sweep.sensor not in smp.lidars:
         raise ValueError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {sweep.sensor!r}")
     config = smp.lidars[sweep.sensor].config
@@ -333,11 +361,11 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     step("tracing the VoxSplat")
     tracer = Tracer(scene, mode=mode)
     sim = simulate_rays(tracer, config, rays, sweep, noise=noise, seed=seed)
-    rows["voxsplat"] = compare(rays, sim)
+    sims = {"voxsplat": sim}
     images["voxsplat"] = range_image(rays, sim.range)
     if not sweep.motion_compensated:
-        flat = simulate_rays(tracer, config, rays, sweep, distortion=False, noise=noise, seed=seed)
-        rows["voxsplat, no motion model"] = compare(rays, flat)
+        sims["voxsplat, no motion model"] = simulate_rays(tracer, config, rays, sweep, distortion=False,
+                                                          noise=noise, seed=seed)
         notes.append("raw sweep: 'voxsplat' fires each ray from the sensor pose at its own time (per-point "
                      "offsets, real pose stream); 'no motion model' fires all from the sweep-time pose")
     build = scene.metadata.get("build") if isinstance(scene.metadata, dict) else None
@@ -346,15 +374,25 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         opts = BuildOptions(**build)
         acc, _ = accumulate_from_dataset(ds, opts)
         cubes = Tracer(voxel_cube_mesh(acc.points, opts.voxel_size, acc.origin))
-        sim_c = simulate_rays(cubes, config, rays, sweep, noise=noise, seed=seed)
-        rows[f"baseline: {opts.voxel_size:g} m voxel cubes"] = compare(rays, sim_c)
+        sims[f"baseline: {opts.voxel_size:g} m voxel cubes"] = simulate_rays(cubes, config, rays, sweep,
+                                                                             noise=noise, seed=seed)
         normals, _ = surface_patches(acc.points, acc.sensor)
         pm = poisson_mesh(acc.points, normals, origin=acc.origin)
-        sim_p = simulate_rays(Tracer(pm), config, rays, sweep, noise=noise, seed=seed)
-        rows["baseline: Poisson surface (open3d, depth 10)"] = compare(rays, sim_p)
+        sims["baseline: Poisson surface (open3d, depth 10)"] = simulate_rays(Tracer(pm), config, rays, sweep,
+                                                                             noise=noise, seed=seed)
         notes.append(f"baselines rebuilt from the scene's input: {len(acc)} points of sample(s) {opts.samples}")
     elif baselines:
         notes.append("baselines skipped: the scene was not built from this dataset by `scube-sim build`")
+    for name, sr in sims.items():
+        rows[name] = compare(rays, sr)
+    if static_from:
+        step("finding returns on moving objects")
+        moving = moving_rays(ds, sweep, rays, static_from, [sweep.sensor])
+        for name, sr in list(sims.items()):
+            rows[f"{name} [static rays]"] = compare(rays, sr, mask=~moving)
+        notes.append(f"[static rays]: {int(moving.sum())} of {int(rays.hit.sum())} real returns lie on objects "
+                     f"that moved (seen through by the sweeps of sample(s) {static_from}, grown to whole "
+                     f"objects above the ground plane) and are left out")
     if not noise:
         notes.append("range noise off in the simulated sensor (the real points carry the real noise)")
     notes.append(f"tracer depth: {mode}; sensor model: {config.name} (range {config.range.min_m}-"

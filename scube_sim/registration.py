@@ -60,9 +60,13 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, 
     return IcpResult(pose, float(result.fitness), float(result.inlier_rmse))
 
 
-def register_sequence(sweeps: list[np.ndarray]) -> tuple[np.ndarray, list[IcpResult]]:
+def register_sequence(sweeps: list[np.ndarray], *, refine_to_first: int = 10) -> tuple[np.ndarray, list[IcpResult]]:
     """Sensor-to-world poses (K, 4, 4) for K consecutive sweeps ((N_k, 3) each, sensor frame),
-    world = the first sweep's frame, and the K - 1 pairwise ICP results."""
+    world = the first sweep's frame, and the K - 1 ICP results.
+
+    Each sweep is first aligned to the previous one; the first `refine_to_first` sweeps are then
+    aligned directly to the first sweep, started from the chained pose: short sequences get no
+    chaining drift (frame-to-frame steps of a few decimetres came out ~2 cm short each on KITTI)."""
     poses = [np.eye(4)]
     results: list[IcpResult] = []
     step = np.eye(4)
@@ -71,6 +75,10 @@ def register_sequence(sweeps: list[np.ndarray]) -> tuple[np.ndarray, list[IcpRes
         results.append(res)
         step = res.pose  # constant velocity: the next step starts from this one
         poses.append(poses[-1] @ res.pose)
+    for k in range(1, min(len(sweeps), refine_to_first)):
+        res = icp(sweeps[k], sweeps[0], init=poses[k])
+        results[k - 1] = res
+        poses[k] = res.pose
     return np.stack(poses), results
 
 

@@ -148,8 +148,7 @@ def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str 
     vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
     for ax, (name, img) in zip(axes[:, 0], images.items()):
         if name.startswith("error"):
-            cmap = plt.get_cmap("coolwarm").copy()
-            cmap.set_bad("white")
+            cmap = plt.get_cmap("coolwarm").with_extremes(bad="white")
             im = ax.imshow(np.clip(img, -error_m, error_m), aspect="auto", interpolation="nearest", cmap=cmap,
                            vmin=-error_m, vmax=error_m)
             if mismatch is not None:
@@ -157,8 +156,7 @@ def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str 
                           vmin=0, vmax=1)
             fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="m (black: one returns)")
         else:
-            cmap = plt.get_cmap("turbo").copy()
-            cmap.set_bad("black")
+            cmap = plt.get_cmap("turbo").with_extremes(bad="black")
             im = ax.imshow(img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=0, vmax=vmax)
             fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="range [m]")
         ax.set_title(name, fontsize=9, loc="left")

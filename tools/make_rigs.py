@@ -21,6 +21,7 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from scube_sim.camera.model import Intrinsics  # noqa: E402
 from scube_sim.camera.rig import BODY_FROM_OPTICAL, RigConfig  # noqa: E402
 from scube_sim.io.atomic import atomic_path  # noqa: E402
 from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
@@ -64,17 +65,17 @@ def nuscenes(data: Path) -> dict:
     cams = []
     for name in ["CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK_RIGHT", "CAM_BACK"]:
         c = d["images"][name]
-        k = np.asarray(c["cam2img"], np.float64)
+        intr = Intrinsics.from_k(c["cam2img"], 1600, 900)  # the half-pixel convention: see from_k
         cam2ego = np.asarray(c["cam2ego"], np.float64)
         body = cam2ego @ invert_pose(BODY_FROM_OPTICAL)
-        cams.append({"name": name, "width": 1600, "height": 900, "fx": float(k[0, 0]), "fy": float(k[1, 1]),
-                     "cx": float(k[0, 2]), "cy": float(k[1, 2]), "distortion": {"model": "pinhole"},
+        cams.append({"name": name, "width": 1600, "height": 900, "fx": intr.fx, "fy": intr.fy,
+                     "cx": intr.cx, "cy": intr.cy, "distortion": {"model": "pinhole"},
                      "mount": _mount(body), "time_offset_s": round(float(c["timestamp"] - t0), 6)})
     return {"name": "nuscenes-6",
             "source": ("open-mmlab/mmdetection3d @ fe25f7a51d36e3702f961e198894580d83c4387b, "
                        "demo/data/nuscenes/n015-2018-07-24-11-22-45+0800.pkl (../shared/data/nuscenes-mmdet3d-demo/), "
                        "nuScenes v1.0-mini log n015-2018-07-24-11-22-45+0800"),
-            "notes": ("K (cam2img) and cam2ego of the six cameras of one real keyframe; nuScenes images are "
+            "notes": ("K (cam2img, principal point moved by the half pixel between OpenCV's and our pixel-centre convention) and cam2ego of the six cameras of one real keyframe; nuScenes images are "
                       "undistorted, so no distortion. time_offset_s is each image's timestamp minus the LiDAR keyframe's."),
             "cameras": cams}
 

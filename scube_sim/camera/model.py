@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 DISTORTION_MODELS = ("pinhole", "opencv", "fisheye")
+K_PIXEL_CENTRE_SHIFT = 0.5  # ours minus OpenCV's principal point: see `Intrinsics.from_k`
 
 
 @functools.lru_cache(maxsize=64)
@@ -52,6 +53,15 @@ class Intrinsics:
     @property
     def K(self) -> np.ndarray:
         return np.array([[self.fx, 0, self.cx], [0, self.fy, self.cy], [0, 0, 1.0]])
+
+    @classmethod
+    def from_k(cls, k, width: int, height: int, model: str = "pinhole", dist=()) -> "Intrinsics":
+        """From a dataset's (3, 3) OpenCV-convention K, whose pixel centres sit at integers. Ours
+        sit at integer + 0.5 (the top-left pixel spans [0, 1)), so cx, cy move by half a pixel
+        (`K_PIXEL_CENTRE_SHIFT`) and pixel (i, j) of a render sees the ray of the real image's (i, j)."""
+        k = np.asarray(k, np.float64)
+        return cls(int(width), int(height), float(k[0, 0]), float(k[1, 1]), float(k[0, 2]) + K_PIXEL_CENTRE_SHIFT,
+                   float(k[1, 2]) + K_PIXEL_CENTRE_SHIFT, model, dist)
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, **kw) -> "Intrinsics":

@@ -64,9 +64,8 @@ AV2_LASER_TO_VLP32C_CHANNEL = np.array(
     [25, 2, 17, 6, 29, 10, 21, 14, 13, 5, 18, 22, 9, 1, 26, 30,
      11, 3, 24, 28, 15, 7, 16, 20, 23, 12, 31, 8, 19, 4, 27, 0], np.int16)
 
-# Our `Intrinsics` put pixel centres at integer + 0.5; AV2's K is OpenCV's (pixel centres at
-# integers: av2's PinholeCamera.cull_to_view_frustum accepts u in [0, width - 1]).
-PIXEL_CENTRE_SHIFT = 0.5
+# AV2's K is OpenCV's (pixel centres at integers: av2's PinholeCamera.cull_to_view_frustum
+# accepts u in [0, width - 1]); `Intrinsics.from_k` moves it to ours.
 
 _POSE_COLUMNS = ("qw", "qx", "qy", "qz", "tx_m", "ty_m", "tz_m")
 _SWEEP_COLUMNS = ("x", "y", "z", "intensity", "laser_number", "offset_ns")
@@ -195,7 +194,7 @@ class Argoverse2Dataset:
         the point, and ``compute_pixel_ray_directions`` says "+z points out of the camera, +y is
         downwards"), so ``egovehicle_SE3_sensor`` is already our cam_to_ego. Distortion: AV2's
         radial k1, k2, k3 as OpenCV ``[k1, k2, 0, 0, k3]``; cx, cy moved by half a pixel (see
-        PIXEL_CENTRE_SHIFT)."""
+        `Intrinsics.from_k`)."""
         cols = read_feather_columns(self.intrinsics_file, ("sensor_name", "fx_px", "fy_px", "cx_px", "cy_px",
                                                            "k1", "k2", "k3", "height_px", "width_px"),
                                     "camera intrinsics")
@@ -206,11 +205,10 @@ class Argoverse2Dataset:
                 raise DatasetError(f"{self.extrinsics_file}: no row with sensor_name {name!r} "
                                    f"(named in {self.intrinsics_file})")
             try:
-                intr = Intrinsics(int(cols["width_px"][i]), int(cols["height_px"][i]),
-                                  float(cols["fx_px"][i]), float(cols["fy_px"][i]),
-                                  float(cols["cx_px"][i]) + PIXEL_CENTRE_SHIFT,
-                                  float(cols["cy_px"][i]) + PIXEL_CENTRE_SHIFT, "opencv",
-                                  (cols["k1"][i], cols["k2"][i], 0.0, 0.0, cols["k3"][i]))
+                k = np.array([[cols["fx_px"][i], 0, cols["cx_px"][i]], [0, cols["fy_px"][i], cols["cy_px"][i]],
+                              [0, 0, 1]], np.float64)
+                intr = Intrinsics.from_k(k, int(cols["width_px"][i]), int(cols["height_px"][i]), "opencv",
+                                         (cols["k1"][i], cols["k2"][i], 0.0, 0.0, cols["k3"][i]))
             except ValueError as exc:
                 raise DatasetError(f"{self.intrinsics_file}: camera {name!r}: {exc}") from None
             out[name] = (intr, self.sensor_to_ego[name].copy())

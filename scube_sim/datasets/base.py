@@ -95,6 +95,18 @@ class LidarSweep:
         return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
                           self.intensity_max, self.ring, self.time_offset, True, self.pose_fn)
 
+    def raw(self) -> "LidarSweep":
+        """The same sweep as the sensor measured it: each point in the sensor frame at its own
+        fire time (undoes motion compensation with `time_offset` and `pose_fn`)."""
+        if not self.motion_compensated:
+            return self
+        if self.time_offset is None or self.pose_fn is None:
+            raise ValueError(f"sweep {self.sensor!r}: undoing motion compensation needs time_offset and pose_fn")
+        poses = np.asarray(self.pose_fn(self.timestamp + self.time_offset), np.float64)
+        local = transform_points(invert_pose(poses), self.world_points())
+        return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
+                          self.intensity_max, self.ring, self.time_offset, False, self.pose_fn)
+
     def subset(self, mask) -> "LidarSweep":
         pick = lambda a: None if a is None else a[mask]  # noqa: E731
         return LidarSweep(self.sensor, self.points[mask], self.sensor_to_world, self.timestamp,

@@ -446,7 +446,7 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
     sdir = root / "samples"
     if (root / DATASET_FILE).exists() or (sdir.is_dir() and any(sdir.iterdir())):
         if not overwrite:
-            raise FileExistsError(f"{root}: already holds a dataset (pass overwrite=True to replace it)")
+            raise FileExistsError(f"{root}: already holds a dataset (pass overwrite=True, or --overwrite on the command line, to replace it)")
         (root / DATASET_FILE).unlink(missing_ok=True)  # first: an interrupted rewrite is then visibly incomplete
         shutil.rmtree(sdir, ignore_errors=True)
         shutil.rmtree(root / "lidars", ignore_errors=True)

@@ -13,7 +13,7 @@ Frames (both):
 - camera 2 (left colour): ``P2 = K @ [I | t]`` with ``t = inv(K) @ P2[:, 3]`` (mostly the 0.06 m
   baseline: ``P2[0, 3]`` = 44.857 px), i.e. ``x_cam2 = x_rect + t``; so the camera-2 pose is
   ``T_world_rect @ translate(-t)`` and its intrinsics are K (pixel centres moved to our +0.5
-  convention, see `scube_sim.datasets.nuscenes.intrinsics_from_k`).
+  convention, see `scube_sim.camera.model.Intrinsics.from_k`).
 
 KITTI Velodyne sweeps are *not* deskewed by KITTI; the adapters still mark them
 ``motion_compensated=True`` (see each class for why that is a small error).
@@ -33,7 +33,6 @@ from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
 from ..transforms import make_pose, transform_points
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, index_check, require_file
-from .nuscenes import PIXEL_CENTRE_SHIFT
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "HDL-64E"
@@ -114,8 +113,7 @@ def camera_from_projection(p: np.ndarray, width: int, height: int, source: str, 
         raise DatasetError(f"{source}: {key} is not a rectified projection K @ [I | t] "
                            f"(K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]); got {p.tolist()}")
     t = np.linalg.solve(k, p[:, 3])
-    intr = Intrinsics(int(width), int(height), float(k[0, 0]), float(k[1, 1]),
-                      float(k[0, 2]) + PIXEL_CENTRE_SHIFT, float(k[1, 2]) + PIXEL_CENTRE_SHIFT)
+    intr = Intrinsics.from_k(k, width, height)
     return intr, make_pose(None, -t)
 
 

@@ -43,18 +43,7 @@ LABEL_MAP = {
     "bicycle": "bicycle", "traffic_cone": "construction_cone", "barrier": "fence",
 }
 
-# Our `Intrinsics` put pixel centres at integer + 0.5 (the top-left pixel spans [0, 1)); the
-# dataset's K (OpenCV/nuScenes) puts them at integers. So cx, cy move by half a pixel, and a
-# rendered pixel (i, j) sees the same ray as the real image's pixel (i, j).
-PIXEL_CENTRE_SHIFT = 0.5
-
 _POINT_FIELDS = 5  # float32 x, y, z, intensity, ring per point in a nuScenes .pcd.bin
-
-
-def intrinsics_from_k(k: np.ndarray, width: int, height: int) -> Intrinsics:
-    """(3, 3) OpenCV-convention K (pixel centres at integers) -> our pinhole `Intrinsics`."""
-    return Intrinsics(int(width), int(height), float(k[0, 0]), float(k[1, 1]),
-                      float(k[0, 2]) + PIXEL_CENTRE_SHIFT, float(k[1, 2]) + PIXEL_CENTRE_SHIFT)
 
 
 def read_nuscenes_bin(path: Path) -> np.ndarray:
@@ -267,7 +256,7 @@ class NuScenesDataset:
             # pose at its own timestamp; ego2global @ cam2ego would place it where the ego was at
             # the LiDAR time instead (0.3 m off at 9 m/s and 35 ms).
             cam_to_world = lidar_to_world @ np.linalg.inv(c.lidar2cam)
-            images.append(CameraImage(c.name, rgb, intrinsics_from_k(c.k, rgb.shape[1], rgb.shape[0]),
+            images.append(CameraImage(c.name, rgb, Intrinsics.from_k(c.k, rgb.shape[1], rgb.shape[0]),
                                       cam_to_world, c.timestamp))
         meta = {"dataset": self.name, "token": e.token,
                 "sample_data_tokens": {c.name: c.token for c in e.cameras}}
@@ -323,4 +312,4 @@ def _number(value, source: str, key: str) -> float:
     return v
 
 
-__all__ = ["NuScenesDataset", "read_nuscenes_bin", "intrinsics_from_k", "LABEL_MAP"]
+__all__ = ["NuScenesDataset", "read_nuscenes_bin", "LABEL_MAP"]

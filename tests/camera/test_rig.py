@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
-from scube_sim.camera.model import Intrinsics
+from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT, Intrinsics
 from scube_sim.camera.rig import load_rig, rig_paths
 from scube_sim.io.safe_pickle import load_pickle
 from scube_sim.lidar.config import ConfigError
@@ -125,7 +125,9 @@ def test_nuscenes6_intrinsics_extrinsics_and_times_equal_pkl(nusc):
     for name in NUSC_CAMS:
         src, cam = d["images"][name], rig.camera(name)
         intr = cam.intrinsics()
-        np.testing.assert_array_equal(intr.K, np.asarray(src["cam2img"], np.float64)[:3, :3])
+        k = np.asarray(src["cam2img"], np.float64)[:3, :3].copy()
+        k[:2, 2] += K_PIXEL_CENTRE_SHIFT  # OpenCV puts pixel centres at integers, we at + 0.5
+        np.testing.assert_array_equal(intr.K, k)
         assert (intr.width, intr.height, intr.model) == (1600, 900, "pinhole")
         np.testing.assert_allclose(cam.cam_to_ego(), np.asarray(src["cam2ego"], np.float64), rtol=0, atol=1e-5,
                                    err_msg=name)

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 
 from scube_sim.datasets import DatasetError, open_dataset, points_in_boxes
 from scube_sim.datasets.kitti import KittiObjectDataset, KittiRawDataset, read_kitti_calib
-from scube_sim.datasets.nuscenes import PIXEL_CENTRE_SHIFT
+from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT as PIXEL_CENTRE_SHIFT
 from scube_sim.io.safe_pickle import load_pickle
 from scube_sim.labels import LABEL_IDS
 from scube_sim.transforms import invert_pose, transform_points

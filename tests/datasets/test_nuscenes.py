@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from scube_sim.datasets import DatasetError, open_dataset, points_in_boxes
-from scube_sim.datasets.nuscenes import PIXEL_CENTRE_SHIFT, NuScenesDataset
+from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT as PIXEL_CENTRE_SHIFT
+from scube_sim.datasets.nuscenes import NuScenesDataset
 from scube_sim.io.safe_pickle import load_pickle
 from scube_sim.labels import LABEL_IDS
 from scube_sim.transforms import invert_pose, transform_points

@@ -1,0 +1,120 @@
+"""`scube-sim build` and `scube-sim fidelity` on the real sweeps: the VoxSplat against the two
+baselines traced on the same rays in the same run, and the novel-pose (KITTI raw 0 -> 2) and
+timing (Argoverse 2) studies. Figures asserted here are floors well under what the report prints
+(README, "Real data"), so a regression shows without pinning this machine's exact numbers."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+from scube_sim.cli import app
+from scube_sim.datasets import open_dataset
+from scube_sim.fidelity import run_fidelity
+from scube_sim.reconstruct import BuildOptions, build_from_dataset
+from tests.conftest import require
+
+runner = CliRunner()
+NUS = "nuscenes-mmdet3d-demo"
+CUBES = "baseline: 0.1 m voxel cubes"
+POISSON = "baseline: Poisson surface (open3d, depth 10)"
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def one_line_error(res, *needles):
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
+    for n in needles:
+        assert n in lines[0], lines[0]
+
+
+@pytest.fixture(scope="module")
+def nus_scene(shared_data, tmp_path_factory):
+    root = require(shared_data / NUS)
+    out = tmp_path_factory.mktemp("nus") / "scene.npz"
+    res = run("build", root, "--dataset", "nuscenes", "-o", out)
+    assert res.exit_code == 0, res.output
+    return root, out
+
+
+def test_nuscenes_same_pose_beats_both_baselines(nus_scene, tmp_path):
+    root, scene = nus_scene
+    res = run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "-o", tmp_path)
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "report.json").read_text())["rows"]
+    vs, cubes, poisson = rows["voxsplat"], rows[CUBES], rows[POISSON]
+    # The issue's bar: Poisson's median and the cubes' p90 at once.
+    assert vs["median_abs_m"] < poisson["median_abs_m"] and vs["p90_abs_m"] < cubes["p90_abs_m"]
+    assert vs["median_abs_m"] <= 0.013 and vs["p90_abs_m"] <= 0.10
+    assert vs["hit_agreement"] > max(cubes["hit_agreement"], poisson["hit_agreement"])
+    # The full 32 x 1084 grid: every ray is compared, no-returns included.
+    assert vs["rays"] == 34688 and vs["real_returns"] == 26659
+    img = Image.open(tmp_path / "range_images.png")
+    assert img.size[0] > 1000 and img.size[1] > 400
+    assert "| voxsplat |" in (tmp_path / "report.md").read_text()
+
+
+def test_build_stores_its_recipe_and_colours_from_the_cameras(nus_scene):
+    from scube_sim.voxsplat import VoxSplat
+
+    _, scene = nus_scene
+    vs = VoxSplat.load(scene)
+    assert vs.metadata["dataset"] == "nuscenes" and vs.metadata["build"]["samples"] == [0]
+    assert vs.metadata["report"]["colored"] > 0.7 * vs.metadata["report"]["points"]
+    assert np.isclose(vs.voxel_size, 0.1)
+    assert np.ptp(vs.colors()[vs.valid], axis=0).max() > 0.5  # real colours, not grey
+
+
+def test_kitti_raw_novel_pose_replay(shared_data):
+    ds = open_dataset("kitti_raw", require(shared_data / "kitti-raw-2011_09_26-udacity"))
+    vs, rep, _ = build_from_dataset(ds, BuildOptions(samples=[0], carve_with=[1], color=False))
+    res = run_fidelity(ds, vs, sample=2, static_from=[0, 1], baselines=True)
+    st = res.rows["voxsplat [static rays]"]
+    assert st["median_abs_m"] < 0.05 and st["p90_abs_m"] < 0.5
+    assert st["median_abs_m"] < res.rows[f"{CUBES} [static rays]"]["median_abs_m"]
+    assert st["p90_abs_m"] < res.rows[f"{CUBES} [static rays]"]["p90_abs_m"]
+    assert st["hit_agreement"] > 0.8
+
+
+def test_argoverse2_motion_model_helps(shared_data):
+    ds = open_dataset("argoverse2", require(shared_data / "argoverse2-sensor-log-7fab2350"))
+    vs, _, _ = build_from_dataset(ds, BuildOptions(samples=[0], color=False, sensors=["up_lidar"]))
+    res = run_fidelity(ds, vs, sample=1, sensor="up_lidar", raw=True, baselines=False)
+    with_model, without = res.rows["voxsplat"], res.rows["voxsplat, no motion model"]
+    assert with_model["median_abs_m"] < 0.6 * without["median_abs_m"]
+    assert with_model["p90_abs_m"] < without["p90_abs_m"]
+
+
+def test_cli_errors_are_one_line(shared_data, tmp_path):
+    root = require(shared_data / NUS)
+    one_line_error(run("build", root, "--dataset", "carla", "-o", tmp_path / "s.npz"), "carla", "nuscenes")
+    one_line_error(run("build", root, "--dataset", "nuscenes", "-o", tmp_path / "s.ply"), "-o", ".npz")
+    one_line_error(run("build", root, "--dataset", "nuscenes", "-o", tmp_path / "s.npz", "--samples", "x"),
+                   "--samples")
+    one_line_error(run("build", root, "--dataset", "nuscenes", "-o", tmp_path / "s.npz", "--samples", "5"),
+                   "out of range")
+    one_line_error(run("fidelity", root, "--dataset", "nuscenes", "--scene", tmp_path / "none.npz"), "none.npz")
+    assert not (tmp_path / "s.npz").exists()
+
+
+def test_convert_to_folder_then_build_gives_the_same_scene(shared_data, tmp_path):
+    from scube_sim.voxsplat import VoxSplat
+
+    root = require(shared_data / "kitti-object-000008")
+    res = run("convert", root, "--dataset", "kitti_object", "-o", tmp_path / "folder")
+    assert res.exit_code == 0, res.output
+    one_line_error(run("convert", root, "--dataset", "kitti_object", "-o", tmp_path / "folder"), "--overwrite")
+    for name, src in (("kitti_object", root), ("folder", tmp_path / "folder")):
+        res = run("build", src, "--dataset", name, "-o", tmp_path / f"{name}.npz")
+        assert res.exit_code == 0, res.output
+    a, b = VoxSplat.load(tmp_path / "kitti_object.npz"), VoxSplat.load(tmp_path / "folder.npz")
+    # The folder keeps points as float64 and images as PNG: the same input, the same scene.
+    assert np.array_equal(a.ijk, b.ijk) and np.array_equal(a.params, b.params)
