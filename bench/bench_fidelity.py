@@ -45,7 +45,7 @@ KNOBS = {
     "tracer depth: entry": ({}, "entry"),
     "no range-image mesh (points + patches)": ({"mesh": False}, "max_response"),
     "mesh edge <= 0.1 r": ({"mesh_max_edge_rel": 0.1}, "max_response"),
-    "mesh edge <= 0.2 r": ({"mesh_max_edge_rel": 0.2}, "max_response"),
+    "mesh edge <= 0.3 r": ({"mesh_max_edge_rel": 0.3}, "max_response"),
     "every return adds its patch": ({"all_points": True}, "max_response"),
     "patch sigma cap 0.1 m": ({"max_patch_sigma": 0.1}, "max_response"),
     "voxel 0.2 m": ({"voxel_size": 0.2}, "max_response"),

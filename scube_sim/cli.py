@@ -262,6 +262,8 @@ def build_cmd(
     patch_scale: float = typer.Option(0.5, "--patch-scale", help="share of the neighbourhood spread each point covers"),
     max_patch_sigma: float = typer.Option(0.03, "--max-patch-sigma", help="cap on a point's patch (std, metres)"),
     max_normal_scale: float = typer.Option(0.02, "--max-normal-scale", help="cap on Gaussian thickness (std, metres)"),
+    mesh: bool = typer.Option(True, "--mesh/--no-mesh", help="connect neighbouring returns into triangles before fitting"),
+    mesh_max_edge_rel: float = typer.Option(0.2, "--mesh-max-edge-rel", help="longest triangle edge, as a share of the range"),
     all_points: bool = typer.Option(False, "--all-points/--mesh-points", help="every return adds its own patch, not only those in no triangle"),
     color: bool = typer.Option(True, "--color/--no-color", help="colour from the camera images, where present"),
 ) -> None:
@@ -278,7 +280,7 @@ def build_cmd(
                             remove=remove, carve_with=_int_list(carve_with, "--carve-with"), voxel_size=voxel_size,
                             gaussians_per_voxel=gaussians_per_voxel, patch_scale=patch_scale,
                             max_patch_sigma=max_patch_sigma, max_normal_scale=max_normal_scale,
-                            all_points=all_points, color=color)
+                            all_points=all_points, color=color, mesh=mesh, mesh_max_edge_rel=mesh_max_edge_rel)
         if not opts.samples:
             raise CliError("--samples: give at least one sample index")
         t0 = time.perf_counter()
@@ -286,6 +288,9 @@ def build_cmd(
         vs, rep, acc = build_from_dataset(ds, opts)
         output.parent.mkdir(parents=True, exist_ok=True)
         vs.save(output)
+        if getattr(ds, "poses_from_icp", False):
+            fits = [f"{r.fitness:.2f}/{100 * r.rmse:.1f} cm" for r in ds.icp_results]
+            typer.echo(f"poses: registered with open3d ICP (the set has none); fitness/rmse per step: {', '.join(fits)}")
         for note in acc.notes:
             typer.echo(note)
         typer.echo(f"{ds.name}: {rep.points} points ({rep.removed} removed, {rep.colored} coloured) -> "

@@ -57,7 +57,7 @@ class Accumulated:
 def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_range: float = 1.0,
                max_range: float | None = None, remove: str = "none", speed_threshold: float = 0.5,
                box_margin: float = 0.1, origin: np.ndarray | None = None, mesh: bool = True,
-               max_edge: float = 0.5, max_edge_rel: float = 0.3, max_angle_deg: float = 1.5,
+               max_edge: float = 0.5, max_edge_rel: float = 0.2, max_angle_deg: float = 1.5,
                max_incidence_deg: float = 88.0) -> Accumulated:
     """Gather the sweeps of `samples` in the world frame.
 
@@ -126,7 +126,7 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
                        [], faces)
 
 
-def range_image_mesh(points: np.ndarray, *, max_edge: float = 0.5, max_edge_rel: float = 0.3,
+def range_image_mesh(points: np.ndarray, *, max_edge: float = 0.5, max_edge_rel: float = 0.2,
                      max_angle_deg: float = 1.5, max_incidence_deg: float = 88.0) -> np.ndarray:
     """Triangles between neighbouring returns of one sweep: (F, 3) int64 indices into `points`.
 
@@ -345,7 +345,7 @@ class BuildOptions:
     mesh: bool = True
     mesh_max_angle_deg: float = 1.5
     mesh_max_edge: float = 0.5
-    mesh_max_edge_rel: float = 0.3
+    mesh_max_edge_rel: float = 0.2
     mesh_max_incidence_deg: float = 88.0
     voxel_size: float = 0.1
     gaussians_per_voxel: int = 4

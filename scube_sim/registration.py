@@ -57,7 +57,9 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, 
         result = reg.registration_icp(s, t, dist, pose, reg.TransformationEstimationPointToPlane(),
                                       reg.ICPConvergenceCriteria(max_iteration=iters))
         pose = np.asarray(result.transformation, np.float64)
-    return IcpResult(pose, float(result.fitness), float(result.inlier_rmse))
+    # open3d sums in parallel, so the last bits differ from run to run; rounding far below ICP's
+    # own accuracy makes the same sweeps give the same poses (and scenes), bit for bit.
+    return IcpResult(np.round(pose, 10), round(float(result.fitness), 10), round(float(result.inlier_rmse), 10))
 
 
 def register_sequence(sweeps: list[np.ndarray], *, refine_to_first: int = 10) -> tuple[np.ndarray, list[IcpResult]]:

@@ -226,7 +226,7 @@ class KittiRawDataset:
 
     @property
     def icp_results(self) -> list:
-        """The K - 1 pairwise `IcpResult`s (sample k registered onto k - 1); [] for identity poses."""
+        """The K - 1 `IcpResult`s of samples 1..K-1 (see `register_sequence`); [] for identity poses."""
         _ = self.poses  # runs the registration if it has not run yet
         return self._icp
 
