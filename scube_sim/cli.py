@@ -44,7 +44,8 @@ def _run(fn):
     try:
         return fn()
     except (CliError, ConfigError, FileNotFoundError, ValueError, KeyError, IndexError) as exc:
-        msg = str(exc).strip().splitlines()
+        text = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc  # str(KeyError) adds quotes
+        msg = str(text).strip().splitlines()
         _fail(msg[0] if len(msg) == 1 else "; ".join(msg))
     except OSError as exc:
         _fail(f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}".lstrip(": "))

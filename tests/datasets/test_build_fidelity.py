@@ -128,3 +128,10 @@ def test_same_input_same_scene_bit_for_bit(shared_data):
     s1, _, _ = build_from_dataset(obj, BuildOptions(samples=[0]))
     s2, _, _ = build_from_dataset(obj, BuildOptions(samples=[0]))
     assert np.array_equal(s1.ijk, s2.ijk) and np.array_equal(s1.params, s2.params)
+
+
+def test_fidelity_unknown_sensor_is_one_line(nus_scene, tmp_path):
+    root, scene = nus_scene
+    one_line_error(run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "--sensor", "nope",
+                       "-o", tmp_path), "nope", "LIDAR_TOP")
+    assert not (tmp_path / "report.md").exists()
