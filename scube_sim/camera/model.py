@@ -24,6 +24,29 @@ def _pixel_rays(intr: "Intrinsics") -> np.ndarray:
     return intr._compute_pixel_rays()
 
 
+@functools.lru_cache(maxsize=64)
+def _fold_limit(intr: "Intrinsics") -> float:
+    """The ideal radius (opencv: r = |(x, y)|; fisheye: theta, radians) where the radial
+    distortion polynomial stops increasing; inf if it never does within 89.9 degrees.
+
+    Beyond it the polynomial turns back, so a point far off-axis would land inside the image:
+    Waymo's cameras fold at ~42 degrees off-axis (their own camera model rejects those points)."""
+    if intr.model == "pinhole" or not any(intr.dist):
+        return np.inf
+    if intr.model == "opencv":
+        k1, k2, _, _, k3 = intr._coeffs()
+        r = np.linspace(0.0, np.tan(np.deg2rad(89.9)), 200_001)
+        r2 = r * r
+        slope = 1 + r2 * (3 * k1 + r2 * (5 * k2 + r2 * 7 * k3))  # d(r * radial)/dr
+    else:
+        k1, k2, k3, k4 = intr._coeffs()
+        r = np.linspace(0.0, np.deg2rad(89.9), 200_001)
+        t2 = r * r
+        slope = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+    bad = np.flatnonzero(slope <= 0)
+    return float(r[bad[0] - 1]) if bad.size else np.inf
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """width, height in pixels; fx, fy, cx, cy in pixels; distortion coefficients per `model`."""
@@ -159,9 +182,15 @@ class Intrinsics:
         d.flags.writeable = False
         return d
 
+    @property
+    def fold_limit(self) -> float:
+        """Largest ideal radius the lens model maps one to one (see `_fold_limit`)."""
+        return _fold_limit(self)
+
     def project(self, points_cam: np.ndarray):
         """(N, 3) camera-frame points -> (N, 2) pixel coordinates and (N,) depth z; points behind
-        the camera (z <= 0) get NaN pixels."""
+        the camera (z <= 0), or so far off-axis that the distortion polynomial folds back
+        (`fold_limit`), get NaN pixels."""
         p = np.asarray(points_cam, np.float64)
         z = p[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -169,4 +198,10 @@ class Intrinsics:
         xd, yd = self.distort(x, y)
         uv = np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=1)
         uv[z <= 0] = np.nan
+        limit = self.fold_limit
+        if np.isfinite(limit):
+            with np.errstate(invalid="ignore"):
+                r = np.hypot(x, y)
+                radius = r if self.model == "opencv" else np.arctan(r)
+                uv[radius > limit] = np.nan
         return uv, z

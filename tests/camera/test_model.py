@@ -274,3 +274,22 @@ def test_non_finite_intrinsics_are_rejected(kwargs):
     base.update(kwargs)
     with pytest.raises(ValueError):
         Intrinsics(**base)
+
+
+def test_points_beyond_the_fold_of_the_distortion_polynomial_do_not_project():
+    # Waymo FRONT (k1 0.040, k2 -0.330): r (1 + k1 r^2 + k2 r^4) peaks at r = 0.90 (42 degrees).
+    intr = Intrinsics(1920, 1280, 2055.6, 2055.6, 939.7, 641.1, "opencv", (0.0404, -0.330, 0.0, 0.0, 0.0))
+    r = np.linspace(0, 2, 20001)
+    rd = r * (1 + 0.0404 * r**2 - 0.330 * r**4)
+    assert abs(intr.fold_limit - r[np.argmax(rd)]) < 1e-3
+    far = np.array([[1.3, 0.0, 1.0]])  # 52 degrees off-axis: the polynomial gives r_d = 0.16
+    xd, _ = intr.distort(far[:, 0] / far[:, 2], far[:, 1] / far[:, 2])
+    assert 0 <= intr.fx * xd[0] + intr.cx < intr.width  # the polynomial alone folds it into the image
+    assert np.all(np.isnan(intr.project(far)[0]))
+    near = np.array([[np.sin(np.deg2rad(30)), 0.0, np.cos(np.deg2rad(30))]])
+    assert np.all(np.isfinite(intr.project(near)[0]))
+    # Every pixel's own ray projects back onto its centre (the whole image is inside the fold).
+    rays = intr.pixel_rays()[::97, ::101].reshape(-1, 3)
+    uv, _ = intr.project(rays)
+    vv, uu = np.meshgrid(np.arange(0, 1280, 97) + 0.5, np.arange(0, 1920, 101) + 0.5, indexing="ij")
+    assert np.allclose(uv, np.c_[uu.ravel(), vv.ravel()], atol=1e-6)

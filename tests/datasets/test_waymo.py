@@ -86,6 +86,11 @@ def test_twelve_box_centres_project_into_front(sample):
     cam = transform_points(invert_pose(front.cam_to_world), centres)
     inside = waymo_visible(front.intrinsics, cam)
     assert inside.sum() == 12
+    # Our lens model refuses points beyond the distortion's fold by itself: the same 12.
+    uv, z = front.intrinsics.project(cam)
+    ours = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < front.intrinsics.width) & (uv[:, 1] >= 0) \
+        & (uv[:, 1] < front.intrinsics.height)
+    np.testing.assert_array_equal(inside, ours)
     # The pinhole part alone (the README's check) agrees.
     pin = Intrinsics(front.intrinsics.width, front.intrinsics.height, front.intrinsics.fx, front.intrinsics.fy,
                      front.intrinsics.cx, front.intrinsics.cy)
