@@ -10,6 +10,7 @@ from scube_sim.cli import app
 from scube_sim.fit import fit_voxsplat
 from scube_sim.labels import label_id
 from scube_sim.worlds import primitives as pr
+from tests.conftest import one_line_error
 
 runner = CliRunner()
 
@@ -67,14 +68,6 @@ def test_sensors_lists_the_presets():
     assert res.exit_code == 0
     for name in ("VLP-16", "HDL-64E", "OS1-128", "Pandar64", "Waymo"):
         assert name.lower() in res.output.lower()
-
-
-def one_line_error(res, *needles):
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
 
 
 def test_bad_inputs_give_one_line_and_exit_2(scene_npz, tmp_path):

@@ -16,7 +16,7 @@ from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.fidelity import run_fidelity
 from scube_sim.reconstruct import BuildOptions, build_from_dataset
-from tests.conftest import require
+from tests.conftest import one_line_error, require
 
 runner = CliRunner()
 NUS = "nuscenes-mmdet3d-demo"
@@ -26,14 +26,6 @@ POISSON = "baseline: Poisson surface (open3d, depth 10)"
 
 def run(*args):
     return runner.invoke(app, [str(a) for a in args])
-
-
-def one_line_error(res, *needles):
-    assert res.exit_code == 2, res.output
-    lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("error: "), res.output
-    for n in needles:
-        assert n in lines[0], lines[0]
 
 
 @pytest.fixture(scope="module")
