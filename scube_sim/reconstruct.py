@@ -1,14 +1,15 @@
 """Real LiDAR -> VoxSplat (the paper's data pipeline, step 1).
 
-Accumulate sweeps in the world frame, optionally remove the points of moving objects, give each
-point the small surface patch it stands for (its neighbourhood's spread in the tangent plane), and
-fit M Gaussians per voxel with `fit.fit_voxsplat`; colour from the cameras where images exist,
-labels from the labelled boxes where the set has them.
+Accumulate sweeps in the world frame, optionally remove the points of moving objects (labelled
+boxes, or free-space carving with another sweep), connect each sweep's neighbouring returns into
+triangles in its range image, and fit M Gaussians per voxel with `fit.fit_voxsplat` to samples of
+those triangles (returns in no triangle bring a small patch of their neighbourhood); colour from
+the cameras where images exist, labels from the labelled boxes where the set has them.
 
-A LiDAR sweep samples a surface densely along each ring but sparsely across rings (0.4 m apart at
-20 m for an HDL-32E): a voxel often holds a few points of one ring. Their own scatter would make
-a needle; the patch covariance widens it across the ring gap, so that a ray from a nearby pose
-still finds the surface.
+A LiDAR sweep samples a surface densely along each ring but sparsely across rings (an HDL-32E's rings
+are 0.46 m apart on a wall 20 m away, 5 m apart on the ground there): a voxel often holds a few points of one ring. Their
+own scatter would make a needle; the triangles between rings fill the gap, so that a ray from a
+nearby pose still finds the surface.
 """
 
 from __future__ import annotations
