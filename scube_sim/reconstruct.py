@@ -6,10 +6,10 @@ triangles in its range image, and fit M Gaussians per voxel with `fit.fit_voxspl
 those triangles (returns in no triangle bring a small patch of their neighbourhood); colour from
 the cameras where images exist, labels from the labelled boxes where the set has them.
 
-A LiDAR sweep samples a surface densely along each ring but sparsely across rings (an HDL-32E's rings
-are 0.46 m apart on a wall 20 m away, 5 m apart on the ground there): a voxel often holds a few points of one ring. Their
-own scatter would make a needle; the triangles between rings fill the gap, so that a ray from a
-nearby pose still finds the surface.
+A LiDAR sweep samples a surface densely along each ring but sparsely across rings (an HDL-32E's
+rings are 0.46 m apart on a wall 20 m away, 5 m apart on the ground there): a voxel often holds a
+few points of one ring. Their own scatter would make a needle; the triangles between rings fill
+the gap, so that a ray from a nearby pose still finds the surface.
 """
 
 from __future__ import annotations
