@@ -19,7 +19,6 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 
 from scube_sim.datasets import open_dataset
 from scube_sim.fidelity import compare, moving_rays, real_rays, simulate_rays

@@ -133,7 +133,7 @@ def soak(ticks: int = 3000) -> list[dict]:
 
 
 class _Looped:
-    """A pose source replayed over and over (time modulo its span): an endless drive."""
+    """A `PoseSource` replayed over and over (time modulo its span): an endless drive."""
 
     def __init__(self, source):
         self.source = source

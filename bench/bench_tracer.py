@@ -16,6 +16,7 @@ from rich.progress import Progress
 
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
+from scube_sim.raytrace import reference
 from scube_sim.raytrace.backends import BACKENDS
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.worlds.street import street_scene
@@ -57,9 +58,10 @@ def listed_nearest(tr: Tracer, o, d, rmax) -> np.ndarray:
     t0 = np.where(np.isfinite(t_lo), t_lo, 0.0)
     start = ol + t0[:, None] * d
     best = np.full(n, np.inf)
-    for r, _, prim in tr._backend.all_hits(start[act].astype(np.float32), d[act].astype(np.float32), (t_hi - t0)[act]):
-        ri, g = tr._expand(act[r], prim // tr._faces_per_proxy)
-        ts, d2, half = tr._exact(ri, g, ol, d)
+    pg = tr.prepared
+    for r, _, prim in pg.backend.all_hits(start[act].astype(np.float32), d[act].astype(np.float32), (t_hi - t0)[act]):
+        ri, g = reference.expand(pg, act[r], prim // pg.faces_per_proxy)
+        ts, d2, half = reference.exact(pg, ri, g, ol, d, tr.stats)
         ok = d2 <= tr.k**2
         np.minimum.at(best, ri[ok], np.maximum(ts - half, 0.0)[ok])
     return np.where(best <= rmax, best, np.inf)

@@ -10,13 +10,15 @@ from typing import Optional
 import numpy as np
 import typer
 
+from .errors import ScubeSimError
+
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
                   help="LiDAR simulation on VoxSplats (SCube): hard-opacity Gaussian ray tracing with Embree.")
 
 EXIT_USAGE = 2
 
 
-class CliError(Exception):
+class CliError(ScubeSimError):
     """An input problem to report in one line (exit code 2)."""
 
 
@@ -38,16 +40,16 @@ def _parse_pose(text: str) -> np.ndarray:
 
 
 def _run(fn):
-    """Run a command body, turning input errors into one-line messages and exit code 2."""
-    from .lidar.config import ConfigError
-
+    """Run a command body, turning our errors (`ScubeSimError`) and file-system errors into
+    one-line messages and exit code 2; anything else is a bug and shows its traceback."""
     try:
         return fn()
-    except (CliError, ConfigError, FileNotFoundError, ValueError, KeyError, IndexError) as exc:
-        text = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc  # str(KeyError) adds quotes
-        msg = str(text).strip().splitlines()
+    except ScubeSimError as exc:
+        msg = str(exc).strip().splitlines()
         _fail(msg[0] if len(msg) == 1 else "; ".join(msg))
     except OSError as exc:
+        if exc.strerror is None and exc.args:  # raised with a message of ours, e.g. "X: no such scene file"
+            _fail(str(exc.args[0]))
         _fail(f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}".lstrip(": "))
 
 
@@ -70,7 +72,7 @@ def lidar_cmd(
         from .lidar.config import load_lidar_config
         from .lidar.model import Lidar
         from .raytrace.tracer import DEFAULT_BACKEND, Tracer
-        from .scene import load_scene
+        from .scene_file import load_scene
         from .voxsplat import VoxSplat
 
         sensor_pose = _parse_pose(pose)
@@ -108,7 +110,7 @@ def export_cmd(
     """Convert a scene between VoxSplat .npz, 3DGS .ply and USD."""
 
     def body():
-        from .scene import as_voxsplat, load_scene
+        from .scene_file import as_voxsplat, load_scene
         from .voxsplat import VoxSplat
 
         suffixes = {"ply": ".ply", "usd": ".usda", "usda": ".usda", "usdc": ".usdc", "npz": ".npz"}
@@ -223,32 +225,6 @@ def _int_list(text: str, flag: str) -> list[int]:
     return vals
 
 
-@app.command("convert")
-def convert_cmd(
-    path: Path = typer.Argument(..., help="dataset folder"),
-    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | argoverse2 | waymo"),
-    output: Path = typer.Option(..., "-o", "--output", help="folder to write (docs/dataset-folder-format.md)"),
-    points_format: str = typer.Option("npz", "--points", help="npz (exact float64) | pcd | ply | bin"),
-    image_format: str = typer.Option("png", "--images", help="png (lossless) | jpg"),
-    overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing folder dataset"),
-) -> None:
-    """Convert a dataset to scube-sim's generic folder format (what other datasets convert to)."""
-
-    def body():
-        from rich.progress import track
-
-        from .datasets import open_dataset
-        from .datasets.folder import write_folder_dataset
-
-        ds = open_dataset(dataset, path)
-        samples = track((ds[i] for i in range(len(ds))), total=len(ds), description=f"converting {ds.name}")
-        write_folder_dataset(samples, output, points_format=points_format, image_format=image_format,
-                             name=ds.name, overwrite=overwrite)
-        typer.echo(f"{ds.name}: {len(ds)} sample(s) -> {output}")
-
-    _run(body)
-
-
 @app.command("build")
 def build_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
@@ -329,6 +305,36 @@ def fidelity_cmd(
         paths = write_report(res, output)
         typer.echo(res.markdown())
         typer.echo(f"-> {paths['markdown']}, {paths['png']}")
+
+    _run(body)
+
+
+datasets_app = typer.Typer(no_args_is_help=True, help="Real sensor datasets: export to the generic folder format.")
+app.add_typer(datasets_app, name="datasets")
+
+
+@datasets_app.command("export")
+def datasets_export_cmd(
+    path: Path = typer.Argument(..., help="dataset folder"),
+    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | argoverse2 | waymo"),
+    output: Path = typer.Option(..., "-o", "--output", help="folder to write (docs/dataset-folder-format.md)"),
+    points_format: str = typer.Option("npz", "--points", help="npz (exact float64) | pcd | ply | bin"),
+    image_format: str = typer.Option("png", "--images", help="png (lossless) | jpg"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing folder dataset"),
+) -> None:
+    """Write a dataset in scube-sim's generic folder format (what other datasets convert to)."""
+
+    def body():
+        from rich.progress import track
+
+        from .datasets import open_dataset
+        from .datasets.folder import write_folder_dataset
+
+        ds = open_dataset(dataset, path)
+        samples = track((ds[i] for i in range(len(ds))), total=len(ds), description=f"exporting {ds.name}")
+        write_folder_dataset(samples, output, points_format=points_format, image_format=image_format,
+                             name=ds.name, overwrite=overwrite)
+        typer.echo(f"{ds.name}: {len(ds)} sample(s) -> {output}")
 
     _run(body)
 

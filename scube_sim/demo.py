@@ -23,6 +23,7 @@ from .transforms import invert_pose, transform_points
 from .viz import bev_png, mosaic_png
 from .worlds.generator import WorldConfig, generate_world
 from .worlds.groundtruth import gt_voxsplat
+from .worlds.textures import albedo
 
 # The embedded default scenario (the same as scenarios/urban-block.yaml).
 DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
@@ -48,7 +49,7 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     rig = load_rig("waymo-5")
     tracers = [Tracer(w.static)] + ([Tracer(TriangleMesh.concatenate(w.actor_meshes_at(0.0)))] if w.actors else [])
     views = {c.name: render_camera(tracers, c.intrinsics().scaled(0.3), chunk_to_world @ c.cam_to_ego(),
-                                   sun_dir=w.sun_dir)["rgb"] for c in rig.cameras}
+                                   sun_dir=w.sun_dir, albedo_fn=albedo)["rgb"] for c in rig.cameras}
     mosaic_png(out / "views.png", views, title=f"{wcfg.style} world, seed {wcfg.seed}: the Waymo-like rig at T")
     times["render 5 cameras"] = time.perf_counter() - t
 

@@ -21,15 +21,23 @@ points within tau of a simulated point); intensity correlation = Pearson's r on 
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .datasets.base import LidarSweep
+from .errors import InputError
 from .lidar.config import LidarConfig
 from .lidar.model import Lidar
 from .lidar.pattern import replay_pattern
 from .mesh import TriangleMesh
+from .raytrace.tracer import Tracer
+from .reconstruct import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
+from .viz import fidelity_png
+from .voxsplat import unique_voxels
 
 
 @dataclass
@@ -267,8 +275,6 @@ _CUBE_CORNERS = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1],
 
 def voxel_cube_mesh(points: np.ndarray, voxel_size: float = 0.1, origin=None) -> TriangleMesh:
     """Baseline: every occupied voxel of (N, 3) points (local frame of `origin`) as a solid cube."""
-    from .voxsplat import unique_voxels
-
     uniq, _, _ = unique_voxels(np.floor(np.asarray(points, np.float64) / voxel_size))
     v = ((uniq[:, None, :] + _CUBE_CORNERS[None]) * voxel_size).reshape(-1, 3)
     f = (_CUBE_FACES[None] + 8 * np.arange(uniq.shape[0])[:, None, None]).reshape(-1, 3)
@@ -319,8 +325,6 @@ class FidelityResult:
 def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensors=None) -> np.ndarray:
     """(N,) bool: real returns on objects that moved, found without labels: points of `sweep`
     that the other samples' sweeps saw through (free space then), grown to whole objects."""
-    from .reconstruct import free_space_mask, grow_to_objects
-
     pts = rays.directions[rays.hit] * rays.range[rays.hit, None]
     world = pts @ sweep.sensor_to_world[:3, :3].T + sweep.sensor_to_world[:3, 3]
     seeds = np.zeros(len(pts), bool)
@@ -344,16 +348,13 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     `moving_rays`); every row is then also given on the static rays only. raw: compare with the
     sweep as measured (motion compensation undone with the set's per-point times and poses), so
     the simulator's motion model is tested; compensated sets are otherwise replayed as stored."""
-    from .raytrace.tracer import Tracer
-    from .reconstruct import BuildOptions, accumulate_from_dataset, surface_patches
-
     step = progress or (lambda msg: None)
     smp = ds[sample]
     sweep = smp.sweep(sensor)
     if raw:
         sweep = sweep.raw()
     if sweep.sensor not in smp.lidars:
-        raise ValueError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {sweep.sensor!r}")
+        raise InputError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {sweep.sensor!r}")
     config = smp.lidars[sweep.sensor].config
     rays = real_rays(sweep, min_range=min_range)
     notes = list(rays.notes)
@@ -407,11 +408,7 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
 
 def write_report(result: FidelityResult, out_dir) -> dict:
     """report.md, report.json and range_images.png in `out_dir` (each written atomically)."""
-    import json
-    from pathlib import Path
 
-    from .io.atomic import atomic_path
-    from .viz import fidelity_png
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

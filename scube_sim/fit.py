@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
 from .transforms import rotmat_to_quat
 from .voxsplat import NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0, VoxSplat, unique_voxels
-
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -70,11 +70,11 @@ def fit_voxsplat(
     p = np.asarray(points, np.float64).reshape(-1, 3)
     m = int(gaussians_per_voxel)
     if m < 1 or m & (m - 1):
-        raise ValueError(f"gaussians_per_voxel: expected a power of two (1, 2, 4, 8, ...), got {m}")
+        raise InputError(f"gaussians_per_voxel: expected a power of two (1, 2, 4, 8, ...), got {m}")
     if not voxel_size > 0:
-        raise ValueError(f"voxel_size: expected > 0 metres, got {voxel_size}")
+        raise InputError(f"voxel_size: expected > 0 metres, got {voxel_size}")
     if not np.all(np.isfinite(p)):
-        raise ValueError("fit_voxsplat: points contain NaN or Inf")
+        raise InputError("fit_voxsplat: points contain NaN or Inf")
     vs = float(voxel_size)
     min_scale = 0.01 * vs if min_scale is None else float(min_scale)
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import NotFoundError
+
 LABEL_TABLE_VERSION = 1
 
 
@@ -64,8 +66,8 @@ assert all(lab.id == i for i, lab in enumerate(LABELS))
 
 
 def label_id(name: str) -> int:
-    """Label id for a class name; KeyError lists the known names."""
+    """Label id for a class name; NotFoundError (a KeyError) lists the known names."""
     try:
         return LABEL_IDS[name]
     except KeyError:
-        raise KeyError(f"unknown label {name!r}; known: {', '.join(LABEL_NAMES)}") from None
+        raise NotFoundError(f"unknown label {name!r}; known: {', '.join(LABEL_NAMES)}") from None

@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import InputError
+
 
 @dataclass
 class TriangleMesh:
@@ -31,9 +33,9 @@ class TriangleMesh:
             self.colors = np.asarray(self.colors, np.float32).reshape(f, 3)
         self.origin = np.asarray(self.origin, np.float64).reshape(3)
         if not np.all(np.isfinite(self.vertices)):
-            raise ValueError("TriangleMesh: vertices contain NaN or Inf")
+            raise InputError("TriangleMesh: vertices contain NaN or Inf")
         if f and (self.faces.min() < 0 or self.faces.max() >= self.vertices.shape[0]):
-            raise ValueError("TriangleMesh: a face indexes a vertex that does not exist")
+            raise InputError("TriangleMesh: a face indexes a vertex that does not exist")
 
     @property
     def num_faces(self) -> int:

@@ -14,13 +14,16 @@ the gap, so that a ray from a nearby pose still finds the surface.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from .datasets.base import Box, LidarSweep, Sample, points_in_boxes
+from .boxes import Box, points_in_boxes
+from .camera.frames import Frames
+from .datasets.base import LidarSweep, Sample
+from .errors import InputError
 from .fit import fit_voxsplat
-from .frames import Frames
+from .mesh import TriangleMesh
 from .transforms import invert_pose, transform_points
 from .voxsplat import VoxSplat
 
@@ -70,14 +73,14 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
     mesh: also connect each sweep's neighbouring returns into triangles (`range_image_mesh`).
     """
     if remove not in ("none", "dynamic", "all"):
-        raise ValueError(f"remove: expected 'none', 'dynamic' or 'all', got {remove!r}")
+        raise InputError(f"remove: expected 'none', 'dynamic' or 'all', got {remove!r}")
     sweeps: list[tuple[LidarSweep, list[Box]]] = []
     for s in samples:
         for sw in s.sweeps:
             if sensors is None or sw.sensor in sensors:
                 sweeps.append((sw, s.boxes))
     if not sweeps:
-        raise ValueError(f"accumulate: no LiDAR sweeps{'' if sensors is None else ' of ' + ', '.join(sensors)} "
+        raise InputError(f"accumulate: no LiDAR sweeps{'' if sensors is None else ' of ' + ', '.join(sensors)} "
                          f"in {len(samples)} sample(s)")
     origin = sweeps[0][0].sensor_to_world[:3, 3].copy() if origin is None else np.asarray(origin, np.float64)
     parts = {k: [] for k in ("points", "sensor", "intensity", "labels", "sweep", "faces")}
@@ -104,7 +107,7 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
                     drop |= ~np.isfinite(speeds)
             gone = (inside >= 0) & drop[np.maximum(inside, 0)]
             removed += int(gone.sum())
-            ids = np.array([b.label_id for b in boxes], np.int16)
+            ids = np.array([b.label for b in boxes], np.int16)
             labels = np.where(inside >= 0, ids[np.maximum(inside, 0)], 0).astype(np.int16)
             keep2 = ~gone
             world, labels, poses, sw = world[keep2], labels[keep2], poses[keep2], sw.subset(keep2)
@@ -270,8 +273,6 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
     neighbourhood patch (`surface_patches`); with `all_points` every return adds its patch too,
     which carries the surface a little past the mesh's borders. max_normal_scale caps each Gaussian's thickness
     (metres, std) so range noise does not inflate surfaces."""
-    from .mesh import TriangleMesh
-
     n = len(acc)
     colors = None
     colored = 0
@@ -380,8 +381,6 @@ def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[S
 
 def build_from_dataset(ds, opts: BuildOptions) -> tuple[VoxSplat, BuildReport, Accumulated]:
     """The `scube-sim build` pipeline: a VoxSplat from the dataset's samples `opts.samples`."""
-    from dataclasses import asdict
-
     acc, samples = accumulate_from_dataset(ds, opts)
     frames = [s.frames for s in samples if s.frames is not None] if opts.color else None
     vs, report = build_voxsplat(acc, voxel_size=opts.voxel_size, gaussians_per_voxel=opts.gaussians_per_voxel,

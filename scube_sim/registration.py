@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import InputError
 from .transforms import invert_pose
 
 # (voxel size m, max correspondence distance m, iterations): coarse to fine.
@@ -47,7 +48,7 @@ def icp(source: np.ndarray, target: np.ndarray, init: np.ndarray | None = None, 
 
     src, tgt = keep(np.asarray(source, np.float64)), keep(np.asarray(target, np.float64))
     if src.shape[0] < 100 or tgt.shape[0] < 100:
-        raise ValueError(f"icp: too few points to register ({src.shape[0]} and {tgt.shape[0]} within "
+        raise InputError(f"icp: too few points to register ({src.shape[0]} and {tgt.shape[0]} within "
                          f"{min_range}-{max_range} m)")
     pose = np.eye(4) if init is None else np.asarray(init, np.float64).copy()
     reg = o3d.pipelines.registration

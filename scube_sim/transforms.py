@@ -12,16 +12,29 @@ Conventions used everywhere in scube_sim:
 
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
+from .errors import InputError
+
 _EPS = 1e-12
+
+# A pose that moves with time: absolute times (N,) seconds -> (N, 4, 4) float64 poses
+# (`T_parent_child` at each time). The LiDAR's pose_fn, actor tracks and dataset pose streams.
+PoseFn = Callable[[np.ndarray], np.ndarray]
 
 
 def normalize_quat(q: np.ndarray) -> np.ndarray:
     """(..., 4) wxyz -> unit quaternions, float64. A zero-norm or non-finite quaternion becomes
     the identity (1, 0, 0, 0): a defined result, since raw network outputs can be exactly zero."""
     q = np.asarray(q, dtype=np.float64)
-    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    with np.errstate(over="ignore"):
+        n = np.linalg.norm(q, axis=-1, keepdims=True)
+    big = np.isinf(n) & np.all(np.isfinite(q), axis=-1, keepdims=True)
+    if np.any(big):  # finite but past sqrt(max float): normalise the rescaled quaternion instead
+        q = np.where(big, q / np.where(big, np.abs(q).max(axis=-1, keepdims=True), 1.0), q)
+        n = np.where(big, np.linalg.norm(q, axis=-1, keepdims=True), n)
     bad = ~np.isfinite(n) | (n < _EPS)
     out = np.where(bad, 0.0, q / np.where(bad, 1.0, n))
     if np.any(bad):
@@ -43,7 +56,7 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
         ],
         axis=-1,
     )
-    return r.reshape(q.shape[:-1] + (3, 3)) if np.ndim(q) > 1 else r.reshape(3, 3)
+    return r.reshape(np.shape(q)[:-1] + (3, 3)) if np.ndim(q) > 1 else r.reshape(3, 3)
 
 
 def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
@@ -126,9 +139,13 @@ def euler_to_rotmat(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def rotmat_to_euler(r: np.ndarray) -> tuple[float, float, float]:
-    """(3, 3) -> (roll, pitch, yaw) radians, inverse of `euler_to_rotmat` away from gimbal lock."""
+    """(3, 3) -> (roll, pitch, yaw) radians, the inverse of `euler_to_rotmat` (at gimbal lock,
+    pitch +-90 deg, roll is 0 and yaw carries the whole turn about z)."""
     r = np.asarray(r, dtype=np.float64)
     pitch = float(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
+    if np.hypot(r[2, 1], r[2, 2]) < 1e-12:
+        # Gimbal lock (pitch = +-90 deg): only yaw -+ roll is defined; report it all as yaw.
+        return 0.0, float(np.copysign(np.pi / 2, -r[2, 0])), float(np.arctan2(-r[0, 1], r[1, 1]))
     roll = float(np.arctan2(r[2, 1], r[2, 2]))
     yaw = float(np.arctan2(r[1, 0], r[0, 0]))
     return roll, pitch, yaw
@@ -195,12 +212,12 @@ def check_pose(t, name: str = "pose") -> np.ndarray:
     """Validate a (4, 4) rigid pose; raises ValueError naming `name` on NaN/Inf or a non-rotation."""
     t = np.asarray(t, dtype=np.float64)
     if t.shape != (4, 4):
-        raise ValueError(f"{name}: expected a (4, 4) pose matrix, got shape {t.shape}")
+        raise InputError(f"{name}: expected a (4, 4) pose matrix, got shape {t.shape}")
     if not np.all(np.isfinite(t)):
-        raise ValueError(f"{name}: contains NaN or Inf")
+        raise InputError(f"{name}: contains NaN or Inf")
     r = t[:3, :3]
     if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
-        raise ValueError(f"{name}: rotation part is not orthonormal with det +1")
+        raise InputError(f"{name}: rotation part is not orthonormal with det +1")
     if not np.allclose(t[3], [0, 0, 0, 1]):
-        raise ValueError(f"{name}: last row must be [0, 0, 0, 1]")
+        raise InputError(f"{name}: last row must be [0, 0, 0, 1]")
     return t

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io.atomic import atomic_path
+from .atomic import atomic_path
 from .labels import LABEL_COLORS, LABEL_NAMES
 
 

@@ -6,6 +6,16 @@ Activations (paper): ``mu = r * tanh(offset) + voxel_center`` with ``r = offset_
 (paper: 3 voxels), ``alpha = sigmoid(opacity)``, ``s = exp(scale)`` in metres,
 ``R = quat2rot(normalize(q))``, ``colour = clip(0.5 + C0 * rgb, 0, 1)``.
 
+Optional channels: anything a later stage adds (observation flags and confidence per voxel,
+reflectance per Gaussian, a sky panorama per scene) is a named `Channel` in ``VoxSplat.channels``,
+not a new field: one per voxel (leading dim V), per Gaussian (V, M) or per scene (any shape).
+`KNOWN_CHANNELS` documents the names the project uses; other names are kept as they are.
+
+File format (.npz, `save` / `load`): version 1 holds the core arrays; version 2 adds the channels
+(a JSON manifest under ``channels`` and one array per channel under ``channel.<name>``). A VoxSplat
+without channels is written as version 1, so files that need no channel stay readable by older
+releases; `load` reads both.
+
 Frames: voxel ``ijk`` has its centre at ``(ijk + 0.5) * voxel_size`` in the *local* frame, whose
 origin sits at ``origin`` (float64, metres) in the world frame. All geometry is kept local so that
 float32 never has to hold large world coordinates (float32 at 1e6 m resolves only 6 cm).
@@ -14,17 +24,52 @@ float32 never has to hold large world coordinates (float32 at 1e6 m resolves onl
 from __future__ import annotations
 
 import json
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
+from .errors import InputError, NotFoundError
 from .transforms import normalize_quat, quat_to_rotmat
 
 SH_C0 = 0.28209479177387814
 NUM_RAW = 14
 FORMAT_NAME = "scube_sim.voxsplat"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # the newest version this module reads and writes (see the module doc)
+CHANNEL_PER = ("voxel", "gaussian", "scene")
+_CHANNEL_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """A channel name's meaning: `per` voxel, Gaussian or scene; `dtype`; trailing `shape` per
+    element (None: any)."""
+
+    per: str
+    dtype: str
+    shape: tuple | None
+    doc: str
+
+
+# The channels the project's stages write (readers use them where present, ignore the rest).
+KNOWN_CHANNELS = {
+    "observed": ChannelSpec("voxel", "bool", (), "an input camera saw the voxel"),
+    "confidence": ChannelSpec("voxel", "float32", (), "the converter's confidence in the voxel, in [0, 1]"),
+    "reflectance": ChannelSpec("gaussian", "float32", (), "near-infrared (~905 nm) reflectance, in [0, 1]"),
+    "sky_panorama": ChannelSpec("scene", "float32", None,
+                                "(H, W, 3) equirectangular sky RGB in [0, 1], world frame, z up"),
+}
+
+
+@dataclass
+class Channel:
+    """One optional named array of a VoxSplat: `per` 'voxel' (V, ...), 'gaussian' (V, M, ...) or
+    'scene' (any shape)."""
+
+    per: str
+    data: np.ndarray
 
 # Slices into the 14 raw values.
 OFFSET, OPACITY, SCALE, QUAT, RGB = slice(0, 3), slice(3, 4), slice(4, 7), slice(7, 11), slice(11, 14)
@@ -38,7 +83,7 @@ def voxel_keys(ijk: np.ndarray) -> np.ndarray:
     """(N, 3) integer voxel indices -> (N,) int64 keys that sort like (i, j, k); |index| < 2^20."""
     ijk = np.asarray(ijk, np.int64)
     if ijk.size and np.abs(ijk).max() >= 1 << 20:
-        raise ValueError("voxel indices beyond +-2^20: the scene is too large for this voxel size")
+        raise InputError("voxel indices beyond +-2^20: the scene is too large for this voxel size")
     b = ijk + (1 << 20)
     return (b[:, 0] << 42) | (b[:, 1] << 21) | b[:, 2]
 
@@ -98,9 +143,9 @@ class Gaussians:
             bad = ~np.isfinite(a)
             if np.any(bad):
                 idx = int(np.argwhere(bad)[0][0])
-                raise ValueError(f"{source}: {name} contains NaN or Inf (first at Gaussian {idx})")
+                raise InputError(f"{source}: {name} contains NaN or Inf (first at Gaussian {idx})")
         if not np.all(np.isfinite(self.origin)):
-            raise ValueError(f"{source}: origin contains NaN or Inf")
+            raise InputError(f"{source}: origin contains NaN or Inf")
 
 
 @dataclass
@@ -122,25 +167,56 @@ class VoxSplat:
     logits: np.ndarray | None = None
     offset_range: float = 3.0
     metadata: dict = field(default_factory=dict)
+    channels: dict[str, Channel] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.ijk = np.ascontiguousarray(self.ijk, dtype=np.int32).reshape(-1, 3)
         self.params = np.ascontiguousarray(self.params, dtype=np.float32)
         if self.params.ndim != 3 or self.params.shape[2] != NUM_RAW:
-            raise ValueError(f"params: expected shape (V, M, {NUM_RAW}), got {self.params.shape}")
+            raise InputError(f"params: expected shape (V, M, {NUM_RAW}), got {self.params.shape}")
         if self.params.shape[0] != self.ijk.shape[0]:
-            raise ValueError(f"params has {self.params.shape[0]} voxels but ijk has {self.ijk.shape[0]}")
+            raise InputError(f"params has {self.params.shape[0]} voxels but ijk has {self.ijk.shape[0]}")
         self.origin = np.asarray(self.origin, dtype=np.float64).reshape(3)
         self.voxel_size = float(self.voxel_size)
         if not (np.isfinite(self.voxel_size) and self.voxel_size > 0):
-            raise ValueError(f"voxel_size: expected a positive number of metres, got {self.voxel_size}")
+            raise InputError(f"voxel_size: expected a positive number of metres, got {self.voxel_size}")
         if not np.all(np.isfinite(self.origin)):
-            raise ValueError("origin: contains NaN or Inf")
+            raise InputError("origin: contains NaN or Inf")
         v, m = self.params.shape[:2]
         self.valid = np.ones((v, m), bool) if self.valid is None else np.asarray(self.valid, bool).reshape(v, m)
         self.labels = np.zeros(v, np.int16) if self.labels is None else np.asarray(self.labels, np.int16).reshape(v)
         if self.logits is not None:
             self.logits = np.asarray(self.logits, np.float32).reshape(v, -1)
+        given, self.channels = dict(self.channels), {}
+        for name, ch in given.items():
+            self.set_channel(name, ch.data, ch.per)
+
+    # --- optional channels -------------------------------------------------------------------
+    def set_channel(self, name: str, data, per: str | None = None) -> None:
+        """Add or replace channel `name`; `per` defaults to the known channel's (KNOWN_CHANNELS)."""
+        if not isinstance(name, str) or not _CHANNEL_NAME.match(name):
+            raise InputError(f"channel name {name!r}: expected lower-case letters, digits and '_'")
+        spec = KNOWN_CHANNELS.get(name)
+        per = per or (spec.per if spec else None)
+        if per not in CHANNEL_PER:
+            raise InputError(f"channel {name!r}: per must be one of {', '.join(CHANNEL_PER)}, got {per!r}")
+        if spec is not None and per != spec.per:
+            raise InputError(f"channel {name!r} is per {spec.per}, got per {per}")
+        arr = np.asarray(data) if spec is None else np.asarray(data, dtype=spec.dtype)
+        lead = {"voxel": (self.num_voxels,), "gaussian": self.valid.shape, "scene": ()}[per]
+        if arr.shape[:len(lead)] != lead:
+            raise InputError(f"channel {name!r} (per {per}): expected leading shape {lead}, got {arr.shape}")
+        if spec is not None and spec.shape is not None and arr.shape[len(lead):] != spec.shape:
+            raise InputError(f"channel {name!r}: expected shape {lead + spec.shape}, got {arr.shape}")
+        if arr.dtype == object:
+            raise InputError(f"channel {name!r}: object arrays cannot be stored")
+        self.channels[name] = Channel(per, np.ascontiguousarray(arr))
+
+    def channel(self, name: str) -> np.ndarray:
+        """The array of channel `name`; NotFoundError lists the channels present."""
+        if name not in self.channels:
+            raise NotFoundError(f"VoxSplat has no channel {name!r}; it has: {', '.join(sorted(self.channels)) or 'none'}")
+        return self.channels[name].data
 
     # --- sizes -------------------------------------------------------------------------------
     @property
@@ -215,7 +291,7 @@ class VoxSplat:
             bad = ~np.isfinite(self.params[..., sl])
             if np.any(bad):
                 v, m = np.argwhere(bad)[0][:2]
-                raise ValueError(f"{source}: raw {name} contains NaN or Inf (voxel {v}, slot {m})")
+                raise InputError(f"{source}: raw {name} contains NaN or Inf (voxel {v}, slot {m})")
 
     # --- construction ------------------------------------------------------------------------
     @classmethod
@@ -240,7 +316,7 @@ class VoxSplat:
         g.check_finite("from_gaussians")
         voxel_size = float(voxel_size)
         if not voxel_size > 0:
-            raise ValueError(f"voxel_size: expected > 0, got {voxel_size}")
+            raise InputError(f"voxel_size: expected > 0, got {voxel_size}")
         world = g.means + g.origin
         if origin is None:
             if len(g):
@@ -295,12 +371,11 @@ class VoxSplat:
 
     # --- file format -------------------------------------------------------------------------
     def save(self, path: str | Path) -> Path:
-        """Write the versioned .npz (atomically: temporary name, then rename)."""
-        from .io.atomic import atomic_path
-
+        """Write the versioned .npz (atomically: temporary name, then rename); version 1 when
+        there are no channels, else 2."""
         path = Path(path)
         arrays = dict(
-            format=np.array(FORMAT_NAME), version=np.array(FORMAT_VERSION, np.int32),
+            format=np.array(FORMAT_NAME), version=np.array(2 if self.channels else 1, np.int32),
             ijk=self.ijk, params=self.params, valid=self.valid, labels=self.labels,
             voxel_size=np.array(self.voxel_size), origin=self.origin,
             offset_range=np.array(self.offset_range),
@@ -308,6 +383,10 @@ class VoxSplat:
         )
         if self.logits is not None:
             arrays["logits"] = self.logits
+        if self.channels:
+            arrays["channels"] = np.array(json.dumps({n: c.per for n, c in sorted(self.channels.items())}))
+            for name, ch in sorted(self.channels.items()):
+                arrays[f"channel.{name}"] = ch.data
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **arrays)
@@ -322,20 +401,28 @@ class VoxSplat:
         try:
             z = np.load(path, allow_pickle=False)
         except Exception as exc:  # zipfile/format errors
-            raise ValueError(f"{path}: not a readable .npz ({exc})") from None
+            raise InputError(f"{path}: not a readable .npz ({exc})") from None
         with z:
             def need(key):
                 if key not in z.files:
-                    raise ValueError(f"{path}: missing key {key!r} (is this a scube_sim VoxSplat .npz?)")
+                    raise InputError(f"{path}: missing key {key!r} (is this a scube_sim VoxSplat .npz?)")
                 return z[key]
 
             fmt = str(need("format"))
             if fmt != FORMAT_NAME:
-                raise ValueError(f"{path}: key 'format' is {fmt!r}, expected {FORMAT_NAME!r}")
+                raise InputError(f"{path}: key 'format' is {fmt!r}, expected {FORMAT_NAME!r}")
             version = int(need("version"))
             if version > FORMAT_VERSION:
-                raise ValueError(f"{path}: VoxSplat format version {version} is newer than this "
+                raise InputError(f"{path}: VoxSplat format version {version} is newer than this "
                                  f"scube_sim reads ({FORMAT_VERSION})")
+            channels = {}
+            if version >= 2 and "channels" in z.files:
+                try:
+                    manifest = json.loads(str(z["channels"]))
+                    assert isinstance(manifest, dict)
+                except (ValueError, AssertionError):
+                    raise InputError(f"{path}: key 'channels' is not a JSON mapping of channel name to kind") from None
+                channels = {n: Channel(str(per), need(f"channel.{n}")) for n, per in manifest.items()}
             try:
                 vs = cls(
                     ijk=need("ijk"), params=need("params"), voxel_size=float(need("voxel_size")),
@@ -343,8 +430,11 @@ class VoxSplat:
                     logits=z["logits"] if "logits" in z.files else None,
                     offset_range=float(need("offset_range")),
                     metadata=json.loads(str(need("metadata"))),
+                    channels=channels,
                 )
+            except InputError as exc:  # `need` names the file already
+                raise exc if str(exc).startswith(f"{path}:") else InputError(f"{path}: {exc}") from None
             except ValueError as exc:
-                raise ValueError(f"{path}: {exc}") from None
+                raise InputError(f"{path}: {exc}") from None
         vs.check_finite(str(path))
         return vs

@@ -7,18 +7,23 @@ the truth at any other pose is an analytic ray-plane intersection.
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
-from scube_sim.datasets.base import Box, LidarSweep, Sample, points_in_boxes
-from scube_sim.fidelity import (RealRays, SimRays, compare, poisson_mesh, real_rays, simulate_rays,
-                                voxel_cube_mesh)
+from scube_sim.boxes import Box, points_in_boxes
+from scube_sim.datasets.base import LidarSweep, Sample
+from scube_sim.fidelity import RealRays, SimRays, compare, poisson_mesh, real_rays, simulate_rays, voxel_cube_mesh
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.reconstruct import (accumulate, build_voxsplat, free_space_mask, grow_to_objects,
-                                   height_above_ground, range_image_mesh)
-from scube_sim.transforms import make_pose, transform_points
+from scube_sim.reconstruct import (
+    accumulate,
+    build_voxsplat,
+    free_space_mask,
+    grow_to_objects,
+    height_above_ground,
+    range_image_mesh,
+)
+from scube_sim.transforms import make_pose
 from scube_sim.worlds import primitives as pr
 
 H = 1.8  # sensor height above the ground, metres
@@ -133,10 +138,10 @@ def test_height_above_ground_follows_a_slope():
 
 
 def test_boxes_select_and_remove_points():
-    box = Box(np.array([5.0, 0, 0]), np.array([4.0, 2.0, 1.5]), np.eye(3), "car", 1, np.array([3.0, 0, 0]))
+    box = Box(np.array([5.0, 0, 0]), np.array([4.0, 2.0, 1.5]), np.eye(3), category="car", label=1, velocity=np.array([3.0, 0, 0]))
     yaw = np.deg2rad(90)
     rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
-    turned = Box(np.array([-5.0, 0, 0]), np.array([4.0, 2.0, 1.5]), rot, "car", 1, np.zeros(3))
+    turned = Box(np.array([-5.0, 0, 0]), np.array([4.0, 2.0, 1.5]), rot, category="car", label=1, velocity=np.zeros(3))
     pts = np.array([[6.9, 0.9, 0.7], [7.1, 0, 0], [-5.0, 1.9, 0], [-3.9, 0, 0], [0, 0, 0]])
     assert list(points_in_boxes(pts, [box, turned])) == [0, -1, 1, -1, -1]
     assert list(points_in_boxes(pts, [box, turned], margin=0.15)) == [0, 0, 1, 1, -1]

@@ -24,9 +24,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from scube_sim.geodesy import ecef_to_enu, ecef_to_geodetic, enu_rotation  # noqa: E402
-from scube_sim.sim.can import (  # noqa: E402
-    CanPoseSource, CanVehicleDecoder, DeadReckoner, calibrate_bicycle,
-)
+from scube_sim.sim.can import CanPoseSource, CanVehicleDecoder  # noqa: E402
+from scube_sim.sim.vehicle import DeadReckoner, calibrate_bicycle  # noqa: E402
 from scube_sim.transforms import euler_to_rotmat, make_pose  # noqa: E402
 
 LOG = "converted/raw_can_candump.log.gz"

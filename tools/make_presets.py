@@ -21,6 +21,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
 from scube_sim.lidar.config import dump_config  # noqa: E402
 from scube_sim.lidar.importers import (  # noqa: E402
     from_hesai_csv,
@@ -29,7 +30,6 @@ from scube_sim.lidar.importers import (  # noqa: E402
     from_waymo_frame,
     velodyne_distance_resolution,
 )
-from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
 from scube_sim.transforms import euler_to_rotmat, rotmat_to_euler  # noqa: E402
 
 VELODYNE = ("ros-drivers/velodyne @ 29abd0e1361cb7f5eda451d2b51c35eeca45e0d5, "

@@ -21,9 +21,9 @@ import yaml
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from scube_sim.atomic import atomic_path  # noqa: E402
 from scube_sim.camera.model import Intrinsics  # noqa: E402
 from scube_sim.camera.rig import BODY_FROM_OPTICAL, RigConfig  # noqa: E402
-from scube_sim.io.atomic import atomic_path  # noqa: E402
 from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
 from scube_sim.transforms import invert_pose, rotmat_to_euler  # noqa: E402
 

@@ -11,9 +11,7 @@ import numpy as np
 from scube_sim.labels import LABEL_NAMES
 from scube_sim.lidar import load_lidar_config
 from scube_sim.raytrace import Tracer
-from scube_sim.sim.scene import Part, SimScene, track_pose_fn
-from scube_sim.sim.simulator import LidarSensor, Simulator
-from scube_sim.sim.sources import TrajectorySource
+from scube_sim.sim import LidarSensor, Part, SimScene, Simulator, TrajectorySource, track_pose_fn
 from scube_sim.worlds.generator import WorldConfig, generate_world
 
 seconds = float(sys.argv[1]) if len(sys.argv) > 1 else 2.0

@@ -10,9 +10,7 @@ import numpy as np
 
 from scube_sim.lidar import load_lidar_config
 from scube_sim.raytrace import Tracer
-from scube_sim.sim.scene import Part, SimScene
-from scube_sim.sim.simulator import LidarSensor, Simulator
-from scube_sim.sim.sinks import FileSink
+from scube_sim.sim import FileSink, LidarSensor, Part, SimScene, Simulator
 from scube_sim.transforms import pose_from_xyz_rpy
 from scube_sim.worlds.generator import WorldConfig, generate_world
 

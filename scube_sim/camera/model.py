@@ -15,6 +15,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import InputError
+
 DISTORTION_MODELS = ("pinhole", "opencv", "fisheye")
 K_PIXEL_CENTRE_SHIFT = 0.5  # ours minus OpenCV's principal point: see `Intrinsics.from_k`
 
@@ -64,14 +66,14 @@ class Intrinsics:
         # Accept any sequence (numpy arrays too) but store a tuple: the camera is hashable.
         object.__setattr__(self, "dist", tuple(float(c) for c in np.ravel(self.dist)))
         if self.model not in DISTORTION_MODELS:
-            raise ValueError(f"distortion model: expected one of {DISTORTION_MODELS}, got {self.model!r}")
+            raise InputError(f"distortion model: expected one of {DISTORTION_MODELS}, got {self.model!r}")
         if self.width <= 0 or self.height <= 0 or not (self.fx > 0 and self.fy > 0):
-            raise ValueError(f"intrinsics: need positive size and focal lengths, got {self}")
+            raise InputError(f"intrinsics: need positive size and focal lengths, got {self}")
         if not np.all(np.isfinite([self.fx, self.fy, self.cx, self.cy, *self.dist])):
-            raise ValueError(f"intrinsics: focal lengths, principal point and distortion must be finite, got {self}")
+            raise InputError(f"intrinsics: focal lengths, principal point and distortion must be finite, got {self}")
         need = {"pinhole": 0, "opencv": 5, "fisheye": 4}[self.model]
         if len(self.dist) not in (0, need):
-            raise ValueError(f"distortion {self.model!r}: expected {need} coefficients, got {len(self.dist)}")
+            raise InputError(f"distortion {self.model!r}: expected {need} coefficients, got {len(self.dist)}")
 
     @property
     def K(self) -> np.ndarray:

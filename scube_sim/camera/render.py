@@ -1,8 +1,9 @@
 """Render cameras on triangle meshes with Embree: RGB, metric depth, semantics, sky mask.
 
-Shading: Lambertian with a sun (and its shadow, traced) plus sky ambient light, on the procedural
-albedo of `worlds.textures`; the sky is a horizon-to-zenith gradient with a glow around the sun.
-Albedo and output are sRGB; lighting is applied in linear light.
+Shading: Lambertian with a sun (and its shadow, traced) plus sky ambient light, on an albedo the
+caller passes (the worlds pass their procedural `worlds.textures.albedo`); the sky is a
+horizon-to-zenith gradient with a glow around the sun. Albedo and output are sRGB; lighting is
+applied in linear light.
 """
 
 from __future__ import annotations
@@ -43,13 +44,15 @@ def render_camera(tracers: list[Tracer], intr: Intrinsics, cam_to_world: np.ndar
 
     tracers: mesh tracers (e.g. the static world and its actors at this instant).
     cam_to_world: (4, 4) OpenCV camera -> world. shading=False skips colour (rgb is None): depth,
-    semantics and sky only. Returns a dict with
+    semantics and sky only. albedo_fn(points (N, 3) world, normals (N, 3), labels (N,), face
+    colours (N, 3), instances (N,)) -> (N, 3) sRGB in [0, 1]: the surface colour to shade, e.g.
+    `scube_sim.worlds.textures.albedo`; required when shading. Returns a dict with
     rgb (H, W, 3) uint8, depth (H, W) float32 metres along the optical axis (inf on sky),
     semantic (H, W) int16 (sky where nothing is hit), instance (H, W) int32, sky (H, W) bool.
     """
-    from ..worlds.textures import albedo as default_albedo
-
-    albedo_fn = albedo_fn or default_albedo
+    if shading and albedo_fn is None:
+        raise TypeError("render_camera: shading needs an albedo_fn (e.g. scube_sim.worlds.textures.albedo), "
+                         "or pass shading=False")
     sun = np.asarray(sun_dir, np.float64)
     sun = sun / np.linalg.norm(sun)
     d_cam = intr.pixel_rays().reshape(-1, 3)

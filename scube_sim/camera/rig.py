@@ -12,9 +12,10 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from ..lidar.config import ConfigError, Mount, load_yaml, normalize_name, validate_model
+from ..config import ConfigError, Mount, StrictModel, load_yaml, normalize_name, validate_model
+from ..errors import NotFoundError
 from ..resources import sensors_dir
 from .model import Intrinsics
 
@@ -22,16 +23,12 @@ from .model import Intrinsics
 BODY_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 0.0], [0, 0, 0, 1.0]])
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class Distortion(_Strict):
+class Distortion(StrictModel):
     model: Literal["pinhole", "opencv", "fisheye"] = "pinhole"
     coeffs: list[float] = Field(default_factory=list)
 
 
-class CameraConfig(_Strict):
+class CameraConfig(StrictModel):
     name: str
     width: int = Field(gt=0, le=20000)
     height: int = Field(gt=0, le=20000)
@@ -52,7 +49,7 @@ class CameraConfig(_Strict):
         return self.mount.matrix() @ BODY_FROM_OPTICAL
 
 
-class RigConfig(_Strict):
+class RigConfig(StrictModel):
     name: str
     source: str = ""
     notes: str = ""
@@ -69,7 +66,7 @@ class RigConfig(_Strict):
         for c in self.cameras:
             if c.name == name:
                 return c
-        raise KeyError(f"rig {self.name!r} has no camera {name!r}")
+        raise NotFoundError(f"rig {self.name!r} has no camera {name!r}")
 
 
 def rig_paths() -> dict[str, Path]:

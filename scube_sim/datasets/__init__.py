@@ -11,7 +11,9 @@ from __future__ import annotations
 import importlib
 from pathlib import Path
 
-from .base import Box, Dataset, DatasetError, LidarSpec, LidarSweep, Sample, points_in_boxes
+from ..boxes import Box, points_in_boxes
+from ..errors import InputError
+from .base import Dataset, DatasetError, LidarSpec, LidarSweep, Sample
 
 # name -> "module:Class"; each class takes (root: Path, **options).
 _ADAPTERS = {
@@ -21,6 +23,7 @@ _ADAPTERS = {
     "waymo": "waymo:WaymoFrameDataset",
     "argoverse2": "argoverse2:Argoverse2Dataset",
     "folder": "folder:FolderDataset",
+    "worlds": "worlds:WorldsDataset",
 }
 
 
@@ -32,7 +35,7 @@ def open_dataset(name: str, root: str | Path, **options) -> Dataset:
     """Open the dataset at `root` with the adapter called `name` (see `available()`)."""
     key = name.lower().replace("-", "_")
     if key not in _ADAPTERS:
-        raise ValueError(f"dataset: unknown format {name!r}; expected one of {', '.join(available())}")
+        raise InputError(f"dataset: unknown format {name!r}; expected one of {', '.join(available())}")
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"{root}: no such dataset path")

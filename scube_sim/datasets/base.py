@@ -1,6 +1,6 @@
 """What every dataset adapter yields: `Sample`s of posed camera `Frames`, real LiDAR sweeps and 3D boxes.
 
-Frames follow `scube_sim.frames` (OpenCV cameras, camera-to-world poses, seconds). World frame:
+Frames follow `scube_sim.camera.frames` (OpenCV cameras, camera-to-world poses, seconds). World frame:
 the dataset's own global/map frame where it has one; otherwise the first sweep's sensor frame.
 Poses are (4, 4) float64 `T_parent_child` (see `scube_sim.transforms`).
 """
@@ -9,18 +9,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator, Protocol
+from typing import Iterator, Protocol
 
 import numpy as np
 
-from ..frames import Frames
+from ..boxes import Box
+from ..camera.frames import Frames
+from ..errors import InputError, NotFoundError, OutOfRangeError
 from ..lidar.config import LidarConfig
-from ..transforms import check_pose, invert_pose, transform_points
-
-PoseFn = Callable[[np.ndarray], np.ndarray]  # absolute times (K,) s -> (K, 4, 4) sensor-to-world
+from ..transforms import PoseFn, check_pose, invert_pose, transform_points
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """Bad or missing dataset content; the message names the file (and key) and what was expected."""
 
 
@@ -68,9 +68,9 @@ class LidarSweep:
         for name in ("intensity", "ring", "time_offset"):
             v = getattr(self, name)
             if v is not None and np.shape(v) != (n,):
-                raise ValueError(f"sweep {self.sensor!r}: {name} has shape {np.shape(v)}, expected ({n},)")
+                raise InputError(f"sweep {self.sensor!r}: {name} has shape {np.shape(v)}, expected ({n},)")
         if not self.motion_compensated and (self.time_offset is None or self.pose_fn is None):
-            raise ValueError(f"sweep {self.sensor!r}: raw (not motion-compensated) points need time_offset and pose_fn")
+            raise InputError(f"sweep {self.sensor!r}: raw (not motion-compensated) points need time_offset and pose_fn")
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -101,7 +101,7 @@ class LidarSweep:
         if not self.motion_compensated:
             return self
         if self.time_offset is None or self.pose_fn is None:
-            raise ValueError(f"sweep {self.sensor!r}: undoing motion compensation needs time_offset and pose_fn")
+            raise InputError(f"sweep {self.sensor!r}: undoing motion compensation needs time_offset and pose_fn")
         poses = np.asarray(self.pose_fn(self.timestamp + self.time_offset), np.float64)
         local = transform_points(invert_pose(poses), self.world_points())
         return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
@@ -112,47 +112,6 @@ class LidarSweep:
         return LidarSweep(self.sensor, self.points[mask], self.sensor_to_world, self.timestamp,
                           pick(self.intensity), self.intensity_max, pick(self.ring), pick(self.time_offset),
                           self.motion_compensated, self.pose_fn)
-
-
-@dataclass
-class Box:
-    """An oriented 3D box in the world frame: center (3,) metres, size (3,) length/width/height
-    along the box's x/y/z, rotation (3, 3) box-to-world. label: the dataset's class name;
-    label_id: our label table id (`scube_sim.labels`); velocity (3,) m/s world, NaN if unknown."""
-
-    center: np.ndarray
-    size: np.ndarray
-    rotation: np.ndarray
-    label: str
-    label_id: int = 0
-    velocity: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
-    track_id: str = ""
-
-    @property
-    def speed(self) -> float:
-        return float(np.linalg.norm(self.velocity)) if np.all(np.isfinite(self.velocity)) else float("nan")
-
-    def box_to_world(self) -> np.ndarray:
-        t = np.eye(4)
-        t[:3, :3], t[:3, 3] = self.rotation, self.center
-        return t
-
-
-def points_in_boxes(points: np.ndarray, boxes: list[Box], margin: float = 0.0) -> np.ndarray:
-    """(N,) int64 index of the first box containing each world point (-1: none). margin: metres
-    added on every side (LiDAR points on a box's surface lie just outside a tight label)."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    out = np.full(p.shape[0], -1, np.int64)
-    for i, b in enumerate(boxes):
-        half = 0.5 * np.asarray(b.size, np.float64) + margin
-        r = np.linalg.norm(half)
-        cand = np.flatnonzero((out < 0) & (np.sum((p - b.center) ** 2, axis=1) <= r * r))
-        if cand.size == 0:
-            continue
-        local = (p[cand] - b.center) @ np.asarray(b.rotation, np.float64)
-        inside = np.all(np.abs(local) <= half, axis=1)
-        out[cand[inside]] = i
-    return out
 
 
 @dataclass
@@ -182,7 +141,7 @@ class Sample:
         for s in self.sweeps:
             if s.sensor == sensor:
                 return s
-        raise KeyError(f"sample {self.name!r}: no sweep of sensor {sensor!r}; have {[s.sensor for s in self.sweeps]}")
+        raise NotFoundError(f"sample {self.name!r}: no sweep of sensor {sensor!r}; have {[s.sensor for s in self.sweeps]}")
 
 
 class Dataset(Protocol):
@@ -229,5 +188,5 @@ def as_matrix(value, shape: tuple[int, ...], source: str, key: str) -> np.ndarra
 
 def index_check(index: int, n: int, name: str) -> int:
     if not -n <= index < n:
-        raise IndexError(f"{name}: sample {index} out of range (have {n})")
+        raise OutOfRangeError(f"{name}: sample {index} out of range (have {n})")
     return index % n

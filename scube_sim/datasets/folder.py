@@ -33,14 +33,17 @@ from typing import Annotated, Iterable, Iterator, Literal
 
 import numpy as np
 import yaml
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, StringConstraints, model_validator
+from PIL import Image, UnidentifiedImageError
+from pydantic import AfterValidator, ConfigDict, Field, StringConstraints, model_validator
 
+from ..atomic import atomic_path
+from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
-from ..frames import CameraImage, Frames
-from ..io.atomic import atomic_path
+from ..config import ConfigError, StrictModel, load_yaml, validate_model
+from ..errors import InputError
 from ..io.pointcloud import read_points, write_points
 from ..labels import LABEL_IDS
-from ..lidar.config import ConfigError, dump_config, load_config_file, load_lidar_config, validate_model
+from ..lidar.config import dump_config, load_config_file, load_lidar_config
 from ..transforms import check_pose
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, index_check
 
@@ -89,8 +92,9 @@ Rotation = Annotated[list[list[float]], AfterValidator(_matrix((3, 3))), AfterVa
 Vec3 = Annotated[list[float], AfterValidator(_matrix((3,)))]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True)
+class _Strict(StrictModel):
+    """Dataset files are data, not hand-written settings: no type coercion either."""
+    model_config = ConfigDict(strict=True)
 
 
 class LidarEntry(_Strict):
@@ -182,22 +186,11 @@ class SampleFile(_Strict):
 # --- reading ---------------------------------------------------------------------------------
 
 def _load_yaml(path: Path) -> object:
-    if not path.is_file():
-        raise DatasetError(f"{path}: missing file")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        raise DatasetError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
+    return load_yaml(path, error=DatasetError)
 
 
 def _validate(model_cls, data, path: Path, what: str):
-    try:
-        return validate_model(model_cls, data, str(path), what)
-    except ConfigError as exc:  # adapters raise DatasetError; the message already names file and key
-        raise DatasetError(str(exc)) from None
+    return validate_model(model_cls, data, str(path), what, error=DatasetError)
 
 
 def _rz(yaw: float) -> np.ndarray:
@@ -282,7 +275,6 @@ class FolderDataset:
                       lidars=dict(self.lidars), boxes=boxes, metadata=dict(s.metadata))
 
     def _image(self, file: Path, cam: str, e: ImageEntry, src: Path) -> CameraImage:
-        from PIL import Image, UnidentifiedImageError
 
         if file.suffix.lower() not in IMAGE_SUFFIXES:
             raise DatasetError(f"{src}: images.{cam}.file: {file.name!r} is not one of {', '.join(IMAGE_SUFFIXES)}")
@@ -323,8 +315,8 @@ class FolderDataset:
         rot = np.asarray(b.rotation, np.float64) if b.rotation is not None else _rz(b.yaw)
         vel = np.full(3, np.nan) if b.velocity is None else np.asarray(b.velocity, np.float64)
         label_id = b.label_id if b.label_id is not None else LABEL_IDS.get(b.label, 0)
-        return Box(np.asarray(b.center, np.float64), np.asarray(b.size, np.float64), rot, b.label, label_id,
-                   vel, b.track_id)
+        return Box(np.asarray(b.center, np.float64), np.asarray(b.size, np.float64), rot, label=label_id,
+                   category=b.label, velocity=vel, track_id=b.track_id)
 
 
 # --- writing ---------------------------------------------------------------------------------
@@ -356,7 +348,7 @@ def _dump_yaml(path: Path, data: dict) -> None:
 
 def _check_name(name: str, what: str) -> str:
     if not re.match(NAME_PATTERN, name):
-        raise ValueError(f"write_folder_dataset: {what} name {name!r} cannot be a file name "
+        raise InputError(f"write_folder_dataset: {what} name {name!r} cannot be a file name "
                          f"(letters, digits, '_', '-', '.'; not starting with '.')")
     return name
 
@@ -383,13 +375,11 @@ def _points_array(sweep: LidarSweep, suffix: str) -> np.ndarray:
 
 def _sample_entry(sample: Sample, out_dir: Path, points_suffix: str, image_suffix: str) -> dict:
     """Write one sample's files into `out_dir` and return its sample.yaml mapping."""
-    from PIL import Image
-
     entry = {"name": str(sample.name), "timestamp": float(sample.timestamp), "ego_pose": _rows(sample.ego_pose)}
     for what, names in (("camera", sample.frames.names if sample.frames is not None else []),
                         ("LiDAR sweep", [sw.sensor for sw in sample.sweeps])):
         if len(set(names)) != len(names):
-            raise ValueError(f"write_folder_dataset: sample {sample.name!r}: two of its {what}s share a name "
+            raise InputError(f"write_folder_dataset: sample {sample.name!r}: two of its {what}s share a name "
                              f"({', '.join(names)}); files are named after them")
     images = {}
     for im in (sample.frames.images if sample.frames is not None else []):
@@ -410,7 +400,7 @@ def _sample_entry(sample: Sample, out_dir: Path, points_suffix: str, image_suffi
     for b in sample.boxes:
         vel = np.asarray(b.velocity, np.float64)
         boxes.append({"center": _rows(b.center), "size": _rows(b.size), "rotation": _rows(b.rotation),
-                      "label": str(b.label), "label_id": int(b.label_id),
+                      "label": str(b.category), "label_id": int(b.label),
                       "velocity": None if np.all(np.isnan(vel)) else _rows(vel), "track_id": str(b.track_id)})
     if images:
         entry["images"] = images
@@ -439,10 +429,10 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
     points_suffix = "." + points_format.lower().lstrip(".")
     image_suffix = "." + image_format.lower().lstrip(".")
     if points_suffix not in POINT_SUFFIXES:
-        raise ValueError(f"write_folder_dataset: points_format {points_format!r}: expected one of "
+        raise InputError(f"write_folder_dataset: points_format {points_format!r}: expected one of "
                          f"{', '.join(s[1:] for s in POINT_SUFFIXES)}")
     if image_suffix not in (".png", ".jpg"):
-        raise ValueError(f"write_folder_dataset: image_format {image_format!r}: expected png or jpg")
+        raise InputError(f"write_folder_dataset: image_format {image_format!r}: expected png or jpg")
     sdir = root / "samples"
     if (root / DATASET_FILE).exists() or (sdir.is_dir() and any(sdir.iterdir())):
         if not overwrite:
@@ -460,12 +450,12 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
             _check_name(n, "LiDAR")
             have = lidars.setdefault(n, spec)
             if not (np.array_equal(have.sensor_to_ego, spec.sensor_to_ego) and have.config == spec.config):
-                raise ValueError(f"write_folder_dataset: sample {sample.name!r}: LiDAR {n!r} has another model or "
+                raise InputError(f"write_folder_dataset: sample {sample.name!r}: LiDAR {n!r} has another model or "
                                  f"mount than earlier samples; the folder format keeps one per sensor")
         for im in (sample.frames.images if sample.frames is not None else []):
             have = cameras.setdefault(_check_name(im.name, "camera"), im.intrinsics)
             if have != im.intrinsics:
-                raise ValueError(f"write_folder_dataset: sample {sample.name!r}: camera {im.name!r} has other "
+                raise InputError(f"write_folder_dataset: sample {sample.name!r}: camera {im.name!r} has other "
                                  f"intrinsics than earlier samples; the folder format keeps one per camera")
         final = sdir / f"{count:06d}"
         tmp = sdir / f".{final.name}.tmp-{os.getpid()}"

@@ -25,12 +25,15 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from PIL import Image
 
+from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
-from ..frames import CameraImage, Frames
+from ..errors import InputError
 from ..io.safe_pickle import load_pickle
 from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
+from ..registration import register_sequence
 from ..transforms import make_pose, transform_points
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, index_check, require_file
 
@@ -127,7 +130,6 @@ def _read_velodyne(path: Path) -> np.ndarray:
 
 
 def _read_image(path: Path) -> np.ndarray:
-    from PIL import Image
 
     require_file(path, "camera image")
     try:
@@ -165,7 +167,7 @@ class KittiRawDataset:
     def __init__(self, root: str | Path, calib: str | Path | None = None, poses: str = "icp"):
         self.root = Path(root)
         if poses not in ("icp", "identity"):
-            raise ValueError(f"kitti_raw: poses must be 'icp' or 'identity', got {poses!r}")
+            raise InputError(f"kitti_raw: poses must be 'icp' or 'identity', got {poses!r}")
         self.poses_mode = poses
         self.poses_from_icp = poses == "icp"
         img_dir, velo_dir = self.root / "image_02" / "data", self.root / "velodyne_points" / "data"
@@ -215,7 +217,6 @@ class KittiRawDataset:
                 self._poses = np.broadcast_to(np.eye(4), (len(self), 4, 4)).copy()
                 self._icp = []
             else:
-                from ..registration import register_sequence
 
                 clouds = [_read_velodyne(v)[:, :3].astype(np.float64) for _, _, v in self._frames]
                 try:
@@ -386,7 +387,7 @@ def _box_from_camera(bbox: np.ndarray, rect_to_world: np.ndarray, label: str) ->
     centre_rect = np.array([x, y - 0.5 * height, z])  # y points down: the centre is h/2 above the bottom
     centre = transform_points(rect_to_world, centre_rect[None])[0]
     rot = rect_to_world[:3, :3] @ box_to_rect
-    return Box(centre, np.array([length, width, height]), rot, label, _label_id(label))
+    return Box(centre, np.array([length, width, height]), rot, label=_label_id(label), category=label)
 
 
 def _get(mapping, keys: tuple, source: str, at: str):

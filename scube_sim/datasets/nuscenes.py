@@ -24,9 +24,11 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from PIL import Image
 
+from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
-from ..frames import CameraImage, Frames
+from ..errors import NotFoundError
 from ..io.safe_pickle import load_pickle
 from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
@@ -241,7 +243,6 @@ class NuScenesDataset:
                       sweeps=[sweep], lidars=lidars, boxes=boxes, metadata=meta)
 
     def _frames(self, e: _Entry, lidar_to_world: np.ndarray) -> Frames:
-        from PIL import Image
 
         images = []
         for c in e.cameras:
@@ -278,8 +279,8 @@ class NuScenesDataset:
             # they get in the tilted LiDAR frame, so rotating back leaves a spurious vz: drop it.
             vel[2] = 0.0
         label = self.categories.get(ins.label, "unknown" if ins.label < 0 else f"class_{ins.label}")
-        return Box(centre, np.array([length, width, height]), rot, label, LABEL_IDS.get(LABEL_MAP.get(label, ""), 0),
-                   vel)
+        return Box(centre, np.array([length, width, height]), rot, label=LABEL_IDS.get(LABEL_MAP.get(label, ""), 0),
+                   category=label, velocity=vel)
 
     def camera_pose_from_cam2ego(self, index: int, camera: str) -> np.ndarray:
         """(4, 4) ``ego2global @ cam2ego``: where `camera` would be if the ego had not moved
@@ -288,7 +289,7 @@ class NuScenesDataset:
         for c in e.cameras:
             if c.name == camera:
                 return e.ego2global @ c.cam2ego
-        raise KeyError(f"{self.info_path}: no camera {camera!r}; have {[c.name for c in e.cameras]}")
+        raise NotFoundError(f"{self.info_path}: no camera {camera!r}; have {[c.name for c in e.cameras]}")
 
 
 def _need(mapping, key: str, source: str, at: str):

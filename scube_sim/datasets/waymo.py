@@ -33,10 +33,11 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
+from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..camera.rig import BODY_FROM_OPTICAL
-from ..frames import CameraImage, Frames
 from ..labels import LABEL_IDS
 from ..lidar.config import ConfigError
 from ..lidar.importers import from_waymo_frame
@@ -57,7 +58,6 @@ def _rz(yaw: float) -> np.ndarray:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    from PIL import Image, UnidentifiedImageError
 
     try:
         with Image.open(path) as im:
@@ -185,6 +185,6 @@ class WaymoFrameDataset:
             heading = float(as_matrix(require_key(lab, "heading_rad", src, f"{where} key"), (), src,
                                       f"{where}.heading_rad"))
             boxes.append(Box(center=transform_points(ego_pose, center[None])[0], size=size,
-                             rotation=ego_pose[:3, :3] @ _rz(heading), label=kind,
-                             label_id=LABEL_IDS[TYPE_TO_LABEL[kind]], track_id=str(lab.get("id", ""))))
+                             rotation=ego_pose[:3, :3] @ _rz(heading), category=kind,
+                             label=LABEL_IDS[TYPE_TO_LABEL[kind]], track_id=str(lab.get("id", ""))))
         return boxes

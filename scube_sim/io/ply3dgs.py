@@ -13,10 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement, PlyParseError
 
+from ..atomic import atomic_path
+from ..errors import InputError
 from ..transforms import normalize_quat
 from ..voxsplat import _LOG_SCALE_MAX, _LOG_SCALE_MIN, Gaussians, VoxSplat
-from .atomic import atomic_path
 
 __all__ = ["SplatPlyInfo", "read_3dgs_ply_info", "read_3dgs_ply", "write_3dgs_ply",
            "default_voxel_size", "read_splat_file"]
@@ -38,28 +40,27 @@ class SplatPlyInfo:
 
 
 def _load_vertex(path: Path):
-    from plyfile import PlyData, PlyParseError
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such splat file")
     try:
         ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: 500x slower
     except PlyParseError as exc:  # header errors and early end-of-file alike
-        raise ValueError(f"{path}: malformed or truncated PLY ({exc})") from None
+        raise InputError(f"{path}: malformed or truncated PLY ({exc})") from None
     if "vertex" not in ply:
-        raise ValueError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
+        raise InputError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
     return np.array(ply["vertex"].data)  # a copy: no memory map left open on the file
 
 
 def _info(path: Path, names: tuple[str, ...], n: int) -> SplatPlyInfo:
     missing = [p for p in REQUIRED if p not in names]
     if missing:
-        raise ValueError(f"{path}: not a 3DGS PLY: vertex property {missing[0]!r} is missing "
+        raise InputError(f"{path}: not a 3DGS PLY: vertex property {missing[0]!r} is missing "
                          f"(missing: {missing})")
     n_rest = sum(1 for p in names if p.startswith("f_rest_"))
     degree = int(round(np.sqrt(n_rest / 3 + 1))) - 1
     if 3 * ((degree + 1) ** 2 - 1) != n_rest:
-        raise ValueError(f"{path}: {n_rest} f_rest_* properties is not 3 * ((d + 1)^2 - 1) for any SH degree d")
+        raise InputError(f"{path}: {n_rest} f_rest_* properties is not 3 * ((d + 1)^2 - 1) for any SH degree d")
     return SplatPlyInfo(n, degree, names)
 
 
@@ -70,7 +71,7 @@ def read_3dgs_ply_info(path: str | Path) -> SplatPlyInfo:
     count, element = None, None
     with open(path, "rb") as fh:
         if fh.readline().strip() != b"ply":
-            raise ValueError(f"{path}: not a PLY file (no 'ply' magic line)")
+            raise InputError(f"{path}: not a PLY file (no 'ply' magic line)")
         for raw in fh:
             words = raw.decode("ascii", errors="replace").split()
             if not words:
@@ -84,9 +85,9 @@ def read_3dgs_ply_info(path: str | Path) -> SplatPlyInfo:
             elif words[0] == "property" and element == "vertex":
                 props.append(words[-1])
         else:
-            raise ValueError(f"{path}: malformed PLY header: no end_header line")
+            raise InputError(f"{path}: malformed PLY header: no end_header line")
     if count is None:
-        raise ValueError(f"{path}: PLY has no 'vertex' element")
+        raise InputError(f"{path}: PLY has no 'vertex' element")
     return _info(path, tuple(props), count)
 
 
@@ -135,8 +136,6 @@ def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
     Positions are written in world coordinates (means + origin) as float32; opacity as a logit
     (clipped to [1e-7, 1 - 1e-7] so that 0 and 1 stay finite), scales as logs, quats as unit wxyz.
     """
-    from plyfile import PlyData, PlyElement
-
     path = Path(path)
     g = gaussians
     g.check_finite("write_3dgs_ply")

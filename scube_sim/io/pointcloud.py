@@ -17,8 +17,11 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
+from plyfile import PlyData, PlyElement, PlyParseError
 
-from .atomic import atomic_path
+from ..atomic import atomic_path
+from ..errors import InputError
+from ..transforms import check_pose, rotmat_to_quat
 
 __all__ = [
     "as_structured", "write_pcd", "read_pcd", "pcd_header", "write_ply_points", "read_ply_points",
@@ -43,7 +46,7 @@ def as_structured(points: np.ndarray) -> np.ndarray:
         for i, n in enumerate(names):
             out[n] = points[:, i]
         return out
-    raise ValueError(f"points: expected a structured array or an (N, 3)/(N, 4) array, "
+    raise InputError(f"points: expected a structured array or an (N, 3)/(N, 4) array, "
                      f"got dtype {points.dtype} shape {points.shape}")
 
 
@@ -69,7 +72,7 @@ def _pcd_type(name: str, dt: np.dtype) -> tuple[str, np.dtype]:
         return "F", np.dtype("<f4")
     letter = {"f": "F", "u": "U", "i": "I"}.get(dt.kind)
     if letter is None or (letter, dt.itemsize) not in _PCD_TYPES:
-        raise ValueError(f"write_pcd: field {name!r} has dtype {dt}, which PCD cannot store "
+        raise InputError(f"write_pcd: field {name!r} has dtype {dt}, which PCD cannot store "
                          f"(supported: float32/64, int8..64, uint8..64, bool)")
     return letter, np.dtype(_PCD_TYPES[(letter, dt.itemsize)]).newbyteorder("<")
 
@@ -80,13 +83,12 @@ def _viewpoint_values(viewpoint) -> list[float]:
         return [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
     v = np.asarray(viewpoint, dtype=np.float64)
     if v.shape == (4, 4):
-        from ..transforms import check_pose, rotmat_to_quat
 
         check_pose(v, "viewpoint")
         return [*v[:3, 3], *rotmat_to_quat(v[:3, :3])]
     if v.shape == (7,) and np.all(np.isfinite(v)):
         return v.tolist()
-    raise ValueError(f"viewpoint: expected 7 finite numbers (tx ty tz qw qx qy qz) or a (4, 4) pose, "
+    raise InputError(f"viewpoint: expected 7 finite numbers (tx ty tz qw qx qy qz) or a (4, 4) pose, "
                      f"got shape {v.shape}")
 
 
@@ -95,10 +97,10 @@ def _pcd_layout(points: np.ndarray):
     fields, sizes, types, counts, packed = [], [], [], [], []
     for name, base, shape in _field_items(points):
         if not name or any(c.isspace() for c in name) or name == "_":
-            raise ValueError(f"write_pcd: field name {name!r} cannot be written to PCD "
+            raise InputError(f"write_pcd: field name {name!r} cannot be written to PCD "
                              f"(no whitespace; '_' is PCL's padding marker)")
         if len(shape) > 1:
-            raise ValueError(f"write_pcd: field {name!r} has shape {shape}; PCD stores scalars or 1-D counts")
+            raise InputError(f"write_pcd: field {name!r} has shape {shape}; PCD stores scalars or 1-D counts")
         letter, st = _pcd_type(name, base)
         count = int(np.prod(shape)) if shape else 1
         fields.append(name)
@@ -128,7 +130,7 @@ def write_pcd(path: str | Path, points: np.ndarray, *, viewpoint=None) -> Path:
     if points.dtype.names is None:
         points = as_structured(points)
     if points.ndim not in (1, 2):
-        raise ValueError(f"write_pcd: points must be (N,) or (H, W), got shape {points.shape}")
+        raise InputError(f"write_pcd: points must be (N,) or (H, W), got shape {points.shape}")
     height, width = (1, points.shape[0]) if points.ndim == 1 else points.shape
     fields, sizes, types, counts, packed = _pcd_layout(points)
     vp = " ".join(format(v, ".17g") for v in _viewpoint_values(viewpoint))
@@ -155,11 +157,11 @@ def _parse_pcd_header(path: Path, raw: bytes) -> tuple[dict, int]:
     while True:
         nl = raw.find(b"\n", pos)
         if nl < 0:
-            raise ValueError(f"{path}: malformed PCD header: no DATA line (truncated or not a PCD file)")
+            raise InputError(f"{path}: malformed PCD header: no DATA line (truncated or not a PCD file)")
         try:
             line = raw[pos:nl].decode("ascii").strip()
         except UnicodeDecodeError:
-            raise ValueError(f"{path}: malformed PCD header: non-ASCII bytes before the DATA line "
+            raise InputError(f"{path}: malformed PCD header: non-ASCII bytes before the DATA line "
                              f"(not a PCD file?)") from None
         pos = nl + 1
         if not line or line.startswith("#"):
@@ -174,16 +176,16 @@ def _pcd_spec(path: Path, header: dict):
     """Validate the header; return (names, dtypes, counts, n_points, data kind)."""
     def need(key):
         if key not in header or not header[key]:
-            raise ValueError(f"{path}: malformed PCD header: missing {key}")
+            raise InputError(f"{path}: malformed PCD header: missing {key}")
         return header[key]
 
     def ints(key, vals):
         try:
             out = [int(v) for v in vals]
         except ValueError:
-            raise ValueError(f"{path}: malformed PCD header: {key} must be integers, got {vals}") from None
+            raise InputError(f"{path}: malformed PCD header: {key} must be integers, got {vals}") from None
         if any(v < 0 for v in out):
-            raise ValueError(f"{path}: malformed PCD header: {key} must be non-negative, got {vals}")
+            raise InputError(f"{path}: malformed PCD header: {key} must be non-negative, got {vals}")
         return out
 
     names = need("FIELDS")
@@ -191,22 +193,22 @@ def _pcd_spec(path: Path, header: dict):
     types = [t.upper() for t in need("TYPE")]
     counts = ints("COUNT", header.get("COUNT") or ["1"] * len(names))
     if not (len(names) == len(sizes) == len(types) == len(counts)):
-        raise ValueError(f"{path}: malformed PCD header: FIELDS/SIZE/TYPE/COUNT have "
+        raise InputError(f"{path}: malformed PCD header: FIELDS/SIZE/TYPE/COUNT have "
                          f"{len(names)}/{len(sizes)}/{len(types)}/{len(counts)} entries")
     dtypes = []
     for n, s, t in zip(names, sizes, types):
         if (t, s) not in _PCD_TYPES:
-            raise ValueError(f"{path}: malformed PCD header: field {n!r} has TYPE {t} SIZE {s}")
+            raise InputError(f"{path}: malformed PCD header: field {n!r} has TYPE {t} SIZE {s}")
         dtypes.append(np.dtype(_PCD_TYPES[(t, s)]).newbyteorder("<"))
     width = ints("WIDTH", need("WIDTH")[:1])[0]
     height = ints("HEIGHT", header.get("HEIGHT", ["1"])[:1])[0]
     n = ints("POINTS", header["POINTS"][:1])[0] if "POINTS" in header else width * height
     if n != width * height:
-        raise ValueError(f"{path}: malformed PCD header: POINTS {n} != WIDTH {width} x HEIGHT {height}")
+        raise InputError(f"{path}: malformed PCD header: POINTS {n} != WIDTH {width} x HEIGHT {height}")
     kind = need("DATA")[0].lower()
     real = [x for x in names if x != "_"]
     if len(set(real)) != len(real):
-        raise ValueError(f"{path}: malformed PCD header: duplicate field names in {names}")
+        raise InputError(f"{path}: malformed PCD header: duplicate field names in {names}")
     return names, dtypes, counts, n, kind
 
 
@@ -242,7 +244,7 @@ def read_pcd(path: str | Path) -> np.ndarray:
         need = n * row.itemsize
         have = len(raw) - start
         if have < need:
-            raise ValueError(f"{path}: truncated PCD: {n} points need {need} bytes of data, "
+            raise InputError(f"{path}: truncated PCD: {n} points need {need} bytes of data, "
                              f"found {have}")
         data = np.frombuffer(raw, dtype=row, count=n, offset=start)
         out = np.empty(n, out_dtype)
@@ -254,11 +256,11 @@ def read_pcd(path: str | Path) -> np.ndarray:
         try:
             tokens = raw[start:].decode("ascii").split()
         except UnicodeDecodeError:
-            raise ValueError(f"{path}: malformed PCD: non-ASCII bytes in ascii data") from None
+            raise InputError(f"{path}: malformed PCD: non-ASCII bytes in ascii data") from None
         per_point = sum(counts)
         if len(tokens) != n * per_point:
             what = "truncated PCD" if len(tokens) < n * per_point else "malformed PCD"
-            raise ValueError(f"{path}: {what}: {n} points x {per_point} values need "
+            raise InputError(f"{path}: {what}: {n} points x {per_point} values need "
                              f"{n * per_point} numbers, found {len(tokens)}")
         table = np.array(tokens, dtype=str).reshape(n, per_point)
         out = np.empty(n, out_dtype)
@@ -272,15 +274,15 @@ def read_pcd(path: str | Path) -> np.ndarray:
                     try:
                         vals = cols.astype(np.float64).astype(dt)
                     except ValueError:
-                        raise ValueError(f"{path}: malformed PCD: field {nm!r} has non-numeric values") from None
+                        raise InputError(f"{path}: malformed PCD: field {nm!r} has non-numeric values") from None
                 out[nm] = vals if c != 1 else vals[:, 0]
             col += c
         return out
 
     if kind == "binary_compressed":
-        raise ValueError(f"{path}: PCD 'DATA binary_compressed' (LZF) is not supported; "
+        raise InputError(f"{path}: PCD 'DATA binary_compressed' (LZF) is not supported; "
                          f"re-save it as binary or ascii (e.g. pcl_convert_pcd_ascii_binary)")
-    raise ValueError(f"{path}: malformed PCD header: unknown DATA kind {kind!r}")
+    raise InputError(f"{path}: malformed PCD header: unknown DATA kind {kind!r}")
 
 
 # --- PLY ------------------------------------------------------------------------------------
@@ -291,7 +293,7 @@ def _ply_compatible(points: np.ndarray) -> np.ndarray:
     cols = []
     for name, base, shape in _field_items(points):
         if shape:
-            raise ValueError(f"write_ply_points: field {name!r} has shape {shape}; PLY vertex "
+            raise InputError(f"write_ply_points: field {name!r} has shape {shape}; PLY vertex "
                              f"properties are scalars")
         a = points[name]
         if base.kind == "b":
@@ -302,11 +304,11 @@ def _ply_compatible(points: np.ndarray) -> np.ndarray:
             small = np.dtype(np.int32 if base.kind == "i" else np.uint32)
             info = np.iinfo(small)
             if a.size and (a.min() < info.min or a.max() > info.max):
-                raise ValueError(f"write_ply_points: field {name!r} ({base}) holds values outside "
+                raise InputError(f"write_ply_points: field {name!r} ({base}) holds values outside "
                                  f"{small}, and PLY has no 64-bit integers")
             a = a.astype(small)
         elif base.kind not in "fiu" or base.itemsize > 8:
-            raise ValueError(f"write_ply_points: field {name!r} has dtype {base}, which PLY cannot store")
+            raise InputError(f"write_ply_points: field {name!r} has dtype {base}, which PLY cannot store")
         cols.append((name, a))
     out = np.empty(points.shape[0], [(n, a.dtype.newbyteorder("<")) for n, a in cols])
     for n, a in cols:
@@ -316,13 +318,11 @@ def _ply_compatible(points: np.ndarray) -> np.ndarray:
 
 def write_ply_points(path: str | Path, points: np.ndarray) -> Path:
     """Write a binary little-endian PLY with one ``vertex`` element holding every field."""
-    from plyfile import PlyData, PlyElement
-
     path = Path(path)
     data = _ply_compatible(as_structured(points))
     for name in data.dtype.names:
         if not name or any(c.isspace() for c in name):
-            raise ValueError(f"write_ply_points: field name {name!r} cannot be a PLY property name")
+            raise InputError(f"write_ply_points: field name {name!r} cannot be a PLY property name")
     ply = PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
@@ -333,15 +333,13 @@ def write_ply_points(path: str | Path, points: np.ndarray) -> Path:
 def read_ply_points(path: str | Path) -> np.ndarray:
     """Read the ``vertex`` element of a PLY file as a structured (N,) array (scalar properties
     only; list properties such as a mesh's are skipped)."""
-    from plyfile import PlyData, PlyParseError
-
     path = Path(path)
     try:
         ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: 500x slower
     except PlyParseError as exc:
-        raise ValueError(f"{path}: malformed or truncated PLY ({exc})") from None
+        raise InputError(f"{path}: malformed or truncated PLY ({exc})") from None
     if "vertex" not in ply:
-        raise ValueError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
+        raise InputError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
     data = ply["vertex"].data
     keep = [n for n in data.dtype.names if data.dtype[n].kind != "O"]
     out = np.empty(data.shape[0], [(n, data.dtype[n]) for n in keep])
@@ -359,7 +357,7 @@ def write_kitti_bin(path: str | Path, points: np.ndarray) -> Path:
     points = as_structured(points)
     for f in ("x", "y", "z"):
         if f not in points.dtype.names:
-            raise ValueError(f"write_kitti_bin: points have no field {f!r} (fields: {points.dtype.names})")
+            raise InputError(f"write_kitti_bin: points have no field {f!r} (fields: {points.dtype.names})")
     out = np.zeros((points.shape[0], 4), "<f4")
     for i, f in enumerate(("x", "y", "z", "intensity")):
         if f in points.dtype.names:
@@ -375,7 +373,7 @@ def read_kitti_bin(path: str | Path) -> np.ndarray:
     path = Path(path)
     raw = path.read_bytes()
     if len(raw) % 16:
-        raise ValueError(f"{path}: truncated KITTI .bin: {len(raw)} bytes is not a multiple of 16 "
+        raise InputError(f"{path}: truncated KITTI .bin: {len(raw)} bytes is not a multiple of 16 "
                          f"(4 float32 per point)")
     return np.frombuffer(raw, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")]).copy()
 
@@ -391,7 +389,7 @@ def write_npz(path: str | Path, points: np.ndarray, **meta) -> Path:
               "points": as_structured(points)}
     for key, value in meta.items():
         if key in arrays or key.startswith("json:"):
-            raise ValueError(f"write_npz: meta key {key!r} is reserved")
+            raise InputError(f"write_npz: meta key {key!r} is reserved")
         if isinstance(value, (dict, list, tuple)) and not isinstance(value, np.ndarray):
             try:
                 arrays[f"json:{key}"] = np.array(json.dumps(value, sort_keys=True))
@@ -400,11 +398,11 @@ def write_npz(path: str | Path, points: np.ndarray, **meta) -> Path:
                 pass
         a = np.asarray(value)
         if a.dtype.kind == "O" or a.dtype.hasobject:
-            raise ValueError(f"write_npz: meta {key!r} ({type(value).__name__}) cannot be stored "
+            raise InputError(f"write_npz: meta {key!r} ({type(value).__name__}) cannot be stored "
                              f"without pickle; pass numbers, strings, arrays or JSON-able lists/dicts")
         arrays[key] = a
     if arrays["points"].dtype.hasobject:
-        raise ValueError("write_npz: points have object fields, which need pickle")
+        raise InputError("write_npz: points have object fields, which need pickle")
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:  # a file object: np.savez would append .npz to a str name
             np.savez(fh, **arrays)
@@ -418,12 +416,12 @@ def read_npz(path: str | Path) -> tuple[np.ndarray, dict]:
     try:
         z = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise ValueError(f"{path}: not a readable .npz ({exc})") from None
+        raise InputError(f"{path}: not a readable .npz ({exc})") from None
     if not hasattr(z, "files"):
-        raise ValueError(f"{path}: a .npy array, not a .npz archive")
+        raise InputError(f"{path}: a .npy array, not a .npz archive")
     with z:
         if "points" not in z.files:
-            raise ValueError(f"{path}: no 'points' key (keys: {z.files})")
+            raise InputError(f"{path}: no 'points' key (keys: {z.files})")
         try:
             points = z["points"]
             meta = {}
@@ -436,7 +434,7 @@ def read_npz(path: str | Path) -> tuple[np.ndarray, dict]:
                 else:
                     meta[key] = a.item() if a.ndim == 0 else a
         except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:  # CRC or short member
-            raise ValueError(f"{path}: corrupt or truncated .npz ({exc})") from None
+            raise InputError(f"{path}: corrupt or truncated .npz ({exc})") from None
     return points, meta
 
 
@@ -450,7 +448,7 @@ def write_points(path: str | Path, points: np.ndarray) -> Path:
     path = Path(path)
     writer = _WRITERS.get(path.suffix.lower())
     if writer is None:
-        raise ValueError(f"{path}: unknown point-cloud suffix {path.suffix!r}; "
+        raise InputError(f"{path}: unknown point-cloud suffix {path.suffix!r}; "
                          f"use one of {sorted(_WRITERS)}")
     return writer(path, points)
 
@@ -467,4 +465,4 @@ def read_points(path: str | Path) -> np.ndarray:
         return read_kitti_bin(path)
     if suffix == ".npz":
         return read_npz(path)[0]
-    raise ValueError(f"{path}: unknown point-cloud suffix {path.suffix!r}; use one of {sorted(_WRITERS)}")
+    raise InputError(f"{path}: unknown point-cloud suffix {path.suffix!r}; use one of {sorted(_WRITERS)}")

@@ -9,6 +9,8 @@ from __future__ import annotations
 import pickle
 from pathlib import Path
 
+from ..errors import InputError
+
 _ALLOWED = {
     ("builtins", name) for name in ("dict", "list", "tuple", "set", "frozenset", "complex", "bytearray", "slice",
                                     "range", "bool", "int", "float", "str", "bytes")
@@ -22,7 +24,7 @@ _ALLOWED = {
 }
 
 
-class UnsafePickleError(ValueError):
+class UnsafePickleError(InputError):
     pass
 
 
@@ -49,4 +51,4 @@ def load_pickle(path: str | Path):
         except UnsafePickleError:
             raise
         except Exception as exc:
-            raise ValueError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from None
+            raise InputError(f"{path}: not a readable pickle ({type(exc).__name__}: {exc})") from None

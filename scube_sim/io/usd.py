@@ -19,9 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..atomic import atomic_path
+from ..errors import InputError
 from ..transforms import check_pose, normalize_quat, quat_to_rotmat
 from ..voxsplat import Gaussians, VoxSplat
-from .atomic import atomic_path
 from .pointcloud import as_structured
 
 __all__ = [
@@ -58,7 +59,7 @@ def check_usd_suffix(path: Path) -> str:
     """The lower-case suffix of `path`, which must be a USD one (it picks text or crate)."""
     suffix = path.suffix.lower()
     if suffix not in USD_SUFFIXES:
-        raise ValueError(f"{path}: unknown USD suffix {path.suffix!r}; use one of {USD_SUFFIXES}")
+        raise InputError(f"{path}: unknown USD suffix {path.suffix!r}; use one of {USD_SUFFIXES}")
     return suffix
 
 
@@ -76,7 +77,7 @@ def set_stage_metadata(stage, *, documentation: str = "Exported by scube_sim", t
     if time_codes_per_second is not None:
         tcps = float(time_codes_per_second)
         if not (np.isfinite(tcps) and tcps > 0):
-            raise ValueError(f"time_codes_per_second must be finite and > 0, got {time_codes_per_second!r}")
+            raise InputError(f"time_codes_per_second must be finite and > 0, got {time_codes_per_second!r}")
         stage.SetTimeCodesPerSecond(tcps)
         stage.SetFramesPerSecond(tcps)
     return world.GetPrim()
@@ -113,7 +114,7 @@ def primvar_type(dtype, what: str = "field", who: str = "export_usd"):
     key = (dtype.kind, dtype.itemsize)
     types = _vt_types()
     if key not in types:
-        raise ValueError(f"{who}: {what} has dtype {dtype}, which USD primvars cannot hold")
+        raise InputError(f"{who}: {what} has dtype {dtype}, which USD primvars cannot hold")
     return types[key]
 
 
@@ -168,7 +169,7 @@ def _gaussian_extent(local: np.ndarray, scales: np.ndarray, quats: np.ndarray) -
 def add_gaussians(stage, path: str, g: Gaussians, labels: np.ndarray | None = None,
                   voxel_size: float | None = None):
     """Define `path` as a ParticleField3DGaussianSplat holding `g` (see `export_usd`); returns it."""
-    from pxr import Vt, UsdGeom, UsdVol
+    from pxr import UsdGeom, UsdVol, Vt
 
     g.check_finite("export_usd")
     pf = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
@@ -213,7 +214,7 @@ def add_points_prim(stage, path: str, *, width: float = 0.05, primvars: dict | N
     """Define `path` as a UsdGeom.Points with constant `width`, an (unset) points attribute,
     optionally an (unset) extent, and vertex primvars declared (no values) from
     `primvars`: name -> numpy dtype. For writers that author values later (e.g. time samples)."""
-    from pxr import Tf, Vt, UsdGeom
+    from pxr import Tf, UsdGeom, Vt
 
     geom = UsdGeom.Points.Define(stage, path)
     geom.CreatePointsAttr()
@@ -235,17 +236,17 @@ def points_extent(local: np.ndarray, width: float) -> np.ndarray:
 
 
 def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
-    from pxr import Tf, Vt, UsdGeom
+    from pxr import Tf, UsdGeom, Vt
 
     prim_name = Tf.MakeValidIdentifier(str(name))
     cloud = np.asarray(cloud)
     pts = as_structured(cloud)
     for f in ("x", "y", "z"):
         if f not in pts.dtype.names:
-            raise ValueError(f"export_usd: point cloud {name!r} has no field {f!r}")
+            raise InputError(f"export_usd: point cloud {name!r} has no field {f!r}")
     xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64)
     if not np.all(np.isfinite(xyz)):
-        raise ValueError(f"export_usd: point cloud {name!r} has NaN or Inf positions")
+        raise InputError(f"export_usd: point cloud {name!r} has NaN or Inf positions")
     origin = np.round(0.5 * (xyz.min(0) + xyz.max(0))) if len(xyz) else np.zeros(3)
     local = xyz - origin
     geom = UsdGeom.Points.Define(stage, f"{POINTS_PATH}/{prim_name}")
@@ -264,7 +265,7 @@ def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
             continue
         pv_name = Tf.MakeValidIdentifier(field)
         if pv_name in used:
-            raise ValueError(f"export_usd: point cloud {name!r}: field {field!r} clashes with primvar {pv_name!r}")
+            raise InputError(f"export_usd: point cloud {name!r}: field {field!r} clashes with primvar {pv_name!r}")
         used.add(pv_name)
         _add_primvar(prim, pv_name, pts[field], UsdGeom.Tokens.vertex, source_name=field)
     if color is not None:
@@ -274,7 +275,7 @@ def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
         elif c.shape == (len(local), 3):
             geom.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(_vec3f(c))
         else:
-            raise ValueError(f"export_usd: point_colors[{name!r}]: expected (3,) or ({len(local)}, 3), got {c.shape}")
+            raise InputError(f"export_usd: point_colors[{name!r}]: expected (3,) or ({len(local)}, 3), got {c.shape}")
 
 
 def write_layer(layer, path: str | Path) -> Path:
@@ -322,11 +323,11 @@ def export_usd(
     path = Path(path)
     suffix = check_usd_suffix(path)
     if voxsplat is not None and gaussians is not None:
-        raise ValueError("export_usd: pass voxsplat or gaussians, not both")
+        raise InputError("export_usd: pass voxsplat or gaussians, not both")
     points = dict(points or {})
     unknown = set(point_colors or {}) - set(points) | set(points_poses or {}) - set(points)
     if unknown:
-        raise ValueError(f"export_usd: point_colors/points_poses name clouds not in points: {sorted(unknown)}")
+        raise InputError(f"export_usd: point_colors/points_poses name clouds not in points: {sorted(unknown)}")
 
     # The in-memory layer's identifier fixes its file format (text or crate) as well.
     stage = Usd.Stage.CreateInMemory(f"scube_sim_export{suffix}")
@@ -343,7 +344,7 @@ def export_usd(
         for name, cloud in points.items():
             prim_name = Tf.MakeValidIdentifier(str(name))
             if prim_name in seen:
-                raise ValueError(f"export_usd: point clouds {seen[prim_name]!r} and {name!r} map to the same prim name")
+                raise InputError(f"export_usd: point clouds {seen[prim_name]!r} and {name!r} map to the same prim name")
             seen[prim_name] = name
             _add_points(stage, name, cloud, point_width, (point_colors or {}).get(name),
                         (points_poses or {}).get(name))

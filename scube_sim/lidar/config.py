@@ -9,24 +9,17 @@ Frames: the sensor frame is x forward, y left, z up; azimuth is measured counter
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Annotated, Literal, Union
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import Field, field_validator, model_validator
 
+from ..atomic import atomic_path
+from ..config import ConfigError, Mount, StrictModel, load_yaml, normalize_name, validate_model
 from ..labels import LABEL_IDS
 from ..resources import sensors_dir
-
-
-class ConfigError(ValueError):
-    """A sensor or scenario file that cannot be used; the message names the file and key."""
-
-
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
 def _finite(v):
@@ -36,7 +29,7 @@ def _finite(v):
     return v
 
 
-class Channels(_Strict):
+class Channels(StrictModel):
     """Per-channel tables of a spinning sensor, one entry per laser, in the vendor's channel order.
 
     origin_vertical_m / origin_horizontal_m: beam-origin offsets as in Velodyne calibrations
@@ -79,7 +72,7 @@ class Channels(_Strict):
         return np.zeros(self.count) if v is None else np.asarray(v, dtype=np.float64)
 
 
-class SpinningPattern(_Strict):
+class SpinningPattern(StrictModel):
     """A rotating multi-beam head: column j fires at ``j / (columns * rotation_hz)`` seconds after
     the sweep start, channel c a further ``fire_time_us[c]`` (relative to the column's encoder
     instant; may be negative, as in Hesai's tables). The beam azimuth is the head angle at that
@@ -98,7 +91,7 @@ class SpinningPattern(_Strict):
         return 1.0 / self.rotation_hz
 
 
-class EmitterPattern(_Strict):
+class EmitterPattern(StrictModel):
     """An explicit emitter table (solid-state / non-repetitive sensors, or replay of a recorded
     sweep's ray directions). Either `file` (.csv with a header naming azimuth_deg, elevation_deg,
     time_s and optionally channel; or .npy with those columns in that order) or inline lists."""
@@ -128,7 +121,7 @@ class EmitterPattern(_Strict):
 Pattern = Annotated[Union[SpinningPattern, EmitterPattern], Field(discriminator="type")]
 
 
-class RangeLimits(_Strict):
+class RangeLimits(StrictModel):
     min_m: float = Field(default=0.5, ge=0)
     max_m: float = Field(default=120.0, gt=0, le=10_000)
 
@@ -139,7 +132,7 @@ class RangeLimits(_Strict):
         return self
 
 
-class Noise(_Strict):
+class Noise(StrictModel):
     """Range noise: Gaussian with sigma = range_sigma_m + range_sigma_rel * range, then rounding
     to a multiple of quantization_m (0: none)."""
 
@@ -148,7 +141,7 @@ class Noise(_Strict):
     quantization_m: float = Field(default=0.0, ge=0, le=10)
 
 
-class Drop(_Strict):
+class Drop(StrictModel):
     """Which returns are lost. random_rate: independent loss probability; max_incidence_deg:
     returns at a larger angle between beam and surface normal are lost (90 = never);
     min_intensity: returns weaker than this (model units, before output_scale) are lost;
@@ -162,7 +155,7 @@ class Drop(_Strict):
     reflectivity_range: float | None = Field(default=None, gt=0, le=1)
 
 
-class Intensity(_Strict):
+class Intensity(StrictModel):
     """intensity = reflectivity * cos(incidence) * min(1, (reference_range_m / r) ** falloff_exponent)
     * output_scale. reflectivity from the semantic class (labels.py, overridable per class name),
     from the surface colour's luminance, or a constant. falloff_exponent 0 gives the calibrated
@@ -186,7 +179,7 @@ class Intensity(_Strict):
         return v
 
 
-class Beam(_Strict):
+class Beam(StrictModel):
     """Beam divergence by sub-ray supersampling and how echoes become returns.
 
     divergence_mrad: full-angle divergence; sub-rays sample the footprint (a disc of that angle),
@@ -204,19 +197,7 @@ class Beam(_Strict):
     return_mode: Literal["first", "nearest", "strongest", "last", "mean", "dual"] = "strongest"
 
 
-class Mount(_Strict):
-    """The sensor's pose in the ego (vehicle) frame: metres and degrees (roll, pitch, yaw)."""
-
-    xyz: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def matrix(self) -> np.ndarray:
-        from ..transforms import pose_from_xyz_rpy
-
-        return pose_from_xyz_rpy(self.xyz, self.rpy_deg)
-
-
-class EgoBody(_Strict):
+class EgoBody(StrictModel):
     """An axis-aligned box in the ego frame that blocks rays (the car's own body and roof).
     returns: report the box surface as a return (label undefined) instead of dropping the ray."""
 
@@ -231,7 +212,7 @@ class EgoBody(_Strict):
         return self
 
 
-class Motion(_Strict):
+class Motion(StrictModel):
     """Output frame of a moving sweep: 'raw' gives each point in the sensor frame at its own fire
     time (what a real sensor reports, skewed by motion); 'compensated' gives every point in the
     sensor frame at the sweep's reference instant (`reference`: sweep start or end)."""
@@ -240,7 +221,7 @@ class Motion(_Strict):
     reference: Literal["start", "end"] = "start"
 
 
-class LidarConfig(_Strict):
+class LidarConfig(StrictModel):
     """A complete LiDAR description. `source` says where the numbers come from."""
 
     name: str
@@ -268,55 +249,9 @@ class LidarConfig(_Strict):
 # --- loading ---------------------------------------------------------------------------------
 
 
-def _format_loc(loc) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        elif part in ("spinning", "emitter") and out.endswith("pattern"):
-            continue  # the discriminator tag pydantic inserts
-        else:
-            out += ("." if out else "") + str(part)
-    return out or "(top level)"
-
-
-def format_validation_error(exc: ValidationError, source: str) -> str:
-    lines = []
-    for err in exc.errors():
-        msg = err["msg"]
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"{source}: {_format_loc(err['loc'])}: {msg}")
-    return "\n".join(lines)
-
-
-def validate_model(model_cls, data, source: str, what: str = "settings"):
-    """Validate a mapping into a pydantic model; ConfigError names `source` and each key path."""
-    if not isinstance(data, dict):
-        raise ConfigError(f"{source}: expected a mapping of {what}, got {type(data).__name__}")
-    try:
-        return model_cls.model_validate(data)
-    except ValidationError as exc:
-        raise ConfigError(format_validation_error(exc, source)) from None
-
-
 def config_from_dict(data: dict, source: str = "<dict>") -> LidarConfig:
     """Validate a mapping; raises ConfigError naming `source` and the key path."""
     return validate_model(LidarConfig, data, source, "LiDAR settings")
-
-
-def load_yaml(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such file")
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = yaml.safe_load(fh)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        raise ConfigError(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
-    return data
 
 
 def load_config_file(path: str | Path) -> LidarConfig:
@@ -326,11 +261,6 @@ def load_config_file(path: str | Path) -> LidarConfig:
     if isinstance(p, EmitterPattern) and p.file and not Path(p.file).is_absolute():
         p.file = str((path.parent / p.file).resolve())  # relative to the YAML file
     return cfg
-
-
-def normalize_name(name: str) -> str:
-    """Lower case, letters and digits only: 'VLP-16', 'vlp_16' and 'vlp16' are one name."""
-    return re.sub(r"[^a-z0-9]", "", name.lower())
 
 
 def preset_paths() -> dict[str, Path]:
@@ -376,8 +306,6 @@ def dump_config(cfg: LidarConfig, path: str | Path | None = None) -> str:
     _Dumper.add_representer(tuple, _repr_list)
     text = yaml.dump(data, Dumper=_Dumper, sort_keys=False, width=100)
     if path is not None:
-        from ..io.atomic import atomic_path
-
         with atomic_path(path) as tmp:
             Path(tmp).write_text(text, encoding="utf-8")
     return text

@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from ..errors import InputError
+from ..transforms import rotmat_to_euler
 from .config import ConfigError, LidarConfig, config_from_dict, load_yaml
 
 __all__ = ["from_velodyne_yaml", "from_hesai_csv", "from_ouster_json", "from_waymo_frame",
@@ -256,7 +258,7 @@ def _hesai_fire_times(path: Path, n: int, operation_mode: int, angle_state: int,
     if col is None:
         raise ConfigError(f"{path}: no column for operation mode {operation_mode}, angle state {angle_state}")
     if mode_table_unit not in ("ns", "us"):
-        raise ValueError(f"mode_table_unit must be 'ns' or 'us', got {mode_table_unit!r}")
+        raise InputError(f"mode_table_unit must be 'ns' or 'us', got {mode_table_unit!r}")
     per_us = 1000.0 if mode_table_unit == "ns" else 1.0
     table = {}
     for line, row in enumerate(rows[first:], start=first + 1):
@@ -411,7 +413,6 @@ def from_waymo_frame(frame_metadata_json: str | Path, laser_name: str = "TOP", *
                           f"(this laser only publishes min/max inclination)")
     elevation = [_deg(_float(v, path, f"{laser_name}.beam_inclinations_rad[{i}]"))
                  for i, v in enumerate(incl)]
-    from ..transforms import rotmat_to_euler
 
     ext = laser.get("extrinsic_laser_to_vehicle_4x4")
     try:

@@ -16,15 +16,15 @@ Randomness comes from one seeded generator: the same seed gives the same sweep, 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
+from ..errors import InputError
 from ..labels import LABEL_IDS, LABEL_REFLECTIVITY
 from ..raytrace.compose import nearest_hits
 from ..raytrace.tracer import Tracer
-from ..transforms import check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
-from .config import LidarConfig, SpinningPattern
+from ..transforms import PoseFn, check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
+from .config import LidarConfig
 from .pattern import ScanPattern, make_pattern
 
 POINT_DTYPE = np.dtype([
@@ -37,7 +37,6 @@ model units x output_scale; ring: channel index; time: seconds after the sweep s
 metres from the beam origin; azimuth: radians, beam direction CCW from +x; label: semantic id;
 instance: actor id (0 = static scene); column: firing column; return_id: 0 first/only, 1 second."""
 
-PoseFn = Callable[[np.ndarray], np.ndarray]
 
 
 @dataclass
@@ -75,7 +74,7 @@ class Sweep:
         """(rings, columns) float32 view, rows by decreasing elevation (top beam first), NaN
         where a ray gave no return. Spinning patterns only."""
         if self.columns <= 0:
-            raise ValueError("range_image: needs a spinning pattern (an emitter table has no columns)")
+            raise InputError("range_image: needs a spinning pattern (an emitter table has no columns)")
         row_of_ring = np.empty(self.channels, np.int64)
         row_of_ring[np.argsort(-self.ring_elevation_deg, kind="stable")] = np.arange(self.channels)
         img = np.full((self.channels, self.columns), np.nan, np.float32)
@@ -158,23 +157,48 @@ class Lidar:
         """Trace one sweep.
 
         tracer: a Tracer, several (the nearest hit counts), or a scene whose `trace_world` takes
-        the rays' absolute fire times (`accepts_times`, e.g. `sim.scene.SimScene` with actors).
+        the rays' absolute fire times (`accepts_times`, e.g. `sim.SimScene` with actors).
         pose_start / pose_end: (4, 4) float64 sensor-to-world poses at the sweep's start and end
         (end defaults to start: a static sensor). pose_fn: alternatively, absolute times (N,) ->
         (N, 4, 4) sensor-to-world poses. t_start: absolute seconds of the first fire.
         """
         cfg, pat = self.config, self.pattern
         t_end = t_start + pat.period_s
+        pose_start, pose_end = self._end_poses(pose_start, pose_end, pose_fn, t_start, t_end)
+        rng = np.random.default_rng(seed)
+        d_sub, o_sub, t_sub = self._sub_rays()
+        static = pose_fn is None and np.array_equal(pose_start, pose_end)
+        o_w, d_w, poses = self._world_rays(d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start)
+        hit, rng_sub, label, instance, cos_inc, color = self._trace(tracer, o_w, d_w, o_sub, d_sub, t_start + t_sub)
+        refl, inten = self._intensity(hit, rng_sub, label, cos_inc, color)
+        n_pulse, s = len(pat), self._sub_w.shape[0]
+        pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
+        rid = np.zeros(pulse.shape[0], np.uint8)
+        if cfg.beam.return_mode == "dual":
+            pulse, echo_range, strength, rep, rid = self._dual(pulse, echo_range, strength, rep)
+        pulse, echo_range, strength, rep, rid = self._drop(rng, pulse, echo_range, strength, rep, rid,
+                                                           cos_inc[rep], refl[rep])
+        echo_range = self._range_noise(rng, echo_range)
+        ref = pose_start if cfg.motion.reference == "start" else pose_end
+        out = self._points(pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses)
+        return Sweep(out, float(t_start), float(t_end), pose_start, pose_end, ref, cfg.motion.output,
+                     cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, n_pulse)
+
+    # --- the stages of a sweep, in order (the random draws happen in `_drop`, then `_range_noise`) ---
+
+    @staticmethod
+    def _end_poses(pose_start, pose_end, pose_fn, t_start, t_end):
+        """(4, 4) sensor-to-world poses at the sweep's start and end, checked rigid."""
         if pose_fn is not None:
             ends = np.asarray(pose_fn(np.array([t_start, t_end], np.float64)), np.float64)
-            pose_start, pose_end = check_pose(ends[0], "pose_fn(t_start)"), check_pose(ends[1], "pose_fn(t_end)")
-        else:
-            pose_start = check_pose(pose_start, "pose_start")
-            pose_end = pose_start if pose_end is None else check_pose(pose_end, "pose_end")
-        rng = np.random.default_rng(seed)
+            return check_pose(ends[0], "pose_fn(t_start)"), check_pose(ends[1], "pose_fn(t_end)")
+        pose_start = check_pose(pose_start, "pose_start")
+        return pose_start, (pose_start if pose_end is None else check_pose(pose_end, "pose_end"))
 
-        # 1. pulses and their sub-rays (sensor frame).
-        n_pulse = len(pat)
+    def _sub_rays(self):
+        """Every pulse's sub-rays (beam divergence), sensor frame: unit dirs (P*S, 3), origins
+        (P*S, 3) metres, fire times (P*S,) seconds from the sweep's start."""
+        pat = self.pattern
         s = self._sub_w.shape[0]
         d_s = pat.directions
         if s > 1:
@@ -185,26 +209,28 @@ class Lidar:
             d_sub = (d_sub / np.linalg.norm(d_sub, axis=2, keepdims=True)).reshape(-1, 3)
         else:
             d_sub = d_s
-        o_sub = np.repeat(pat.offsets, s, axis=0)
-        t_sub = np.repeat(pat.time, s)
+        return d_sub, np.repeat(pat.offsets, s, axis=0), np.repeat(pat.time, s)
 
-        # 2. sensor pose per ray (world).
-        static = pose_fn is None and np.array_equal(pose_start, pose_end)
+    def _world_rays(self, d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start):
+        """Sub-rays in the world frame at their own fire times: origins, dirs (P*S, 3) and the
+        per-pulse sensor poses (P, 4, 4) (None for a static sensor)."""
+        pat, s = self.pattern, self._sub_w.shape[0]
         if static:
-            o_w = transform_points(pose_start, o_sub)
-            d_w = rotate_vectors(pose_start, d_sub)
+            return transform_points(pose_start, o_sub), rotate_vectors(pose_start, d_sub), None
+        n_pulse = len(pat)
+        if pose_fn is not None:
+            poses = np.asarray(pose_fn(t_start + pat.time), np.float64)
+            if poses.shape != (n_pulse, 4, 4) or not np.all(np.isfinite(poses)):
+                raise InputError(f"pose_fn: expected finite ({n_pulse}, 4, 4) poses, got {poses.shape}")
         else:
-            if pose_fn is not None:
-                poses = np.asarray(pose_fn(t_start + pat.time), np.float64)
-                if poses.shape != (n_pulse, 4, 4) or not np.all(np.isfinite(poses)):
-                    raise ValueError(f"pose_fn: expected finite ({n_pulse}, 4, 4) poses, got {poses.shape}")
-            else:
-                poses = interpolate_poses(pose_start, pose_end, pat.time / pat.period_s)
-            poses_sub = np.repeat(poses, s, axis=0) if s > 1 else poses
-            o_w = transform_points(poses_sub, o_sub)
-            d_w = rotate_vectors(poses_sub, d_sub)
+            poses = interpolate_poses(pose_start, pose_end, pat.time / pat.period_s)
+        poses_sub = np.repeat(poses, s, axis=0) if s > 1 else poses
+        return transform_points(poses_sub, o_sub), rotate_vectors(poses_sub, d_sub), poses
 
-        # 3. ego body and scene.
+    def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times):
+        """The ego body and the scene: per sub-ray hit, range (m), label, instance, |cos| of the
+        incidence angle, and colour."""
+        cfg = self.config
         t_far = np.full(o_w.shape[0], cfg.range.max_m, np.float64)
         t_body = np.full(o_w.shape[0], np.inf)
         if cfg.ego_body is not None:
@@ -214,9 +240,9 @@ class Lidar:
             t_far = np.minimum(t_far, t_body)
         if isinstance(tracer, (list, tuple)):
             hits = nearest_hits(list(tracer), o_w, d_w, 0.0, t_far)
-        elif getattr(tracer, "accepts_times", False):
+        elif tracer.accepts_times:
             # A scene with moving parts places them at each ray's own fire time.
-            hits = tracer.trace_world(o_w, d_w, 0.0, t_far, times=t_start + t_sub)
+            hits = tracer.trace_world(o_w, d_w, 0.0, t_far, times=times)
         else:
             hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
         rng_sub = hits.t.copy()
@@ -231,28 +257,27 @@ class Lidar:
             label = np.where(body, 0, label).astype(np.int16)
             instance = np.where(body, 0, instance)
             cos_inc = np.where(body, 1.0, cos_inc)
+        return hit, rng_sub, label, instance, cos_inc, hits.color
 
-        # 4. intensity per sub-ray, then echoes per pulse.
-        ic = cfg.intensity
+    def _intensity(self, hit, rng_sub, label, cos_inc, color):
+        """Per sub-ray reflectivity and return strength (reflectivity x cos incidence x fall-off)."""
+        ic = self.config.intensity
         if ic.source == "class":
             refl = self._class_reflectivity[label]
         elif ic.source == "color":
-            refl = _luminance(hits.color)
+            refl = _luminance(color)
         else:
             refl = np.full(label.shape, ic.constant)
         with np.errstate(divide="ignore", invalid="ignore"):
             fall = np.minimum(1.0, (ic.reference_range_m / np.maximum(rng_sub, 1e-6)) ** ic.falloff_exponent)
-        inten = np.where(hit, refl * cos_inc * fall, 0.0)
-        pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
-        rid = np.zeros(pulse.shape[0], np.uint8)
-        if cfg.beam.return_mode == "dual":
-            pulse, echo_range, strength, rep, rid = self._dual(pulse, echo_range, strength, rep)
+        return refl, np.where(hit, refl * cos_inc * fall, 0.0)
 
-        # 5. drops, noise, quantisation.
+    def _drop(self, rng, pulse, echo_range, strength, rep, rid, cos_rep, refl_rep):
+        """Keep the echoes inside the range limits that no drop rule removes (one random draw
+        per echo when the random rate is set)."""
+        cfg = self.config
         keep = echo_range >= cfg.range.min_m
         keep &= echo_range <= cfg.range.max_m
-        cos_rep = cos_inc[rep]
-        refl_rep = refl[rep]
         if cfg.drop.random_rate > 0:
             keep &= rng.random(pulse.shape[0]) >= cfg.drop.random_rate
         if cfg.drop.max_incidence_deg < 90:
@@ -262,25 +287,29 @@ class Lidar:
         if cfg.drop.reflectivity_range is not None:
             eff = np.clip(refl_rep * cos_rep / cfg.drop.reflectivity_range, 0.0, 1.0)
             keep &= echo_range <= cfg.range.max_m * np.sqrt(eff)
-        pulse, echo_range, strength, rep, rid = (a[keep] for a in (pulse, echo_range, strength, rep, rid))
-        nz = cfg.noise
+        return tuple(a[keep] for a in (pulse, echo_range, strength, rep, rid))
+
+    def _range_noise(self, rng, echo_range):
+        """Gaussian range noise (one draw per echo when a sigma is set), quantisation, floor at 0."""
+        nz = self.config.noise
         if nz.range_sigma_m > 0 or nz.range_sigma_rel > 0:
             sigma = nz.range_sigma_m + nz.range_sigma_rel * echo_range
             echo_range = echo_range + sigma * rng.standard_normal(echo_range.shape[0])
         if nz.quantization_m > 0:
             echo_range = np.round(echo_range / nz.quantization_m) * nz.quantization_m
-        echo_range = np.maximum(echo_range, 0.0)
+        return np.maximum(echo_range, 0.0)
 
-        # 6. points in the output frame.
+    def _points(self, pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses):
+        """The sweep's POINT_DTYPE records, in the output frame of `motion`."""
+        cfg, pat = self.config, self.pattern
         p_sensor = pat.offsets[pulse] + echo_range[:, None] * pat.directions[pulse]
-        ref = pose_start if cfg.motion.reference == "start" else pose_end
         if cfg.motion.output == "compensated" and not static:
             p_out = transform_points(invert_pose(ref) @ poses[pulse], p_sensor)
         else:
             p_out = p_sensor
         out = np.zeros(pulse.shape[0], POINT_DTYPE)
         out["x"], out["y"], out["z"] = p_out[:, 0], p_out[:, 1], p_out[:, 2]
-        out["intensity"] = strength * ic.output_scale
+        out["intensity"] = strength * cfg.intensity.output_scale
         out["ring"] = pat.ring[pulse]
         out["time"] = pat.time[pulse]
         out["range"] = echo_range
@@ -289,8 +318,7 @@ class Lidar:
         out["instance"] = instance[rep]
         out["column"] = pat.column[pulse]
         out["return_id"] = rid
-        return Sweep(out, float(t_start), float(t_end), pose_start, pose_end, ref, cfg.motion.output,
-                     cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, n_pulse)
+        return out
 
     def _echoes(self, hit, rng_sub, inten, n_pulse, s):
         """Group sub-ray hits into echoes and apply the single-return modes.
@@ -339,7 +367,7 @@ class Lidar:
             pick = np.zeros(uk.shape[0], bool)
             pick[o3[f3]] = True
         else:  # pragma: no cover - validated by the config
-            raise ValueError(mode)
+            raise InputError(mode)
         return e_pulse[pick], echo_r[pick], strength[pick], rep[pick]
 
     @staticmethod

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
 from .config import ConfigError, EmitterPattern, LidarConfig, SpinningPattern
 
 
@@ -154,9 +155,9 @@ def replay_pattern(directions: np.ndarray, time: np.ndarray | None = None, ring:
     d = np.asarray(directions, np.float64).reshape(-1, 3)
     norm = np.linalg.norm(d, axis=1)
     if not np.all(np.isfinite(d)) or np.any(norm == 0):
-        raise ValueError("replay_pattern: directions must be finite and non-zero")
+        raise InputError("replay_pattern: directions must be finite and non-zero")
     if d.shape[0] > np.iinfo(np.int32).max:
-        raise ValueError("replay_pattern: too many rays")
+        raise InputError("replay_pattern: too many rays")
     d = d / norm[:, None]
     n = d.shape[0]
     t = np.zeros(n) if time is None else np.asarray(time, np.float64).reshape(n)

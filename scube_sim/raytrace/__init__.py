@@ -1,5 +1,13 @@
-"""Ray tracing of VoxSplats and meshes with Embree (embreex or open3d) behind one `Tracer`."""
+"""Ray tracing of VoxSplats and meshes with Embree (embreex or open3d) behind one `Tracer`.
 
-from .tracer import DEFAULT_BACKEND, Hits, Tracer
+`Tracer` builds the proxies once per static scene; the traversal is a `TraceCore` (the NumPy
+reference in `reference.py`); every traceable thing follows `TraceableScene` (contracts.py).
+"""
 
-__all__ = ["DEFAULT_BACKEND", "Hits", "Tracer"]
+from .compose import nearest_hits
+from .contracts import BoundedScene, TraceableScene, TraceCore, TracerBackend
+from .hits import Hits, TraceStats
+from .tracer import DEFAULT_BACKEND, MODES, Tracer
+
+__all__ = ["DEFAULT_BACKEND", "MODES", "BoundedScene", "Hits", "TraceCore", "TraceStats", "TraceableScene", "Tracer",
+           "TracerBackend", "nearest_hits"]

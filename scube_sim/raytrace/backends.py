@@ -9,10 +9,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError, ScubeSimError
+
 BACKENDS = ("open3d", "embreex")
 
 
-class BackendUnavailable(RuntimeError):
+class BackendUnavailable(ScubeSimError, RuntimeError):
     pass
 
 
@@ -20,6 +22,7 @@ class EmbreexBackend:
     """embreex: Embree 4, single-threaded per call; honours the per-ray far limit in traversal."""
 
     name = "embreex"
+    lists_all_hits = False
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray):
         try:
@@ -52,6 +55,7 @@ class Open3DBackend:
     """open3d RaycastingScene: multi-threaded; no far limit in traversal, so it is applied after."""
 
     name = "open3d"
+    lists_all_hits = True
 
     def __init__(self, vertices: np.ndarray, faces: np.ndarray, nthreads: int = 0):
         try:
@@ -119,4 +123,4 @@ def make_backend(name: str, vertices: np.ndarray, faces: np.ndarray):
         return Open3DBackend(vertices, faces)
     if name == "embreex":
         return EmbreexBackend(vertices, faces)
-    raise ValueError(f"backend: expected one of {BACKENDS}, got {name!r}")
+    raise InputError(f"backend: expected one of {BACKENDS}, got {name!r}")

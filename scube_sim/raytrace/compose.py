@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from .tracer import Hits, Tracer
+from .contracts import TraceableScene
+from .hits import Hits
 
 
-def nearest_hits(tracers: list[Tracer], origins, dirs, t_min=0.0, t_max=np.inf) -> Hits:
+def nearest_hits(tracers: list[TraceableScene], origins, dirs, t_min=0.0, t_max=np.inf) -> Hits:
     """Trace world-frame rays (float64 origins (N, 3), dirs (N, 3)) through every tracer and keep
     the nearest hit per ray. Hit points are returned in the world frame."""
     o = np.asarray(origins, np.float64).reshape(-1, 3)

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import InputError
+
 # --- exact test ------------------------------------------------------------------------------
 
 
@@ -127,7 +129,7 @@ def _template(kind: str):
         return _ICO_V, _ICO_F, _ICO_SCALE
     if kind == "voxel_box":
         return _BOX_V, _BOX_F, 1.0
-    raise ValueError(f"proxy: expected one of {PROXY_KINDS}, got {kind!r}")
+    raise InputError(f"proxy: expected one of {PROXY_KINDS}, got {kind!r}")
 
 
 def template_planes(kind: str):

@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..boxes import Box
+
 
 @dataclass
 class SensorFrame:
@@ -39,14 +41,14 @@ class Frame:
 
     index: tick counter from 0; time: the tick time; ego_pose: ego-to-world at `time`;
     sensors: name -> list of SensorFrame finished in (previous tick, this tick] (a sensor faster
-    than the ticks gives several, a slower one none); boxes: every actor's 3D box at `time`
-    (dict: instance, label, center (3,), size (3,) l w h, yaw rad, world frame)."""
+    than the ticks gives several, a slower one none); boxes: the scene's 3D boxes at `time`
+    (static objects and actors, world frame)."""
 
     index: int
     time: float
     ego_pose: np.ndarray
     sensors: dict[str, list[SensorFrame]] = field(default_factory=dict)
-    boxes: list[dict] = field(default_factory=list)
+    boxes: list[Box] = field(default_factory=list)
 
     def sweeps(self) -> list[SensorFrame]:
         """All sensor frames of this tick, ordered by end time then name."""

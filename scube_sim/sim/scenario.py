@@ -25,27 +25,36 @@ repository). `build_run` turns a scenario into a ready `Simulator`, its pose sou
 from __future__ import annotations
 
 import copy
+import json
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
-from ..lidar.config import ConfigError, LidarConfig, Mount, load_lidar_config, load_yaml, validate_model
-from ..worlds.generator import WorldConfig
+from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
+from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
+from ..raytrace.tracer import Tracer
+from ..scene_file import load_scene
+from ..worlds.generator import World, WorldConfig, generate_world
+from ..worlds.groundtruth import chunk_frames, gt_voxsplat
+from .can import CanPoseSource, CanTrajectory
+from .contracts import PoseSource
+from .sim_scene import ChunkSet, ChunkSpec, Part, SimScene
+from .simulator import LidarSensor, Simulator
+from .sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
+from .sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
+from .vehicle import DeadReckoner
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ChunkEntry(_Strict):
+class ChunkEntry(StrictModel):
     path: str
     pose: Mount = Mount()  # chunk-to-world: metres and degrees
 
 
-class SceneSpec(_Strict):
+class SceneSpec(StrictModel):
     world: WorldConfig | None = None
     representation: Literal["voxsplat", "mesh"] = "voxsplat"
     voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
@@ -64,7 +73,7 @@ class SceneSpec(_Strict):
         return self
 
 
-class CanSpec(_Strict):
+class CanSpec(StrictModel):
     log: str
     dbc: str
     start_s: float = Field(default=0.0, ge=0)
@@ -75,14 +84,14 @@ class CanSpec(_Strict):
     steering_ratio: float | None = Field(default=None, gt=0)
 
 
-class EditSpec(_Strict):
+class EditSpec(StrictModel):
     lateral_offset_m: float = 0.0
     lateral_ramp_s: tuple[float, float] | None = None
     speed_scale: float = Field(default=1.0, gt=0)
     time_shift_s: float = 0.0
 
 
-class TrajectorySpec(_Strict):
+class TrajectorySpec(StrictModel):
     source: Literal["world", "file", "can"] = "world"
     file: str | None = None
     rate_hz: float = Field(default=10.0, gt=0)
@@ -98,7 +107,7 @@ class TrajectorySpec(_Strict):
         return self
 
 
-class SensorSpec(_Strict):
+class SensorSpec(StrictModel):
     preset: str
     name: str | None = None
     rate_hz: float | None = Field(default=None, gt=0)
@@ -107,7 +116,7 @@ class SensorSpec(_Strict):
     overrides: dict = Field(default_factory=dict)
 
 
-class EffectsSpec(_Strict):
+class EffectsSpec(StrictModel):
     noise: bool = True
     drops: bool = True
     motion_distortion: bool = True
@@ -115,13 +124,13 @@ class EffectsSpec(_Strict):
     output: Literal["raw", "compensated"] | None = None
 
 
-class CanOutputSpec(_Strict):
+class CanOutputSpec(StrictModel):
     interface: str = "virtual"
     channel: str = "scube-sim"
     arbitration_id: int = Field(default=0x5F0, ge=0, le=0x1FFFFFFF)
 
 
-class OutputsSpec(_Strict):
+class OutputsSpec(StrictModel):
     files: list[Literal["pcd", "bin", "npz", "ply"]] = Field(default_factory=lambda: ["pcd"])
     usd: str | None = "replay.usdc"
     usd_clips: bool = False
@@ -130,7 +139,7 @@ class OutputsSpec(_Strict):
     can: CanOutputSpec | None = None
 
 
-class Scenario(_Strict):
+class Scenario(StrictModel):
     name: str
     description: str = ""
     seed: int = 0
@@ -173,8 +182,6 @@ def _merge(base: dict, over: dict) -> dict:
 
 def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str) -> LidarConfig:
     """A sensor's LiDAR config: the preset, the scenario's overrides, then the effects switches."""
-    from ..lidar.config import config_from_dict
-
     preset = str(resolve_path(spec.preset, base)) if spec.preset.endswith((".yaml", ".yml")) else spec.preset
     cfg = load_lidar_config(preset)
     data = _merge(cfg.model_dump(mode="json"), spec.overrides)
@@ -191,65 +198,75 @@ def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str
     return config_from_dict(data, f"{where} (preset {spec.preset!r} with overrides)")
 
 
-class _Static:
-    """A pose source that stays put (motion distortion switched off): each sweep sees the ego at
-    its sweep's end instant."""
-
-    def __init__(self, source):
-        self.source = source
-        self.t_start, self.t_end = source.t_start, source.t_end
-
-    def poses_at(self, times):
-        times = np.atleast_1d(np.asarray(times, np.float64))
-        return np.broadcast_to(self.source.poses_at(times[-1:])[0], (times.shape[0], 4, 4)).copy()
-
-
 def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
     """A scenario -> (Simulator, pose source, t_start, t_end). Fits and caches VoxSplat chunks of
-    procedural worlds under `out/scene_chunks/` (reused by later runs with the same settings)."""
-    from ..raytrace.tracer import Tracer
-    from ..scene import load_scene
-    from ..worlds.generator import generate_world
-    from .scene import ChunkSet, ChunkSpec, Part, SimScene, track_pose_fn
-    from .simulator import LidarSensor, Simulator
-    from .sinks import FileSink, RunInfo
-    from .sources import EditedTrajectory, TrajectorySource
+    procedural worlds under `out/scene_chunks/` (reused by later runs with the same settings).
 
+    The stages run in this order (the order things are read, drawn and fitted in): sensor
+    configs, scene, pose source, sensors, sinks."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     configs = [sensor_config(s, sc.effects, base, f"sensors[{i}]") for i, s in enumerate(sc.sensors)]
-    reach = max(c.range.max_m for c in configs)
-    tracer_kw = {"mode": sc.scene.depth}
+    built = build_scene(sc, base, out, reach=max(c.range.max_m for c in configs), progress=progress)
+    source = build_pose_source(sc, base, built.world)
+    t0 = source.t_start
+    t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
+    sensors = build_sensors(sc, configs)
+    sinks = build_sinks(sc.outputs, out)
+    info = RunInfo(scene=built.file_scene, metadata={"scenario": sc.model_dump(mode="json")},
+                   time_codes_per_second=100.0)
+    sim = Simulator(built.scene, sensors, sinks, seed=sc.seed, run_info=info)
+    return sim, source, t0, t1
 
-    world = None
-    static, actors, chunks, boxes, run_scene = [], [], None, [], None
-    if sc.scene.world is not None:
-        wcfg = sc.scene.world
+
+@dataclass
+class BuiltScene:
+    """What `build_scene` makes: the simulated scene; the generated world (scene.world) or None;
+    the scene object read from scene.voxsplat / scene.ply (for the USD stage) or None."""
+
+    scene: SimScene
+    world: World | None = None
+    file_scene: object | None = None
+
+
+def build_scene(sc: Scenario, base: Path, out: Path, *, reach: float, progress=None) -> BuiltScene:
+    """The scenario's scene: a generated world (its mesh, or VoxSplat chunks fitted along its route
+    and loaded within `reach` metres of the ego, plus its actors), a VoxSplat / PLY file, or a
+    list of VoxSplat chunks."""
+    spec = sc.scene
+    tracer_kw = {"mode": spec.depth}
+    if spec.world is not None:
+        wcfg = spec.world
         need = (sc.duration_s or wcfg.duration_s) + 1.0
         if wcfg.duration_s < need and sc.trajectory.source == "world":
             wcfg = wcfg.model_copy(update={"duration_s": need})
         world = generate_world(wcfg)
-        boxes = world.boxes_static
-        if sc.scene.representation == "mesh":
+        static, chunks = [], None
+        if spec.representation == "mesh":
             static.append(Part(Tracer(world.static), name="world"))
         else:
-            chunks = ChunkSet(_world_chunks(world, sc.scene, out, progress), reach, tracer_kw)
+            chunks = ChunkSet(_world_chunks(world, spec, out, progress), reach, tracer_kw)
+        actors = []
         if sc.actors == "world":
             actors = [Part(Tracer(a.mesh), pose_fn=track_pose_fn(a.times, a.poses), instance=a.instance,
                            label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
-    elif sc.scene.voxsplat is not None or sc.scene.ply is not None:
-        path = resolve_path(sc.scene.voxsplat or sc.scene.ply, base)
-        run_scene = load_scene(path)
-        static.append(Part(Tracer(run_scene, **tracer_kw), name=path.stem))
-    else:
-        specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in sc.scene.chunks]
-        for s in specs:
-            if not s.path.is_file():
-                raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
-        chunks = ChunkSet(specs, reach, tracer_kw)
-    scene = SimScene(static=static, actors=actors, chunks=chunks, static_boxes=boxes)
+        scene = SimScene(static=static, actors=actors, chunks=chunks, static_boxes=world.boxes_static)
+        return BuiltScene(scene, world=world)
+    if spec.voxsplat is not None or spec.ply is not None:
+        path = resolve_path(spec.voxsplat or spec.ply, base)
+        file_scene = load_scene(path)
+        return BuiltScene(SimScene(static=[Part(Tracer(file_scene, **tracer_kw), name=path.stem)]),
+                          file_scene=file_scene)
+    specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in spec.chunks]
+    for s in specs:
+        if not s.path.is_file():
+            raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
+    return BuiltScene(SimScene(chunks=ChunkSet(specs, reach, tracer_kw)))
 
-    # Trajectory.
+
+def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSource:
+    """The ego's path: the world's, a pose file's or dead-reckoned CAN, then the scenario's edit,
+    then held still within each sweep when motion distortion is off."""
     tr = sc.trajectory
     if tr.source == "world":
         if world is None:
@@ -264,53 +281,31 @@ def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
         source = EditedTrajectory(source, lateral_offset_m=e.lateral_offset_m, lateral_ramp=e.lateral_ramp_s,
                                   speed_scale=e.speed_scale, time_shift=e.time_shift_s)
     if not sc.effects.motion_distortion:
-        source = _Static(source)
-    t0 = source.t_start
-    t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
+        source = HeldPoses(source)
+    return source
 
-    sensors = [LidarSensor.from_config(cfg, spec.name, rate_hz=spec.rate_hz, phase=spec.phase_s)
-               for cfg, spec in zip(configs, sc.sensors)]
+
+def build_sensors(sc: Scenario, configs: list[LidarConfig]) -> list[LidarSensor]:
+    """One `LidarSensor` per sensor entry, from its config (`sensor_config`)."""
+    return [LidarSensor.from_config(cfg, spec.name, rate_hz=spec.rate_hz, phase=spec.phase_s)
+            for cfg, spec in zip(configs, sc.sensors)]
+
+
+def build_sinks(outputs: OutputsSpec, out: Path) -> list[Sink]:
+    """The outputs' sinks, in this order: files (under `out/frames`), USD stage, CAN."""
     sinks = []
-    if sc.outputs.files:
-        sinks.append(FileSink(out / "frames", sc.outputs.files))
-    if sc.outputs.usd:
-        from .usd_sink import UsdSink
-
-        sinks.append(UsdSink(out / sc.outputs.usd, clips=sc.outputs.usd_clips,
-                             frames_per_clip=sc.outputs.frames_per_clip, write_scene=sc.outputs.usd_scene))
-    if sc.outputs.can is not None:
-        from .can import CanFrameSink
-
-        o = sc.outputs.can
+    if outputs.files:
+        sinks.append(FileSink(out / "frames", outputs.files))
+    if outputs.usd:
+        sinks.append(UsdSink(out / outputs.usd, clips=outputs.usd_clips, frames_per_clip=outputs.frames_per_clip,
+                             write_scene=outputs.usd_scene))
+    if outputs.can is not None:
+        o = outputs.can
         sinks.append(CanFrameSink(interface=o.interface, channel=o.channel, arbitration_id=o.arbitration_id))
-    info = RunInfo(scene=run_scene, metadata={"scenario": sc.model_dump(mode="json")},
-                   time_codes_per_second=100.0)
-    sim = Simulator(scene, sensors, sinks, seed=sc.seed, run_info=info)
-    return sim, source, t0, t1
+    return sinks
 
 
-class _CanSource:
-    """A CAN pose source as a scenario trajectory (source time 0 = the window's start). Read at
-    once, or, with `realtime`, paced by the log: asking for a pose waits until the replayed
-    messages have reached that time."""
-
-    def __init__(self, can_source, duration: float):
-        self.can = can_source
-        self.t_start, self.t_end = 0.0, float(duration)
-
-    def poses_at(self, times) -> np.ndarray:
-        import time as _time
-
-        times = np.atleast_1d(np.asarray(times, np.float64))
-        while self.can.realtime and not self.can.finished and self.can.duration < times.max():
-            self.can.poll()
-            _time.sleep(0.002)
-        return np.asarray(self.can.pose_at(times)).reshape(-1, 4, 4)
-
-
-def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> _CanSource:
-    from .can import CanPoseSource, DeadReckoner
-
+def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> CanTrajectory:
     kw = {}
     if c.wheelbase_m is not None:
         kw["wheelbase"] = c.wheelbase_m
@@ -319,16 +314,11 @@ def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> _CanSource:
     src = CanPoseSource.from_log(resolve_path(c.log, base), resolve_path(c.dbc, base),
                                  reckoner=DeadReckoner(start_pose=start_pose, **kw), start=c.start_s,
                                  stop=c.start_s + c.duration_s, realtime=c.realtime, speed=c.speed)
-    return _CanSource(src, c.duration_s if c.realtime else min(c.duration_s, src.duration))
+    return CanTrajectory(src, c.duration_s if c.realtime else min(c.duration_s, src.duration))
 
 
-def _world_chunks(world, spec: SceneSpec, out: Path, progress=None) -> list:
+def _world_chunks(world: World, spec: SceneSpec, out: Path, progress=None) -> list[ChunkSpec]:
     """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk."""
-    import json
-
-    from ..worlds.groundtruth import chunk_frames, gt_voxsplat
-    from .scene import ChunkSpec
-
     folder = out / "scene_chunks"
     folder.mkdir(parents=True, exist_ok=True)
     key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,

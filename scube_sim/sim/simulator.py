@@ -2,7 +2,7 @@
 
 Host-driven: the host owns time and pose and calls `step(t, ego_pose)` (or gives `ego_velocity`,
 a constant twist over the tick); the simulator returns a `Frame` with every sweep that finished in
-(previous tick, t]. Self-driven: `run(source, ...)` ticks through a pose source and yields frames.
+(previous tick, t]. Self-driven: `run(source, ...)` ticks through a `PoseSource` and yields frames.
 Each LiDAR sweeps on its own grid: sweep k of a sensor covers
 [t0 + phase + (k - 1) / rate, t0 + phase + k / rate] (t0 = the first tick), and the sweep's
 timestamp is that end. The ego pose inside a sweep comes from the pose source (self-driven), or is
@@ -18,13 +18,16 @@ from dataclasses import dataclass, field
 from typing import Iterator
 
 import numpy as np
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from ..errors import InputError
 from ..lidar.config import LidarConfig
 from ..lidar.model import Lidar
-from ..transforms import check_pose, interpolate_poses, quat_to_rotmat
+from ..transforms import PoseFn, check_pose, interpolate_poses, quat_to_rotmat
+from .contracts import PoseSource, SimulatedScene
 from .frame import Frame, SensorFrame
-from .scene import SimScene
-from .sinks import RunInfo, Sink, SinkRunner
+from .sim_scene import as_simulated_scene
+from .sinks.base import RunInfo, Sink, SinkRunner
 
 
 @dataclass
@@ -47,7 +50,7 @@ class LidarSensor:
         self.name = self.name or (self.lidar.config.id or self.lidar.config.name)
         self.rate_hz = float(self.rate_hz or 1.0 / self.lidar.pattern.period_s)
         if self.rate_hz * self.lidar.pattern.period_s > 1.0 + 1e-9:
-            raise ValueError(f"{self.name}: rate {self.rate_hz:g} Hz would overlap sweeps of "
+            raise InputError(f"{self.name}: rate {self.rate_hz:g} Hz would overlap sweeps of "
                              f"{self.lidar.pattern.period_s:g} s; change the pattern's rotation rate instead")
         self.mount = self.lidar.mount if self.mount is None else check_pose(self.mount, f"{self.name}: mount")
 
@@ -88,7 +91,8 @@ def _twist_poses(pose_end: np.ndarray, t_end: float, velocity, times: np.ndarray
 class Simulator:
     """Sensors on an ego in a scene, stepping in time.
 
-    scene: a `SimScene` (static parts, actors, chunks), a Tracer, or anything with `trace_world`.
+    scene: a `SimulatedScene` (e.g. a `SimScene`: static parts, actors, chunks), or a plain
+    `TraceableScene` (a Tracer, a list of tracers), held as a `StaticScene`.
     sensors: `LidarSensor`s. sinks: `Sink`s fed behind a bounded queue of `queue_size` frames.
     seed: the run's seed; each sweep draws from (seed, sensor index, sweep index), so a run is
     reproducible and does not depend on the order of ticks within it."""
@@ -96,11 +100,11 @@ class Simulator:
     def __init__(self, scene, sensors: list[LidarSensor], sinks: list[Sink] | None = None, *, seed: int = 0,
                  queue_size: int = 8, run_info: RunInfo | None = None):
         if not sensors:
-            raise ValueError("Simulator: give at least one sensor")
+            raise InputError("Simulator: give at least one sensor")
         names = [s.name for s in sensors]
         if len(set(names)) != len(names):
-            raise ValueError(f"Simulator: sensor names must be unique, got {names}")
-        self.scene = scene
+            raise InputError(f"Simulator: sensor names must be unique, got {names}")
+        self.scene: SimulatedScene = as_simulated_scene(scene)
         self.sensors = list(sensors)
         self.sinks = list(sinks or [])
         self.seed = int(seed)
@@ -142,23 +146,23 @@ class Simulator:
 
     # --- stepping ----------------------------------------------------------------------------
     def step(self, t: float, ego_pose: np.ndarray | None = None, ego_velocity=None, *,
-             pose_fn=None) -> Frame:
+             pose_fn: PoseFn | None = None) -> Frame:
         """Advance to time t (seconds, increasing). ego_pose: ego-to-world at t (host-driven);
         ego_velocity: (vx, vy, vz, wx, wy, wz) ego-frame twist, used for motion inside sweeps
         instead of the previous tick's pose (and to advance the pose when `ego_pose` is None);
         pose_fn: times -> (N, 4, 4) ego poses (self-driven runs pass their source)."""
         t = float(t)
         if not np.isfinite(t):
-            raise ValueError("step: t is not finite")
+            raise InputError("step: t is not finite")
         if self._hist.times and t <= self._hist.times[-1]:
-            raise ValueError(f"step: time must increase (got {t} after {self._hist.times[-1]})")
+            raise InputError(f"step: time must increase (got {t} after {self._hist.times[-1]})")
         if ego_pose is None:
             if pose_fn is not None:
                 ego_pose = pose_fn(np.array([t]))[0]
             elif ego_velocity is not None and self._hist.poses:
                 ego_pose = _twist_poses(self._hist.poses[-1], self._hist.times[-1], ego_velocity, np.array([t]))[0]
             else:
-                raise ValueError("step: give ego_pose (or ego_velocity after the first tick, or pose_fn)")
+                raise InputError("step: give ego_pose (or ego_velocity after the first tick, or pose_fn)")
         ego_pose = check_pose(ego_pose, "ego_pose")
         if self._t0 is None:
             self._t0 = t
@@ -170,20 +174,19 @@ class Simulator:
             self._hist.times.pop(0)
             self._hist.poses.pop(0)
         ego_fn = pose_fn or self._interpolated_ego(ego_velocity)
-        if hasattr(self.scene, "update"):
-            self.scene.update(t, ego_pose[:3, 3])
+        self.scene.update(t, ego_pose[:3, 3])
         frame = Frame(self._tick, t, ego_pose)
         for si, sensor in enumerate(self.sensors):
             sweeps = self._sweeps_until(si, sensor, t, ego_fn)
             if sweeps:
                 frame.sensors[sensor.name] = sweeps
-        frame.boxes = self.scene.boxes_at(t) if hasattr(self.scene, "boxes_at") else []
+        frame.boxes = self.scene.boxes_at(t)
         self._tick += 1
         if self._runner is not None:
             self._runner.put(frame)
         return frame
 
-    def _interpolated_ego(self, velocity):
+    def _interpolated_ego(self, velocity) -> PoseFn:
         times, poses = list(self._hist.times), list(self._hist.poses)
 
         def fn(ts: np.ndarray) -> np.ndarray:
@@ -197,7 +200,7 @@ class Simulator:
 
         return fn
 
-    def _sweeps_until(self, si: int, sensor: LidarSensor, t: float, ego_fn) -> list[SensorFrame]:
+    def _sweeps_until(self, si: int, sensor: LidarSensor, t: float, ego_fn: PoseFn) -> list[SensorFrame]:
         st = self._state[sensor.name]
         period = 1.0 / sensor.rate_hz
         out = []
@@ -211,8 +214,7 @@ class Simulator:
                 return ego_fn(ts) @ mount
 
             seed = int(np.random.SeedSequence([self.seed, si, st.next_k]).generate_state(1)[0])
-            if hasattr(self.scene, "update") and hasattr(self.scene, "time"):
-                self.scene.time = t_end
+            self.scene.time = t_end
             sweep = sensor.lidar.scan(self.scene, None, pose_fn=sensor_fn, t_start=t_start, seed=seed)
             out.append(SensorFrame(sensor.name, "lidar", sweep.points, sweep.t_start, sweep.t_end,
                                    t_start if sensor.lidar.config.motion.reference == "start" else sweep.t_end,
@@ -220,7 +222,7 @@ class Simulator:
             st.next_k += 1
         return out
 
-    def run(self, source, *, t_start: float | None = None, t_end: float | None = None, dt: float = 0.1,
+    def run(self, source: PoseSource, *, t_start: float | None = None, t_end: float | None = None, dt: float = 0.1,
             progress: bool = False) -> Iterator[Frame]:
         """Tick through a pose source every `dt` seconds from t_start to t_end (default: the
         source's span) and yield each frame. Closes the sinks when done or interrupted."""
@@ -229,8 +231,6 @@ class Simulator:
         n = int(np.floor((t1 - t0) / dt + 1e-9)) + 1
         bar = task = None
         if progress:
-            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
             bar = Progress(TextColumn("[bold]ticks"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                            TimeElapsedColumn(), TimeRemainingColumn())
             bar.start()
@@ -245,16 +245,3 @@ class Simulator:
             if bar:
                 bar.stop()
             self.close()
-
-
-def scene_of(obj) -> SimScene:
-    """Wrap a Tracer (or a list of tracers) as a static SimScene."""
-    from ..raytrace.tracer import Tracer
-    from .scene import Part
-
-    if isinstance(obj, SimScene):
-        return obj
-    tracers = obj if isinstance(obj, (list, tuple)) else [obj]
-    if not all(isinstance(t, Tracer) for t in tracers):
-        raise TypeError("scene: expected a SimScene, a Tracer or a list of Tracers")
-    return SimScene(static=[Part(t) for t in tracers])

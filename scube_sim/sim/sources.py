@@ -1,7 +1,8 @@
 """Where the ego is: pose sources for self-driven runs.
 
-A pose source has `t_start`, `t_end` (seconds) and `poses_at(times (N,)) -> (N, 4, 4)` ego-to-world
-poses. Trajectories interpolate linearly in position and by SLERP in rotation, and hold their ends.
+A pose source (`contracts.PoseSource`) has `t_start`, `t_end` (seconds) and
+`poses_at(times (N,)) -> (N, 4, 4)` ego-to-world poses. Trajectories interpolate linearly in
+position and by SLERP in rotation, and hold their ends (`track_pose_fn`, also the actors' tracks).
 `EditedTrajectory` makes counterfactual replays: a lateral offset (optionally ramped in, for a lane
 change), a speed scale and a time shift applied to a recorded trajectory.
 The CAN source (dead reckoning from a bus or a log) is in `sim.can`.
@@ -13,20 +14,43 @@ from pathlib import Path
 
 import numpy as np
 
-from ..transforms import check_pose
-from .scene import track_pose_fn
+from ..errors import InputError
+from ..transforms import PoseFn, check_pose, interpolate_poses
+from .contracts import PoseSource
+
+
+def track_pose_fn(times: np.ndarray, poses: np.ndarray) -> PoseFn:
+    """A pose function from a sampled track: times (T,) increasing seconds, poses (T, 4, 4);
+    linear in position, SLERP in rotation, held at the ends."""
+    times = np.asarray(times, np.float64)
+    poses = np.asarray(poses, np.float64)
+
+    def fn(t: np.ndarray) -> np.ndarray:
+        t = np.clip(np.atleast_1d(np.asarray(t, np.float64)), times[0], times[-1])
+        if len(times) == 1:
+            return np.broadcast_to(poses[0], (t.shape[0], 4, 4)).copy()
+        i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+        s = (t - times[i]) / (times[i + 1] - times[i])
+        out = np.empty((t.shape[0], 4, 4))
+        for k in np.unique(i):  # SLERP per segment (few segments per sweep)
+            sel = i == k
+            out[sel] = interpolate_poses(poses[k], poses[k + 1], s[sel])
+        return out
+
+    return fn
 
 
 class TrajectorySource:
-    """Timestamps (T,) increasing, poses (T, 4, 4) ego-to-world."""
+    """A recorded trajectory as a `PoseSource`: timestamps (T,) increasing seconds, poses
+    (T, 4, 4) ego-to-world."""
 
     def __init__(self, times, poses, name: str = "trajectory"):
         times = np.asarray(times, np.float64).reshape(-1)
         poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
         if times.shape[0] != poses.shape[0] or times.shape[0] < 1:
-            raise ValueError(f"{name}: need as many poses as timestamps (got {poses.shape[0]} and {times.shape[0]})")
+            raise InputError(f"{name}: need as many poses as timestamps (got {poses.shape[0]} and {times.shape[0]})")
         if np.any(np.diff(times) <= 0) or not np.all(np.isfinite(times)):
-            raise ValueError(f"{name}: timestamps must be finite and strictly increasing")
+            raise InputError(f"{name}: timestamps must be finite and strictly increasing")
         for i, p in enumerate(poses):
             check_pose(p, f"{name}: pose {i}")
         self.times, self.poses, self.name = times, poses, name
@@ -57,14 +81,14 @@ class TrajectorySource:
             with np.load(path, allow_pickle=False) as z:
                 for key in ("times", "poses"):
                     if key not in z.files:
-                        raise ValueError(f"{path}: missing key {key!r} (expected times (T,) and poses (T, 4, 4))")
+                        raise InputError(f"{path}: missing key {key!r} (expected times (T,) and poses (T, 4, 4))")
                 return cls(z["times"], z["poses"], str(path))
         try:
             rows = np.loadtxt(path, ndmin=2)
         except ValueError as exc:
-            raise ValueError(f"{path}: not a KITTI pose file ({exc})") from None
+            raise InputError(f"{path}: not a KITTI pose file ({exc})") from None
         if rows.shape[1] != 12:
-            raise ValueError(f"{path}: expected 12 numbers per line (KITTI 3 x 4 poses), got {rows.shape[1]}")
+            raise InputError(f"{path}: expected 12 numbers per line (KITTI 3 x 4 poses), got {rows.shape[1]}")
         poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
         poses[:, :3, :] = rows.reshape(-1, 3, 4)
         return cls(np.arange(rows.shape[0]) / rate_hz, poses, str(path))
@@ -83,12 +107,12 @@ class EditedTrajectory:
     axis; negative: to the right). With `lateral_ramp` = (t0, t1) the offset eases in from 0 at t0
     to its full value at t1 (a lane change); otherwise it applies throughout."""
 
-    def __init__(self, base, *, lateral_offset_m: float = 0.0, lateral_ramp: tuple[float, float] | None = None,
-                 speed_scale: float = 1.0, time_shift: float = 0.0):
+    def __init__(self, base: PoseSource, *, lateral_offset_m: float = 0.0,
+                 lateral_ramp: tuple[float, float] | None = None, speed_scale: float = 1.0, time_shift: float = 0.0):
         if not speed_scale > 0:
-            raise ValueError(f"speed_scale: expected > 0, got {speed_scale}")
+            raise InputError(f"speed_scale: expected > 0, got {speed_scale}")
         if lateral_ramp is not None and not lateral_ramp[1] > lateral_ramp[0]:
-            raise ValueError(f"lateral_ramp: expected (start, end) with end > start, got {lateral_ramp}")
+            raise InputError(f"lateral_ramp: expected (start, end) with end > start, got {lateral_ramp}")
         self.base = base
         self.lateral_offset_m = float(lateral_offset_m)
         self.lateral_ramp = lateral_ramp
@@ -116,3 +140,17 @@ class EditedTrajectory:
 
     def pose_at(self, t: float) -> np.ndarray:
         return self.poses_at(np.array([t]))[0]
+
+
+class HeldPoses:
+    """A pose source that stands still within each query: every time asked for in one call gets
+    the base's pose at the call's last time. Asked for a sweep's fire times, it gives the pose at
+    the sweep's end to every ray: motion distortion switched off."""
+
+    def __init__(self, source: PoseSource):
+        self.source = source
+        self.t_start, self.t_end = source.t_start, source.t_end
+
+    def poses_at(self, times) -> np.ndarray:
+        times = np.atleast_1d(np.asarray(times, np.float64))
+        return np.broadcast_to(self.source.poses_at(times[-1:])[0], (times.shape[0], 4, 4)).copy()

@@ -19,21 +19,33 @@ The chunk frame is the ego frame at T (see `groundtruth`); `meta.json` holds chu
 A sample is written into a temporary folder and renamed when complete, so an interrupted run
 leaves only whole samples, and a rerun skips them (resumable). Seeds are fixed per split: the
 test split is a held-out set of worlds no training run sees.
+
+Read samples back as plain arrays with `load_sample`, or as typed `Sample`s (Frames, LiDAR sweep,
+boxes, ground truth) with the dataset adapter ``scube_sim.datasets.open_dataset("worlds", DIR)``.
 """
 
 from __future__ import annotations
 
 import json
+import multiprocessing as mp
 import shutil
 import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from PIL import Image
+from pydantic import Field
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from ..atomic import atomic_path
+from ..camera.frames import CameraImage, Frames
+from ..camera.model import Intrinsics
 from ..camera.render import render_camera
 from ..camera.rig import load_rig
-from ..labels import LABEL_TABLE_VERSION, LABELS
+from ..config import StrictModel
+from ..errors import InputError
+from ..labels import LABEL_TABLE_VERSION, LABELS, label_id
 from ..lidar.config import load_lidar_config
 from ..lidar.model import Lidar
 from ..mesh import TriangleMesh
@@ -41,16 +53,15 @@ from ..raytrace.tracer import Tracer
 from ..transforms import invert_pose, transform_points
 from .generator import STYLES, WORLD_VERSION, WorldConfig, generate_world
 from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
+from .textures import albedo
 
 DATASET_FORMAT = "scube_sim.worlds"
 DATASET_VERSION = 1
 SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 
 
-class DatasetConfig(BaseModel):
+class DatasetConfig(StrictModel):
     """How samples are made. Stored in dataset.json; frozen once a converter trains on it."""
-
-    model_config = ConfigDict(extra="forbid")
 
     rig: str = "waymo-5"
     image_scale: float = Field(default=0.25, gt=0, le=1)
@@ -66,7 +77,7 @@ class DatasetConfig(BaseModel):
 def sample_world_config(split: str, index: int, cfg: DatasetConfig) -> WorldConfig:
     """The world of sample `index` of `split`: seed and style fixed by the split and the index."""
     if split not in SPLIT_SEED_BASE:
-        raise ValueError(f"split: expected one of {', '.join(SPLIT_SEED_BASE)}, got {split!r}")
+        raise InputError(f"split: expected one of {', '.join(SPLIT_SEED_BASE)}, got {split!r}")
     seed = SPLIT_SEED_BASE[split] + index
     style = cfg.styles[index % len(cfg.styles)]
     duration = max(cfg.frame_offsets) / cfg.frame_rate_hz + 0.5
@@ -105,7 +116,7 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
             intr = cam.intrinsics().scaled(cfg.image_scale)
             t_cam = t_ref + cam.time_offset_s
             pose = world.ego_pose_at(t_cam) @ cam.cam_to_ego()
-            out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir)
+            out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
             images[f"rgb_{k:02d}_{cam.name}.png"] = out["rgb"]
             maps[f"depth_{k:02d}_{cam.name}"] = out["depth"].astype(np.float16)
             maps[f"semantic_{k:02d}_{cam.name}"] = out["semantic"].astype(np.uint8)
@@ -113,7 +124,7 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
                               "timestamp": t_cam})
         frames_meta.append({"offset": k, "time": t_ref, "ego_pose": world.ego_pose_at(t_ref).tolist(),
                             "cameras": cams_meta,
-                            "boxes": [_box_json(b) for b in world.boxes_at(t_ref)]})
+                            "boxes": [b.to_json() for b in world.boxes_at(t_ref)]})
 
     # Ground-truth voxels of the chunk, with visibility from the input cameras at T.
     mesh0 = world.mesh_at(0.0)
@@ -151,19 +162,12 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     return {"meta": meta, "images": images, "frames": maps, "voxels": voxels, "lidar": sweep.points}
 
 
-def _box_json(b: dict) -> dict:
-    return {"instance": int(b["instance"]), "label": int(b["label"]),
-            "center": [float(v) for v in b["center"]], "size": [float(v) for v in b["size"]], "yaw": float(b["yaw"])}
-
-
 def _save_npz(path: Path, **arrays) -> None:
     with open(path, "wb") as fh:
         np.savez_compressed(fh, **arrays)
 
 
 def _save_png(path: Path, rgb: np.ndarray) -> None:
-    from PIL import Image
-
     # No timestamps or other metadata: the same image gives the same bytes.
     Image.fromarray(rgb).save(path, format="PNG", optimize=False, compress_level=6)
 
@@ -197,26 +201,33 @@ def dataset_header(cfg: DatasetConfig) -> dict:
             "split_seed_base": SPLIT_SEED_BASE}
 
 
-def open_dataset(out: Path, cfg: DatasetConfig | None) -> DatasetConfig:
-    """Create DIR/dataset.json, or check that an existing one matches `cfg` (resuming a run)."""
+def read_dataset_config(out: Path) -> DatasetConfig:
+    """The DatasetConfig stored in an existing DIR/dataset.json (InputError naming the file if it
+    is another format or version)."""
+    head = Path(out) / "dataset.json"
+    old = json.loads(head.read_text())
+    if old.get("format") != DATASET_FORMAT:
+        raise InputError(f"{head}: not a scube_sim worlds dataset (format {old.get('format')!r})")
+    if old.get("version") != DATASET_VERSION:
+        raise InputError(f"{head}: dataset version {old.get('version')} differs from this scube_sim's "
+                         f"{DATASET_VERSION}; write to a new folder")
+    return DatasetConfig.model_validate(old["config"])
+
+
+def ensure_dataset_config(out: Path, cfg: DatasetConfig | None) -> DatasetConfig:
+    """The config samples in DIR are made with: a new folder gets DIR/dataset.json written from
+    `cfg` (default settings if None); an existing one must match `cfg` (resuming a run), or
+    gives its own when `cfg` is None."""
     out = Path(out)
     head = out / "dataset.json"
     if head.exists():
-        old = json.loads(head.read_text())
-        if old.get("format") != DATASET_FORMAT:
-            raise ValueError(f"{head}: not a scube_sim worlds dataset (format {old.get('format')!r})")
-        if old.get("version") != DATASET_VERSION:
-            raise ValueError(f"{head}: dataset version {old.get('version')} differs from this scube_sim's "
-                             f"{DATASET_VERSION}; write to a new folder")
-        existing = DatasetConfig.model_validate(old["config"])
+        existing = read_dataset_config(out)
         if cfg is not None and cfg != existing:
-            raise ValueError(f"{head}: the folder holds a dataset made with other settings; "
+            raise InputError(f"{head}: the folder holds a dataset made with other settings; "
                              f"use a new folder or the same settings")
         return existing
     cfg = cfg or DatasetConfig()
     out.mkdir(parents=True, exist_ok=True)
-    from ..io.atomic import atomic_path
-
     with atomic_path(head) as tmp:
         Path(tmp).write_text(json.dumps(dataset_header(cfg), indent=1))
     return cfg
@@ -236,7 +247,7 @@ def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | Non
     jobs > 1 generates samples in that many processes (the output does not depend on it).
     Returns {'written': n, 'skipped': n, 'seconds_per_sample': wall seconds per written sample}."""
     out = Path(out)
-    cfg = open_dataset(out, cfg)
+    cfg = ensure_dataset_config(out, cfg)
     split_dir = out / split
     split_dir.mkdir(parents=True, exist_ok=True)
     todo = [i for i in range(start, start + count) if not (split_dir / f"{i:06d}" / "meta.json").exists()]
@@ -247,8 +258,6 @@ def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | Non
     t0 = time.perf_counter()
     bar = task = None
     if progress and work:
-        from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
-
         bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
                        TimeElapsedColumn(), TimeRemainingColumn())
         bar.start()
@@ -260,9 +269,6 @@ def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | Non
                 if bar:
                     bar.advance(task)
         else:
-            import multiprocessing as mp
-            from concurrent.futures import ProcessPoolExecutor, as_completed
-
             with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
                 for fut in as_completed([pool.submit(_make_and_write, w) for w in work]):
                     fut.result()
@@ -277,15 +283,13 @@ def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | Non
 
 def load_sample(folder: Path) -> dict:
     """Read a sample back: meta, images (dict name -> (H, W, 3) uint8), frames, voxels, lidar."""
-    from PIL import Image
-
     folder = Path(folder)
     meta_path = folder / "meta.json"
     if not meta_path.exists():
         raise FileNotFoundError(f"{folder}: not a complete sample (no meta.json)")
     meta = json.loads(meta_path.read_text())
     if meta.get("format") != DATASET_FORMAT or meta.get("version", 0) > DATASET_VERSION:
-        raise ValueError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')} is not readable "
+        raise InputError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')} is not readable "
                          f"by this scube_sim ({DATASET_FORMAT} {DATASET_VERSION})")
     images = {p.name: np.asarray(Image.open(p)) for p in sorted(folder.glob("rgb_*.png"))}
     with np.load(folder / "frames.npz", allow_pickle=False) as z:
@@ -297,13 +301,9 @@ def load_sample(folder: Path) -> dict:
     return {"meta": meta, "images": images, "frames": frames, "voxels": voxels, "lidar": lidar}
 
 
-def sample_frames(sample: dict, frame: int = 0) -> "Frames":
+def sample_frames(sample: dict, frame: int = 0) -> Frames:
     """The `Frames` (the converter's camera input) of frame `frame` (an index into the sample's
     frame offsets: 0 is the input instant T) of a loaded sample, with depth, semantics and sky."""
-    from ..camera.model import Intrinsics
-    from ..frames import CameraImage, Frames
-    from ..labels import label_id
-
     meta = sample["meta"]
     fm = meta["frames"][frame]
     k = fm["offset"]

@@ -18,8 +18,10 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
 
+from ..boxes import Box
+from ..config import StrictModel, load_yaml, validate_model
 from ..labels import label_id
 from ..mesh import TriangleMesh
 from ..transforms import interpolate_poses, make_pose
@@ -37,10 +39,8 @@ L = {name: label_id(name) for name in (
     "pedestrian", "pole", "sign", "traffic_light", "vegetation", "tree_trunk", "fence")}
 
 
-class WorldConfig(BaseModel):
+class WorldConfig(StrictModel):
     """What to generate. Every count and size not given is drawn from the style's ranges."""
-
-    model_config = ConfigDict(extra="forbid")
 
     style: Literal["urban", "suburban", "intersection", "boulevard"] = "urban"
     seed: int = Field(default=0, ge=0)
@@ -55,8 +55,6 @@ class WorldConfig(BaseModel):
     def from_yaml(cls, path) -> "WorldConfig":
         """Read a scenario file's `scene.world` section (or a top-level `world:` section, or a
         file that is only that section)."""
-        from ..lidar.config import load_yaml, validate_model
-
         data = load_yaml(path)
         if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "world" in data["scene"]:
             return validate_model(cls, data["scene"]["world"], f"{path} (scene.world)", "world settings")
@@ -86,12 +84,9 @@ class Actor:
         s = (t - self.times[i]) / (self.times[i + 1] - self.times[i])
         return interpolate_poses(self.poses[i], self.poses[i + 1], np.array([s]))[0]
 
-    def box_at(self, t: float) -> dict:
-        """3D box at time t: centre (3,) world, size (l, w, h), yaw (rad about z)."""
-        p = self.pose_at(t)
-        centre = p[:3, :3] @ np.array([0.0, 0.0, self.size[2] / 2]) + p[:3, 3]
-        return {"instance": self.instance, "label": self.label, "center": centre, "size": self.size.copy(),
-                "yaw": float(np.arctan2(p[1, 0], p[0, 0]))}
+    def box_at(self, t: float) -> Box:
+        """The actor's 3D box at time t, world frame (its pose sits at the box's bottom centre)."""
+        return Box.on_ground(self.pose_at(t), self.size, label=self.label, instance=self.instance)
 
 
 @dataclass
@@ -105,7 +100,7 @@ class World:
     ego_times: np.ndarray
     ego_poses: np.ndarray
     sun_dir: np.ndarray  # unit vector towards the sun, world frame
-    boxes_static: list[dict] = field(default_factory=list)  # parked vehicles etc.
+    boxes_static: list[Box] = field(default_factory=list)  # parked vehicles etc.
 
     def ego_pose_at(self, t: float) -> np.ndarray:
         i = int(np.clip(np.searchsorted(self.ego_times, t, side="right") - 1, 0, len(self.ego_times) - 2))
@@ -125,7 +120,8 @@ class World:
         """The static scene plus every actor posed at time t."""
         return TriangleMesh.concatenate([self.static] + self.actor_meshes_at(t))
 
-    def boxes_at(self, t: float) -> list[dict]:
+    def boxes_at(self, t: float) -> list[Box]:
+        """Every box at time t, world frame: the static ones, then one per actor."""
         return self.boxes_static + [a.box_at(t) for a in self.actors]
 
 
@@ -418,34 +414,79 @@ def _place_along(road: Road, rng, spacing_lo_hi, lateral, margin=0.0):
 
 
 def generate_world(cfg: WorldConfig) -> World:
-    """Build a world from its config; the same config gives the same world, bit for bit."""
+    """Build a world from its config; the same config gives the same world, bit for bit.
+
+    Every stage draws from one random generator, in this order; a stage that draws more, less or
+    earlier changes every world from that point on (and so every dataset sample)."""
     rng = np.random.default_rng([WORLD_VERSION, STYLES.index(cfg.style), cfg.seed])
     st = _STYLE[cfg.style]
-    kind = cfg.layout if cfg.layout != "auto" else str(rng.choice(st["layouts"]))
-    lanes = int(rng.integers(st["lanes"][0], st["lanes"][1] + 1))
-    layout = make_layout(kind, rng, length=cfg.length_m, lanes=lanes, lane_width=float(rng.uniform(3.2, 3.7)),
-                         sidewalk=_u(rng, st["sidewalk"]), median=_u(rng, st["median"]),
-                         parking=2.3 if st["parked"] > 0 else 0.0)
-    ids = _Ids()
-    parts: list[TriangleMesh] = []
-    footprints: list[np.ndarray] = []
-    obstacles: list[tuple[np.ndarray, float]] = []  # (xy, radius) of things already placed
+    site = _Site(_make_layout(cfg, st, rng))
+    _place_buildings(site, rng, st, cfg.style)
+    _place_street_furniture(site, rng, st)
+    _place_terrain_objects(site, rng, cfg)
+    _lay_ground(site, cfg.length_m)
+    boxes_static = _place_parked_vehicles(site, rng, st)
+    static = TriangleMesh.concatenate(site.parts)
+    ego = _ego_path(site.layout, rng, cfg, st)
+    actors = _moving_vehicles(site, rng, cfg, st, ego)
+    actors += _pedestrians(site, rng, cfg, st, ego.times)
+    sun = _sun_direction(rng)
+    return World(cfg, site.layout, static, actors, ego.times, ego.poses, sun, boxes_static)
 
-    def free(xy, radius):
+
+# --- stages of generate_world -----------------------------------------------------------------
+
+
+@dataclass
+class _Site:
+    """What the placement stages share: the layout, the instance-id counter, the static meshes
+    placed so far (world frame), building footprints ((4, 2) corners, counter-clockwise) and point
+    obstacles ((2,) xy, radius in metres) that later objects keep clear of."""
+
+    layout: Layout
+    ids: _Ids = field(default_factory=_Ids)
+    parts: list[TriangleMesh] = field(default_factory=list)
+    footprints: list[np.ndarray] = field(default_factory=list)
+    obstacles: list[tuple[np.ndarray, float]] = field(default_factory=list)
+
+    def free(self, xy, radius) -> bool:
         """Clear of every point obstacle and building footprint by `radius`."""
-        if obstacles:
-            c = np.array([o[0] for o in obstacles])
-            r = np.array([o[1] for o in obstacles])
+        if self.obstacles:
+            c = np.array([o[0] for o in self.obstacles])
+            r = np.array([o[1] for o in self.obstacles])
             if np.any(np.linalg.norm(c - xy, axis=1) <= r + radius):
                 return False
-        return not any(_polygon_distance(xy, fp) <= radius for fp in footprints)
+        return not any(_polygon_distance(xy, fp) <= radius for fp in self.footprints)
 
-    def clear_of_roads(poly, margin):
-        cls, edge = layout.classify(np.vstack([poly, poly.mean(0, keepdims=True)]))
+    def clear_of_roads(self, poly, margin) -> bool:
+        """Every corner of the polygon and its centroid more than `margin` from every road edge."""
+        _, edge = self.layout.classify(np.vstack([poly, poly.mean(0, keepdims=True)]))
         return bool(np.all(edge > margin))
 
-    # Buildings on both sides of every road.
-    for road in layout.roads:
+
+@dataclass
+class _EgoPath:
+    """The ego's drive: times (T,) s at 10 Hz from 0, arc lengths s (T,) m along the main road,
+    the lateral offset of its lane (m, left positive) and poses (T, 4, 4) ego-to-world."""
+
+    times: np.ndarray
+    s: np.ndarray
+    lane: float
+    poses: np.ndarray
+
+
+def _make_layout(cfg: WorldConfig, st: dict, rng) -> Layout:
+    """The road layout: its kind, lanes, lane width, sidewalk and median widths."""
+    kind = cfg.layout if cfg.layout != "auto" else str(rng.choice(st["layouts"]))
+    lanes = int(rng.integers(st["lanes"][0], st["lanes"][1] + 1))
+    return make_layout(kind, rng, length=cfg.length_m, lanes=lanes, lane_width=float(rng.uniform(3.2, 3.7)),
+                       sidewalk=_u(rng, st["sidewalk"]), median=_u(rng, st["median"]),
+                       parking=2.3 if st["parked"] > 0 else 0.0)
+
+
+def _place_buildings(site: _Site, rng, st: dict, style: str) -> None:
+    """Buildings on both sides of every road (and suburban yards in front of them)."""
+    for road in site.layout.roads:
         for side in (-1.0, 1.0):
             s = rng.uniform(0.0, 6.0)
             while s < road.length:
@@ -458,68 +499,83 @@ def generate_world(cfg: WorldConfig) -> World:
                 yaw = float(np.arctan2(t[0, 1], t[0, 0]) - side * np.pi / 2)
                 height = _u(rng, st["height"])
                 poly = _rect(p[0], yaw, depth + 0.4, frontage + 0.4)  # keep 0.2 m between buildings
-                if (not any(_convex_overlap(poly, fp) for fp in footprints)
-                        and clear_of_roads(poly, road.sidewalk - 0.05)):
-                    m, fp = _building(rng, ids, p[0], yaw, frontage, depth, height, cfg.style)
+                if (not any(_convex_overlap(poly, fp) for fp in site.footprints)
+                        and site.clear_of_roads(poly, road.sidewalk - 0.05)):
+                    m, fp = _building(rng, site.ids, p[0], yaw, frontage, depth, height, style)
                     m.vertices[:, 2] += TERRAIN_HEIGHT - 0.05  # sits slightly into the terrain
-                    parts.append(m)
-                    footprints.append(fp)
-                    if cfg.style == "suburban" and rng.random() < st["fences"]:
-                        parts += _yard(rng, ids, road, s, frontage, side, setback)
+                    site.parts.append(m)
+                    site.footprints.append(fp)
+                    if style == "suburban" and rng.random() < st["fences"]:
+                        site.parts += _yard(rng, site.ids, road, s, frontage, side, setback)
                 s += frontage + _u(rng, st["gap"])
 
-    # Street furniture and trees along the sidewalks.
+
+def _place_street_furniture(site: _Site, rng, st: dict) -> None:
+    """Street lights and signs along the sidewalks, sidewalk and median trees, and traffic lights
+    at the junction's corners."""
+    layout = site.layout
     for road in layout.roads:
         for side in (-1.0, 1.0):
             edge = side * (road.half_width + road.sidewalk - 0.5)
             for s in _place_along(road, rng, (18.0, 30.0), edge):
                 p, _ = road.at(s, edge)
-                if free(p[0], 0.6) and _away_from_junction(layout, p[0], 9.0):
-                    parts.append(_pole(rng, ids, p[0], SIDEWALK_HEIGHT, "light" if rng.random() < 0.7 else "sign"))
-                    obstacles.append((p[0], 0.6))
+                if site.free(p[0], 0.6) and _away_from_junction(layout, p[0], 9.0):
+                    site.parts.append(_pole(rng, site.ids, p[0], SIDEWALK_HEIGHT,
+                                            "light" if rng.random() < 0.7 else "sign"))
+                    site.obstacles.append((p[0], 0.6))
             if st["trees"] > 0:
                 tedge = side * (road.half_width + road.sidewalk * 0.6)
                 for s in _place_along(road, rng, (7.0, 12.0), tedge):
                     p, _ = road.at(s, tedge)
-                    if rng.random() < st["trees"] and free(p[0], 1.5) and _away_from_junction(layout, p[0], 10.0):
-                        parts.append(_tree(rng, ids, p[0], SIDEWALK_HEIGHT))
-                        obstacles.append((p[0], 1.5))
+                    if rng.random() < st["trees"] and site.free(p[0], 1.5) and _away_from_junction(layout, p[0], 10.0):
+                        site.parts.append(_tree(rng, site.ids, p[0], SIDEWALK_HEIGHT))
+                        site.obstacles.append((p[0], 1.5))
         if road.median > 0:
             for s in _place_along(road, rng, (8.0, 11.0), 0.0):
                 p, _ = road.at(s, 0.0)
-                if free(p[0], 1.0):
-                    parts.append(_tree(rng, ids, p[0], SIDEWALK_HEIGHT, big=rng.random() < 0.7))
-                    obstacles.append((p[0], 1.0))
+                if site.free(p[0], 1.0):
+                    site.parts.append(_tree(rng, site.ids, p[0], SIDEWALK_HEIGHT, big=rng.random() < 0.7))
+                    site.obstacles.append((p[0], 1.0))
     if layout.junction is not None:
         for dx in (-1, 1):
             for dy in (-1, 1):
                 cross = layout.roads[1]
                 xy = layout.junction + np.array([dx * (cross.half_width + 1.0), dy * (layout.main.half_width + 1.0)])
-                parts.append(_pole(rng, ids, xy, SIDEWALK_HEIGHT, "traffic"))
-                obstacles.append((xy, 0.5))
+                site.parts.append(_pole(rng, site.ids, xy, SIDEWALK_HEIGHT, "traffic"))
+                site.obstacles.append((xy, 0.5))
 
-    # Terrain objects away from roads: trees and bushes (denser in suburbs).
+
+def _place_terrain_objects(site: _Site, rng, cfg: WorldConfig) -> None:
+    """Trees and bushes on the terrain away from the roads (denser in suburbs)."""
+    layout = site.layout
     area_lo, area_hi = _extent(layout, cfg.length_m, 10.0)
     n_free = int((40 if cfg.style == "suburban" else 12) * cfg.length_m / 102.4)
     for _ in range(n_free):
         xy = rng.uniform(area_lo, area_hi)
         _, edge = layout.classify(xy[None])
-        if edge[0] > 2.0 and free(xy, 2.0) and not any(_inside_polygon(xy[None], fp)[0] for fp in footprints):
+        if edge[0] > 2.0 and site.free(xy, 2.0) and not any(_inside_polygon(xy[None], fp)[0] for fp in site.footprints):
             if rng.random() < 0.5:
-                parts.append(_tree(rng, ids, xy, TERRAIN_HEIGHT))
+                site.parts.append(_tree(rng, site.ids, xy, TERRAIN_HEIGHT))
             else:
-                inst = ids()
-                parts.append(pr.icosphere([xy[0], xy[1], TERRAIN_HEIGHT + 0.4], rng.uniform(0.6, 1.2), label=L["vegetation"],
-                                          color=_color_jitter(rng, (0.25, 0.4, 0.15)), instance=inst, squash=(1, 1, 0.6)))
-            obstacles.append((xy, 2.0))
+                inst = site.ids()
+                site.parts.append(pr.icosphere([xy[0], xy[1], TERRAIN_HEIGHT + 0.4], rng.uniform(0.6, 1.2),
+                                               label=L["vegetation"], color=_color_jitter(rng, (0.25, 0.4, 0.15)),
+                                               instance=inst, squash=(1, 1, 0.6)))
+            site.obstacles.append((xy, 2.0))
 
-    # Ground last: it needs the building footprints.
-    (gx0, gy0), (gx1, gy1) = _extent(layout, cfg.length_m, 25.0)
-    ground = _ground(layout, gx0, gx1, gy0, gy1, footprints)
-    parts = [ground] + _lane_markings(layout) + parts
 
-    # Parked vehicles along the curbs (static), with their boxes.
-    boxes_static = []
+def _lay_ground(site: _Site, length: float) -> None:
+    """The ground heightfield and lane markings, put first in the static parts. It comes after
+    every building because it leaves out the cells under their footprints."""
+    (gx0, gy0), (gx1, gy1) = _extent(site.layout, length, 25.0)
+    ground = _ground(site.layout, gx0, gx1, gy0, gy1, site.footprints)
+    site.parts = [ground] + _lane_markings(site.layout) + site.parts
+
+
+def _place_parked_vehicles(site: _Site, rng, st: dict) -> list[Box]:
+    """Parked vehicles along the curbs (static meshes in `site.parts`); returns their boxes."""
+    layout = site.layout
+    boxes = []
     for road in layout.roads:
         for side in (-1.0, 1.0):
             lateral = side * (road.half_width - road.parking / 2)
@@ -527,30 +583,36 @@ def generate_world(cfg: WorldConfig) -> World:
                 if rng.random() > st["parked"]:
                     continue
                 p, t = road.at(s, lateral)
-                if not (free(p[0], 2.5) and _away_from_junction(layout, p[0], 14.0)):
+                if not (site.free(p[0], 2.5) and _away_from_junction(layout, p[0], 14.0)):
                     continue
-                inst = ids()
+                inst = site.ids()
                 kind_v = "car" if rng.random() < 0.8 else ("van" if rng.random() < 0.7 else "truck")
                 m, size = vehicle_mesh(rng, kind_v, inst, _car_color(rng))
                 yaw = float(np.arctan2(t[0, 1], t[0, 0])) + (np.pi if side > 0 else 0.0)
                 pose = _yaw_pose(p[0], yaw)
-                parts.append(TriangleMesh(m.vertices @ pose[:3, :3].T + pose[:3, 3], m.faces, m.labels, m.instances,
-                                          m.colors))
-                boxes_static.append({"instance": inst, "label": int(m.labels[0]), "center": np.r_[p[0], size[2] / 2],
-                                     "size": size, "yaw": yaw})
-                obstacles.append((p[0], 2.5))
+                site.parts.append(TriangleMesh(m.vertices @ pose[:3, :3].T + pose[:3, 3], m.faces, m.labels,
+                                               m.instances, m.colors))
+                boxes.append(Box.on_ground(pose, size, label=int(m.labels[0]), instance=inst, yaw=yaw))
+                site.obstacles.append((p[0], 2.5))
+    return boxes
 
-    static = TriangleMesh.concatenate(parts)
 
-    # Ego trajectory: the right lane of the main road.
+def _ego_path(layout: Layout, rng, cfg: WorldConfig, st: dict) -> _EgoPath:
+    """The ego drives the right lane of the main road from x = 0 at constant speed, sampled at 10 Hz."""
     speed = cfg.ego_speed_mps if cfg.ego_speed_mps is not None else _u(rng, st["speed"])
     times = np.round(np.arange(0.0, cfg.duration_s + 1e-9, 0.1), 6)
     main = layout.main
     s0 = 20.0  # the ego starts at x = 0, 20 m after the road's start
     lane = -(main.median / 2 + main.lane_width / 2) if main.lanes >= 1 else 0.0
-    ego_poses = _poses_along(main, s0 + speed * times, lane, 0.0)
+    s = s0 + speed * times
+    return _EgoPath(times, s, lane, _poses_along(main, s, lane, 0.0))
 
-    # Moving vehicles and pedestrians with tracks.
+
+def _moving_vehicles(site: _Site, rng, cfg: WorldConfig, st: dict, ego: _EgoPath) -> list[Actor]:
+    """Cars and vans driving a lane of a random road at constant speed; tracks at the ego's times.
+    A vehicle whose track would leave its road or run through the ego is dropped."""
+    layout = site.layout
+    times = ego.times
     actors = []
     n_mov = cfg.moving_vehicles if cfg.moving_vehicles is not None else int(rng.integers(st["moving"][0], st["moving"][1] + 1))
     for _ in range(n_mov):
@@ -563,13 +625,19 @@ def generate_world(cfg: WorldConfig) -> World:
         s_t = s_start + direction * v * times
         if np.any(s_t < 0) or np.any(s_t > road.length):
             continue
-        p_t, _ = road.at(s_t, lateral)
-        if road is main and np.any(np.abs(s_t - (s0 + speed * times)) < 10.0) and lateral == lane:
+        if road is layout.main and np.any(np.abs(s_t - ego.s) < 10.0) and lateral == ego.lane:
             continue  # not through the ego
-        inst = ids()
+        inst = site.ids()
         m, size = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van", inst, _car_color(rng))
         poses = _poses_along(road, s_t, lateral, 0.0, reverse=direction < 0)
         actors.append(Actor(inst, int(m.labels[0]), m, size, times.copy(), poses))
+    return actors
+
+
+def _pedestrians(site: _Site, rng, cfg: WorldConfig, st: dict, times: np.ndarray) -> list[Actor]:
+    """Pedestrians walking along a sidewalk at constant speed (stopping at the road's ends)."""
+    layout = site.layout
+    actors = []
     n_ped = cfg.pedestrians if cfg.pedestrians is not None else int(rng.integers(st["peds"][0], st["peds"][1] + 1))
     for _ in range(n_ped):
         road = layout.roads[int(rng.integers(len(layout.roads)))]
@@ -578,14 +646,17 @@ def generate_world(cfg: WorldConfig) -> World:
         v = rng.uniform(0.8, 1.6) * rng.choice([-1.0, 1.0])
         s_start = rng.uniform(5.0, max(road.length - 5.0, 6.0))
         s_t = np.clip(s_start + v * times, 0.0, road.length)
-        inst = ids()
+        inst = site.ids()
         m, size = _pedestrian_mesh(rng, inst)
         poses = _poses_along(road, s_t, lateral, SIDEWALK_HEIGHT, reverse=v < 0)
         actors.append(Actor(inst, L["pedestrian"], m, size, times.copy(), poses))
+    return actors
 
+
+def _sun_direction(rng) -> np.ndarray:
+    """(3,) unit vector towards the sun: random azimuth, 25 to 65 degrees above the horizon."""
     az, el = rng.uniform(0, 2 * np.pi), rng.uniform(np.deg2rad(25), np.deg2rad(65))
-    sun = np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-    return World(cfg, layout, static, actors, times, ego_poses, sun, boxes_static)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
 
 
 def _extent(layout: Layout, length: float, margin: float):

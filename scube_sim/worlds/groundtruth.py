@@ -23,6 +23,8 @@ from ..fit import fit_voxsplat
 from ..mesh import TriangleMesh
 from ..transforms import invert_pose, transform_points
 from ..voxsplat import VoxSplat, voxel_keys
+from .generator import _poses_along
+from .textures import albedo
 
 CHUNK_SIZE = 102.4
 # z starts 3.23 m below the ego's ground so that the generated worlds' flat surfaces (road 0 m,
@@ -297,10 +299,9 @@ def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: floa
     match `VoxelGrid`); trace it with sensor poses in the chunk frame, inv(chunk_to_world) @
     T_world_sensor (chunk_to_world is kept in its metadata). Built in slabs of `tile_m` along x
     so that memory stays bounded at fine voxel sizes. region: optional (lo (3,), hi (3,)) box in
-    the chunk frame to fit only part of the chunk."""
-    from .textures import albedo as default_albedo
-
-    albedo_fn = albedo_fn or default_albedo
+    the chunk frame to fit only part of the chunk. albedo_fn: as `camera.render.render_camera`'s
+    (None: the worlds' procedural `textures.albedo`)."""
+    albedo_fn = albedo_fn or albedo
     to_chunk = invert_pose(chunk_to_world)
     v = transform_points(to_chunk, mesh.vertices + mesh.origin) - CHUNK_CORNER
     tri = v[mesh.faces]
@@ -344,8 +345,6 @@ def chunk_frames(world, spacing_m: float = 80.0) -> list[np.ndarray]:
     """Chunk-to-world poses along a route longer than one chunk: the ego's lane of the main road
     every `spacing_m` metres (consecutive chunks overlap by CHUNK_SIZE - spacing along the road),
     from the ego's start while a whole chunk still fits on the road ahead."""
-    from .generator import _poses_along
-
     road = world.layout.main
     s0 = 20.0  # where the ego starts on its road (generator convention)
     lane = -(road.median / 2 + road.lane_width / 2)

@@ -9,6 +9,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import InputError
 
 
 @dataclass
@@ -55,8 +58,6 @@ def polyline_distance(points: np.ndarray, line: np.ndarray):
 
     The nearest vertex (k-d tree) picks the two segments beside it, which hold the nearest point
     when segments are short against the polyline's curvature (ours are 2 m or less)."""
-    from scipy.spatial import cKDTree
-
     k = cKDTree(line).query(points)[1]
     best_d = np.full(len(points), np.inf)
     best_side = np.zeros(len(points))
@@ -139,4 +140,4 @@ def make_layout(kind: str, rng: np.random.Generator, *, length: float, lanes: in
         else:
             main = Road(np.c_[x, np.zeros_like(x)], **main_kw)
         return Layout([main, cross], kind, junction=np.array([xj, 0.0]))
-    raise ValueError(f"layout: expected straight, curved, t_junction or x_junction, got {kind!r}")
+    raise InputError(f"layout: expected straight, curved, t_junction or x_junction, got {kind!r}")

@@ -4,20 +4,22 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from ..camera.render import render_camera
 from ..camera.rig import load_rig
 from ..mesh import TriangleMesh
 from ..raytrace.tracer import Tracer
+from ..transforms import invert_pose, transform_points
 from ..viz import mosaic_png, voxel_bev_png
 from .generator import WorldConfig, generate_world
 from .groundtruth import CHUNK_CORNER, coarsen, depth_to_points, mark_visible, voxelize_mesh
+from .textures import albedo
 
 
 def preview_world(cfg: WorldConfig, out: str | Path, *, name: str | None = None, rig: str = "waymo-5",
                   image_scale: float = 0.3, voxel_size: float = 0.2) -> dict:
     """Write <name>_views.png and <name>_voxels.png into `out`; returns paths and counts."""
-    from ..transforms import invert_pose, transform_points
-
     out = Path(out)
     name = name or f"{cfg.style}-{cfg.seed}"
     world = generate_world(cfg)
@@ -30,11 +32,9 @@ def preview_world(cfg: WorldConfig, out: str | Path, *, name: str | None = None,
     for cam in rig_cfg.cameras:
         intr = cam.intrinsics().scaled(image_scale)
         pose = ego @ cam.cam_to_ego()
-        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir)
+        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
         images[cam.name] = r["rgb"]
         seen.append(transform_points(invert_pose(ego), depth_to_points(r["depth"], intr, pose)))
-    import numpy as np
-
     fine = voxelize_mesh(world.mesh_at(0.0), ego, voxel_size)
     fine.visible = mark_visible(fine, np.concatenate(seen))
     coarse = coarsen(fine, 2)

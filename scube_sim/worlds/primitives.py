@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..mesh import TriangleMesh
+from ..raytrace.gaussian_math import _ICO_F, _ICO_V
 
 _BOX_V = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
 _BOX_F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
@@ -57,8 +58,6 @@ def cylinder(base, radius: float, height: float, *, segments: int = 12, label: i
 def icosphere(center, radius, *, subdivisions: int = 1, label: int = 0, color=(0.5, 0.5, 0.5),
               instance: int = 0, squash=(1.0, 1.0, 1.0)) -> TriangleMesh:
     """A subdivided icosahedron (an ellipsoid with `squash` per-axis factors)."""
-    from ..raytrace.gaussian_math import _ICO_F, _ICO_V
-
     v, f = _ICO_V.copy(), _ICO_F.copy()
     for _ in range(subdivisions):
         edges = {}

@@ -16,6 +16,7 @@ from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.worlds import primitives as pr
 from scube_sim.worlds.generator import WorldConfig, generate_world
+from scube_sim.worlds.textures import albedo
 from tests.conftest import look_at
 
 SKY = label_id("sky")
@@ -92,7 +93,7 @@ def street():
     intr = cam.intrinsics().scaled(0.1)  # 192 x 128, real distortion
     cam_to_world = world.ego_pose_at(0.0) @ cam.cam_to_ego()
     tracer = Tracer(mesh)
-    out = render_camera([tracer], intr, cam_to_world, sun_dir=world.sun_dir)
+    out = render_camera([tracer], intr, cam_to_world, sun_dir=world.sun_dir, albedo_fn=albedo)
     return dict(world=world, mesh=mesh, intr=intr, cam_to_world=cam_to_world, out=out, scene=o3d_scene(mesh))
 
 
@@ -175,7 +176,7 @@ def test_sky_mask_semantic_and_depth_agree(street):
 def test_render_is_deterministic(street):
     """A second render, with a freshly built tracer, is byte-identical."""
     again = render_camera([Tracer(street["mesh"])], street["intr"], street["cam_to_world"],
-                          sun_dir=street["world"].sun_dir)
+                          sun_dir=street["world"].sun_dir, albedo_fn=albedo)
     for k in KEYS:
         assert again[k].dtype == street["out"][k].dtype and again[k].tobytes() == street["out"][k].tobytes(), k
 
@@ -185,7 +186,7 @@ def test_static_and_actor_tracers_equal_one_mesh(street):
     concatenated mesh (nearest hit over tracers)."""
     world = street["world"]
     tracers = [Tracer(world.static)] + [Tracer(m) for m in world.actor_meshes_at(0.0)]
-    split = render_camera(tracers, street["intr"], street["cam_to_world"], sun_dir=world.sun_dir)
+    split = render_camera(tracers, street["intr"], street["cam_to_world"], sun_dir=world.sun_dir, albedo_fn=albedo)
     for k in ("depth", "semantic", "instance", "sky"):
         np.testing.assert_array_equal(split[k], street["out"][k], err_msg=k)
 
@@ -218,7 +219,7 @@ def test_plane_facing_camera_gives_depth_10_everywhere(seed, camera):
     axis, a, b = c2w[:3, 2], c2w[:3, 0], c2w[:3, 1]
     centre = c2w[:3, 3] + 10.0 * axis
     corners = [centre + 200 * (sa * a + sb * b) for sa, sb in [(-1, -1), (-1, 1), (1, 1), (1, -1)]]
-    out = render_camera([Tracer(pr.quad(corners, label=label_id("building")))], intr, c2w)
+    out = render_camera([Tracer(pr.quad(corners, label=label_id("building")))], intr, c2w, albedo_fn=albedo)
     assert not out["sky"].any()
     np.testing.assert_allclose(out["depth"], 10.0, rtol=0, atol=2e-6)
     assert np.all(out["semantic"] == label_id("building"))
@@ -229,7 +230,7 @@ def test_box_depth_matches_slab_intersection():
     c2w = look_at((5.0, -3.0, 4.0), (12.0, 1.0, 1.0))
     center, size, yaw = (12.0, 1.0, 1.0), (4.0, 2.5, 2.0), 0.5
     box = pr.box(center, size, yaw=yaw, label=label_id("car"), instance=7)
-    out = render_camera([Tracer(box)], intr, c2w)
+    out = render_camera([Tracer(box)], intr, c2w, albedo_fn=albedo)
     d = pinhole_dirs(intr, c2w)
     t, _, margin, _ = slab(c2w[:3, 3], d, center, size, yaw)
     expect_hit = np.isfinite(t)

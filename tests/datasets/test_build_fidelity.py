@@ -101,9 +101,9 @@ def test_convert_to_folder_then_build_gives_the_same_scene(shared_data, tmp_path
     from scube_sim.voxsplat import VoxSplat
 
     root = require(shared_data / "kitti-object-000008")
-    res = run("convert", root, "--dataset", "kitti_object", "-o", tmp_path / "folder")
+    res = run("datasets", "export", root, "--dataset", "kitti_object", "-o", tmp_path / "folder")
     assert res.exit_code == 0, res.output
-    one_line_error(run("convert", root, "--dataset", "kitti_object", "-o", tmp_path / "folder"), "--overwrite")
+    one_line_error(run("datasets", "export", root, "--dataset", "kitti_object", "-o", tmp_path / "folder"), "--overwrite")
     for name, src in (("kitti_object", root), ("folder", tmp_path / "folder")):
         res = run("build", src, "--dataset", name, "-o", tmp_path / f"{name}.npz")
         assert res.exit_code == 0, res.output

@@ -10,10 +10,10 @@ import pytest
 import yaml
 from PIL import Image
 
+from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.camera.model import Intrinsics
 from scube_sim.datasets import Box, DatasetError, LidarSpec, LidarSweep, Sample, open_dataset
 from scube_sim.datasets.folder import FolderDataset, write_folder_dataset
-from scube_sim.frames import CameraImage, Frames
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.transforms import interpolate_poses, pose_from_xyz_rpy
 from tests.conftest import look_at, require
@@ -49,9 +49,9 @@ def synthetic_sample(rng, name="s0", t=10.0) -> Sample:
     comp = LidarSweep("lidar.front", rng.normal(0, 5, (50, 3)), ego @ front, t,
                       intensity=rng.random(50).astype(np.float32) * 255, intensity_max=255.0)
     yaw20 = pose_from_xyz_rpy([0, 0, 0], [0, 0, 20])[:3, :3]
-    boxes = [Box(np.array([12.0, 3.0, 0.9]), np.array([4.5, 1.9, 1.6]), yaw20, "car", 1, np.array([2.0, 0.5, 0.0]),
-                 "track-7"),
-             Box(np.array([-4.0, 1.0, 0.8]), np.array([0.6, 0.6, 1.8]), np.eye(3), "pedestrian", 7)]
+    boxes = [Box(np.array([12.0, 3.0, 0.9]), np.array([4.5, 1.9, 1.6]), yaw20, category="car", label=1,
+                 velocity=np.array([2.0, 0.5, 0.0]), track_id="track-7"),
+             Box(np.array([-4.0, 1.0, 0.8]), np.array([0.6, 0.6, 1.8]), np.eye(3), category="pedestrian", label=7)]
     lidars = {"lidar_top": LidarSpec("lidar_top", load_lidar_config("HDL-32E"), mount),
               "lidar.front": LidarSpec("lidar.front", load_lidar_config("VLP-16"), front)}
     metadata = {"source": "synthetic", "n": np.int64(3)}
@@ -85,7 +85,7 @@ def assert_same_sample(got: Sample, want: Sample):
     for g, w in zip(got.boxes, want.boxes):
         for f in ("center", "size", "rotation", "velocity"):
             np.testing.assert_array_equal(getattr(g, f), getattr(w, f), err_msg=f)
-        assert (g.label, g.label_id, g.track_id) == (w.label, w.label_id, w.track_id)
+        assert (g.category, g.label, g.track_id) == (w.category, w.label, w.track_id)
     if want.frames is None:
         assert got.frames is None
         return
@@ -175,7 +175,7 @@ def test_writer_refuses_to_overwrite_and_leaves_no_dataset_yaml_when_interrupted
         write_folder_dataset(failing(), root, overwrite=True)
     assert not (root / "dataset.yaml").exists()
     assert sorted(p.name for p in (root / "samples").iterdir()) == ["000000"]
-    with pytest.raises(DatasetError, match=r"dataset\.yaml: missing file"):
+    with pytest.raises(DatasetError, match=r"dataset\.yaml: no such file"):
         FolderDataset(root)
     write_folder_dataset([synthetic_sample(rng)] * 2, root, overwrite=True)
     assert len(FolderDataset(root)) == 2
@@ -273,7 +273,7 @@ def test_hand_written_dataset_with_a_preset_and_yaw_boxes(tmp_path):
     assert s.lidars["velo"].config.channels == 32
     b = s.boxes[0]
     np.testing.assert_allclose(b.rotation @ [1, 0, 0], [0, 1, 0], atol=1e-12)
-    assert b.label_id == 1 and np.all(np.isnan(b.velocity))
+    assert b.label == 1 and np.all(np.isnan(b.velocity))
 
 
 def test_sample_folders_are_read_in_natural_order(rng, tmp_path):

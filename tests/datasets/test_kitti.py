@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT as PIXEL_CENTRE_SHIFT
 from scube_sim.datasets import DatasetError, open_dataset, points_in_boxes
 from scube_sim.datasets.kitti import KittiObjectDataset, KittiRawDataset, read_kitti_calib
-from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT as PIXEL_CENTRE_SHIFT
 from scube_sim.io.safe_pickle import load_pickle
 from scube_sim.labels import LABEL_IDS
 from scube_sim.transforms import invert_pose, transform_points
@@ -108,8 +108,8 @@ def test_object_counts_and_frames(obj_root, obj_sample):
     assert im.image.shape == (375, 1242, 3) and im.image.dtype == np.uint8
     # 10 instances: 6 Cars and 4 DontCare regions (2D only, bbox_3d = -1000 placeholders): 6 boxes
     assert len(load_pickle(obj_root / "000008.pkl")["data_list"][0]["instances"]) == 10
-    assert len(s.boxes) == 6 and {b.label for b in s.boxes} == {"Car"}
-    assert all(b.label_id == LABEL_IDS["car"] for b in s.boxes)
+    assert len(s.boxes) == 6 and {b.category for b in s.boxes} == {"Car"}
+    assert all(b.label == LABEL_IDS["car"] for b in s.boxes)
 
 
 def test_object_projection_matches_lidar2img(obj_root, obj_sample):

@@ -14,8 +14,8 @@ import shutil
 import numpy as np
 import pytest
 
-from scube_sim.datasets import DatasetError, open_dataset, points_in_boxes
 from scube_sim.camera.model import K_PIXEL_CENTRE_SHIFT as PIXEL_CENTRE_SHIFT
+from scube_sim.datasets import DatasetError, open_dataset, points_in_boxes
 from scube_sim.datasets.nuscenes import NuScenesDataset
 from scube_sim.io.safe_pickle import load_pickle
 from scube_sim.labels import LABEL_IDS
@@ -132,13 +132,13 @@ def test_boxes_agree_with_num_lidar_pts(sample):
 
     # The info's z is the box centre, not the bottom: read as a bottom (boxes h/2 higher), the
     # boxes lose about half their points.
-    raised = [type(b)(b.center + b.rotation[:, 2] * b.size[2] / 2, b.size, b.rotation, b.label) for b in sample.boxes]
+    raised = [type(b)(b.center + b.rotation[:, 2] * b.size[2] / 2, b.size, b.rotation, label=b.label, category=b.category) for b in sample.boxes]
     idx = points_in_boxes(world, raised)
     assert np.bincount(idx[idx >= 0], minlength=len(raised)).sum() < 0.6 * nlp.sum()
 
 
 def test_box_labels_rotation_and_velocity(info, sample):
-    by_label = {b.label: b.label_id for b in sample.boxes}
+    by_label = {b.category: b.label for b in sample.boxes}
     assert by_label["car"] == LABEL_IDS["car"]
     assert by_label["barrier"] == LABEL_IDS["fence"]
     assert by_label["traffic_cone"] == LABEL_IDS["construction_cone"]

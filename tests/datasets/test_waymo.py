@@ -97,7 +97,7 @@ def test_twelve_box_centres_project_into_front(sample):
     uv, z = pin.project(cam)
     in_pin = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < pin.width) & (uv[:, 1] >= 0) & (uv[:, 1] < pin.height)
     np.testing.assert_array_equal(inside, in_pin)
-    labels = [sample.boxes[i].label for i in np.flatnonzero(inside)]
+    labels = [sample.boxes[i].category for i in np.flatnonzero(inside)]
     assert {k: labels.count(k) for k in set(labels)} == {"TYPE_VEHICLE": 5, "TYPE_SIGN": 4, "TYPE_PEDESTRIAN": 3}
     # The two pedestrians crossing 8-9 m ahead are in the lower left of the image (checked by eye
     # with the boxes drawn: every box lands on its object).
@@ -110,9 +110,9 @@ def test_75_boxes_in_the_world_frame(sample, meta):
     assert len(sample.boxes) == 75
     counts = {}
     for b in sample.boxes:
-        counts[b.label] = counts.get(b.label, 0) + 1
+        counts[b.category] = counts.get(b.category, 0) + 1
     assert counts == {"TYPE_VEHICLE": 37, "TYPE_SIGN": 25, "TYPE_PEDESTRIAN": 12, "TYPE_CYCLIST": 1}
-    ids = {b.label: b.label_id for b in sample.boxes}
+    ids = {b.category: b.label for b in sample.boxes}
     assert ids == {"TYPE_VEHICLE": LABEL_IDS["car"], "TYPE_SIGN": LABEL_IDS["sign"],
                    "TYPE_PEDESTRIAN": LABEL_IDS["pedestrian"], "TYPE_CYCLIST": LABEL_IDS["bicyclist"]}
     lab, box = meta["laser_labels"][0], sample.boxes[0]
@@ -137,7 +137,7 @@ def test_top_lidar_model_from_the_beam_inclinations(sample, meta):
 def test_val_frame_has_no_images(root):
     s = WaymoFrameDataset(require(root / "mmdet3d_tests_val"))[0]
     assert s.frames is None and len(s.boxes) == 18 and s.sweeps == []
-    assert {b.label for b in s.boxes} == {"TYPE_SIGN", "TYPE_VEHICLE"}
+    assert {b.category for b in s.boxes} == {"TYPE_SIGN", "TYPE_VEHICLE"}
     assert s.lidars["TOP"].config.channels == 64
 
 
@@ -185,4 +185,4 @@ def test_numeric_label_types_are_accepted(root, tmp_path):
         for lab in m["laser_labels"]:
             lab["type"] = {"TYPE_VEHICLE": 1, "TYPE_PEDESTRIAN": 2, "TYPE_SIGN": 3, "TYPE_CYCLIST": 4}[lab["type"]]
     s = edited_copy(root, tmp_path, numeric)[0]
-    assert sum(b.label == "TYPE_CYCLIST" for b in s.boxes) == 1
+    assert sum(b.category == "TYPE_CYCLIST" for b in s.boxes) == 1

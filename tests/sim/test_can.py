@@ -15,14 +15,23 @@ import numpy as np
 import pytest
 
 from scube_sim.geodesy import (
-    ecef_to_enu, ecef_to_geodetic, enu_rotation, enu_to_ecef, geodetic_to_ecef,
+    ecef_to_enu,
+    ecef_to_geodetic,
+    enu_rotation,
+    enu_to_ecef,
+    geodetic_to_ecef,
 )
 from scube_sim.sim.can import (
-    FRAME_READY_DBC, FRAME_READY_ID, CanFrameSink, CanPoseSource, CanVehicleDecoder,
-    DeadReckoner, calibrate_bicycle, pack_frame_ready, unpack_frame_ready,
+    FRAME_READY_DBC,
+    FRAME_READY_ID,
+    CanPoseSource,
+    CanVehicleDecoder,
+    pack_frame_ready,
+    unpack_frame_ready,
 )
 from scube_sim.sim.frame import Frame, SensorFrame
-from scube_sim.sim.sinks import RunInfo, SinkRunner
+from scube_sim.sim.sinks import CanFrameSink, RunInfo, SinkRunner
+from scube_sim.sim.vehicle import DeadReckoner, calibrate_bicycle
 from scube_sim.transforms import euler_to_rotmat, invert_pose, make_pose, rotmat_to_euler
 from tests.conftest import require
 

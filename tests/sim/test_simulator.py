@@ -13,10 +13,10 @@ from scube_sim.labels import label_id
 from scube_sim.lidar.config import config_from_dict, load_lidar_config
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.sim.scene import ChunkSet, ChunkSpec, Part, SimScene, track_pose_fn
+from scube_sim.sim.sim_scene import ChunkSet, ChunkSpec, Part, SimScene
 from scube_sim.sim.simulator import LidarSensor, Simulator
 from scube_sim.sim.sinks import CallbackSink, FileSink, SinkError
-from scube_sim.sim.sources import EditedTrajectory, TrajectorySource
+from scube_sim.sim.sources import EditedTrajectory, TrajectorySource, track_pose_fn
 from scube_sim.transforms import make_pose, pose_from_xyz_rpy, transform_points
 from scube_sim.worlds import primitives as pr
 
@@ -149,12 +149,12 @@ def test_same_seed_same_frames_and_boxes():
     a, b, c = run(1), run(1), run(2)
     for fa, fb in zip(a, b):
         assert [s.points.tobytes() for s in fa.sweeps()] == [s.points.tobytes() for s in fb.sweeps()]
-        assert [bx["center"].tolist() for bx in fa.boxes] == [bx["center"].tolist() for bx in fb.boxes]
+        assert [bx.center.tolist() for bx in fa.boxes] == [bx.center.tolist() for bx in fb.boxes]
     assert any(x.points.tobytes() != y.points.tobytes() for fa, fc in zip(a, c) for x, y in zip(fa.sweeps(), fc.sweeps()))
     # actor boxes move between ticks
-    moving = {bx["instance"] for bx in a[0].boxes} & {a_.instance for a_ in w.actors}
-    assert moving and any(not np.allclose([b_["center"] for b_ in a[0].boxes if b_["instance"] == i],
-                                          [b_["center"] for b_ in a[-1].boxes if b_["instance"] == i]) for i in moving)
+    moving = {bx.instance for bx in a[0].boxes} & {a_.instance for a_ in w.actors}
+    assert moving and any(not np.allclose([b_.center for b_ in a[0].boxes if b_.instance == i],
+                                          [b_.center for b_ in a[-1].boxes if b_.instance == i]) for i in moving)
 
 
 # --- sinks under stress ------------------------------------------------------------------------

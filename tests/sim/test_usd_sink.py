@@ -14,8 +14,8 @@ from pxr import Sdf, Usd, UsdGeom, UsdVol  # noqa: E402
 
 from scube_sim.lidar.model import POINT_DTYPE  # noqa: E402
 from scube_sim.sim.frame import Frame, SensorFrame  # noqa: E402
-from scube_sim.sim.sinks import CallbackSink, RunInfo, SinkError, SinkRunner  # noqa: E402
-from scube_sim.sim.usd_sink import EGO_PATH, POINTS_NAME, SCENE_PATH, SENSORS_PATH, UsdSink  # noqa: E402
+from scube_sim.sim.sinks import CallbackSink, RunInfo, SinkError, SinkRunner, UsdSink  # noqa: E402
+from scube_sim.sim.sinks.usd import EGO_PATH, POINTS_NAME, SCENE_PATH, SENSORS_PATH  # noqa: E402
 from scube_sim.transforms import pose_from_xyz_rpy, transform_points  # noqa: E402
 from scube_sim.voxsplat import Gaussians, VoxSplat  # noqa: E402
 

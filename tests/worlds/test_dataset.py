@@ -21,8 +21,15 @@ from scube_sim.labels import LABEL_NAMES, label_id
 from scube_sim.lidar import POINT_DTYPE
 from scube_sim.transforms import invert_pose
 from scube_sim.worlds import dataset as ds_mod
-from scube_sim.worlds.dataset import (DatasetConfig, generate_dataset, load_sample, make_sample, open_dataset,
-                                      sample_world_config, write_sample)
+from scube_sim.worlds.dataset import (
+    DatasetConfig,
+    ensure_dataset_config,
+    generate_dataset,
+    load_sample,
+    make_sample,
+    sample_world_config,
+    write_sample,
+)
 from scube_sim.worlds.generator import generate_world
 from scube_sim.worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, depth_to_points
 
@@ -159,8 +166,8 @@ def test_dataset_header(dataset_dir):
     assert DatasetConfig.model_validate(head["config"]) == CFG
     assert head["labels"] == list(LABEL_NAMES)
     assert head["rig"]["name"] == CFG.rig
-    assert open_dataset(dataset_dir, None) == CFG
-    assert open_dataset(dataset_dir, CFG.model_copy()) == CFG
+    assert ensure_dataset_config(dataset_dir, None) == CFG
+    assert ensure_dataset_config(dataset_dir, CFG.model_copy()) == CFG
 
 
 # --- resuming ----------------------------------------------------------------------------------------
@@ -192,7 +199,7 @@ def test_rerun_writes_only_the_missing_sample_and_clears_stale_temporaries(datas
 def test_folder_made_with_other_settings_is_refused(dataset_dir):
     other = CFG.model_copy(update={"image_scale": 0.05})
     with pytest.raises(ValueError, match="dataset.json"):
-        open_dataset(dataset_dir, other)
+        ensure_dataset_config(dataset_dir, other)
     with pytest.raises(ValueError, match="dataset.json"):
         generate_dataset(dataset_dir, "train", 1, other, progress=False)
 
@@ -200,7 +207,7 @@ def test_folder_made_with_other_settings_is_refused(dataset_dir):
 def test_folder_of_another_format_is_refused(tmp_path):
     (tmp_path / "dataset.json").write_text(json.dumps({"format": "something-else", "version": 1}))
     with pytest.raises(ValueError, match="dataset.json"):
-        open_dataset(tmp_path, CFG)
+        ensure_dataset_config(tmp_path, CFG)
 
 
 # --- splits ------------------------------------------------------------------------------------------
@@ -229,7 +236,7 @@ def test_splits_have_disjoint_seeds_and_different_worlds():
 
 def test_cli_worlds_generate(tmp_path):
     out = tmp_path / "cli"
-    open_dataset(out, CFG)  # a tiny configuration; the CLI resumes into the folder with its settings
+    ensure_dataset_config(out, CFG)  # a tiny configuration; the CLI resumes into the folder with its settings
     runner = CliRunner()
     r = runner.invoke(app, ["worlds", "generate", "-o", str(out), "--split", "val", "--count", "1",
                             "--start", str(FAST)])

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scube_sim.boxes import Box
 from scube_sim.labels import label_id
 from scube_sim.lidar.config import ConfigError
 from scube_sim.raytrace.tracer import Tracer
@@ -71,20 +72,20 @@ def polygons_overlap(p: np.ndarray, q: np.ndarray, tol: float = 1e-6) -> bool:
     return True
 
 
-def box_rect(box: dict) -> np.ndarray:
-    """(4, 2) footprint corners of a box dict (center, size, yaw)."""
-    c, s = np.cos(box["yaw"]), np.sin(box["yaw"])
-    half = np.asarray(box["size"][:2]) / 2
+def box_rect(box: Box) -> np.ndarray:
+    """(4, 2) footprint corners of an upright box (center, size, yaw)."""
+    c, s = np.cos(box.yaw), np.sin(box.yaw)
+    half = box.size[:2] / 2
     local = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half
-    return local @ np.array([[c, -s], [s, c]]).T + np.asarray(box["center"][:2])
+    return local @ np.array([[c, -s], [s, c]]).T + box.center[:2]
 
 
-def in_box(points: np.ndarray, box: dict, tol: float) -> np.ndarray:
-    """Points inside an oriented box (rotation about z by yaw), with a tolerance."""
-    c, s = np.cos(box["yaw"]), np.sin(box["yaw"])
-    d = points - np.asarray(box["center"])
+def in_box(points: np.ndarray, box: Box, tol: float) -> np.ndarray:
+    """Points inside an upright oriented box (rotation about z by yaw), with a tolerance."""
+    c, s = np.cos(box.yaw), np.sin(box.yaw)
+    d = points - box.center
     local = np.c_[c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], d[:, 2]]
-    return np.all(np.abs(local) <= np.asarray(box["size"]) / 2 + tol, axis=1)
+    return np.all(np.abs(local) <= box.size / 2 + tol, axis=1)
 
 
 def building_footprints(world) -> dict[int, np.ndarray]:
@@ -146,7 +147,8 @@ def _world_arrays(w) -> dict[str, np.ndarray]:
         out.update({f"a{k}_t": a.times, f"a{k}_p": a.poses, f"a{k}_v": a.mesh.vertices, f"a{k}_f": a.mesh.faces,
                     f"a{k}_s": a.size, f"a{k}_id": np.array([a.instance, a.label])})
     for k, b in enumerate(w.boxes_static):
-        out.update({f"b{k}_{key}": np.atleast_1d(np.asarray(val)) for key, val in b.items()})
+        out.update({f"b{k}_{key}": np.atleast_1d(np.asarray(getattr(b, key)))
+                    for key in ("center", "size", "rotation", "label", "instance")})
     for k, r in enumerate(w.layout.roads):
         out[f"road{k}"] = r.centerline
     return out
@@ -227,15 +229,15 @@ def test_tracks_are_sampled_at_10_hz(worlds, style):
 @pytest.mark.parametrize("t", [0.0, 0.05, 0.73, 2.0])
 def test_posed_actor_vertices_lie_in_their_boxes(worlds, style, t):
     w = worlds[style]
-    boxes = {b["instance"]: b for b in w.boxes_at(t)}
+    boxes = {b.instance: b for b in w.boxes_at(t)}
     for a, m in zip(w.actors, w.actor_meshes_at(t)):
         box = boxes[a.instance]
-        assert box["label"] == a.label
+        assert isinstance(box, Box) and box.label == a.label
         inside = in_box(m.vertices + m.origin, box, tol=1e-6)
         assert inside.all(), f"actor {a.instance}: {np.sum(~inside)} vertices outside its box at t={t}"
         # The box is tight: the mesh reaches its top and both ends (not a loose over-estimate).
         z = m.vertices[:, 2] + m.origin[2]
-        assert z.max() == pytest.approx(box["center"][2] + box["size"][2] / 2, abs=1e-6)
+        assert z.max() == pytest.approx(box.center[2] + box.size[2] / 2, abs=1e-6)
 
 
 @pytest.mark.parametrize("style", STYLES)
@@ -244,9 +246,10 @@ def test_parked_vehicle_boxes_contain_their_meshes(worlds, style):
     m = w.static
     assert len(w.boxes_static) > 0
     for b in w.boxes_static:
-        sel = m.instances == b["instance"]
-        assert sel.any(), f"no faces for parked vehicle {b['instance']}"
-        assert np.all(m.labels[sel] == b["label"]) and b["label"] in VEHICLES
+        assert isinstance(b, Box)
+        sel = m.instances == b.instance
+        assert sel.any(), f"no faces for parked vehicle {b.instance}"
+        assert np.all(m.labels[sel] == b.label) and b.label in VEHICLES
         v = m.vertices[np.unique(m.faces[sel])] + m.origin
         assert in_box(v, b, tol=1e-6).all()
         # resting on the road (wheels are 10-sided prisms: the lowest vertex is a little above 0)
@@ -339,7 +342,7 @@ def test_vehicle_boxes_clear_of_buildings(worlds, style):
         for box in w.boxes_at(t):
             rect = box_rect(box)
             for fp in fps:
-                assert not polygons_overlap(rect, fp), f"box {box['instance']} at t={t} hits a building"
+                assert not polygons_overlap(rect, fp), f"box {box.instance} at t={t} hits a building"
 
 
 # --- ground --------------------------------------------------------------------------------------

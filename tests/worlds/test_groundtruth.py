@@ -18,9 +18,18 @@ from scube_sim.raytrace.tracer import Tracer
 from scube_sim.transforms import invert_pose, make_pose, transform_points
 from scube_sim.worlds import primitives as pr
 from scube_sim.worlds.generator import WorldConfig, generate_world
-from scube_sim.worlds.groundtruth import (CHUNK_CORNER, CHUNK_SIZE, VoxelGrid, chunk_samples, coarsen,
-                                          depth_to_points, gt_voxsplat, mark_visible, voxelize,
-                                          voxelize_mesh)
+from scube_sim.worlds.groundtruth import (
+    CHUNK_CORNER,
+    CHUNK_SIZE,
+    VoxelGrid,
+    chunk_samples,
+    coarsen,
+    depth_to_points,
+    gt_voxsplat,
+    mark_visible,
+    voxelize,
+    voxelize_mesh,
+)
 from scube_sim.worlds.textures import albedo
 from tests.conftest import look_at
 

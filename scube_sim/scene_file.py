@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .errors import InputError
+from .io.ply3dgs import default_voxel_size, read_3dgs_ply
 from .voxsplat import Gaussians, VoxSplat
 
 
@@ -16,16 +18,14 @@ def load_scene(path: str | Path) -> VoxSplat | Gaussians:
     if suffix == ".npz":
         return VoxSplat.load(path)
     if suffix == ".ply":
-        from .io.ply3dgs import read_3dgs_ply
 
         return read_3dgs_ply(path)
-    raise ValueError(f"{path}: unknown scene format {path.suffix!r}; expected a VoxSplat .npz or a 3DGS .ply")
+    raise InputError(f"{path}: unknown scene format {path.suffix!r}; expected a VoxSplat .npz or a 3DGS .ply")
 
 
 def as_voxsplat(scene: VoxSplat | Gaussians, voxel_size: float | None = None) -> VoxSplat:
     """A VoxSplat for any scene (3DGS Gaussians are voxelized by their centres)."""
     if isinstance(scene, VoxSplat):
         return scene
-    from .io.ply3dgs import default_voxel_size
 
     return VoxSplat.from_gaussians(scene, voxel_size or default_voxel_size(scene))

@@ -12,8 +12,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera.model import Intrinsics
-from .transforms import check_pose
+from ..errors import InputError, NotFoundError
+from ..transforms import check_pose
+from .model import Intrinsics
 
 
 @dataclass
@@ -35,10 +36,10 @@ class CameraImage:
         self.cam_to_world = check_pose(self.cam_to_world, f"camera {self.name!r}: cam_to_world")
         h, w = self.image.shape[:2]
         if (w, h) != (self.intrinsics.width, self.intrinsics.height):
-            raise ValueError(f"camera {self.name!r}: image is {w}x{h} but intrinsics say "
+            raise InputError(f"camera {self.name!r}: image is {w}x{h} but intrinsics say "
                              f"{self.intrinsics.width}x{self.intrinsics.height}")
         if not np.isfinite(self.timestamp):
-            raise ValueError(f"camera {self.name!r}: timestamp is not finite")
+            raise InputError(f"camera {self.name!r}: timestamp is not finite")
 
 
 @dataclass
@@ -56,7 +57,7 @@ class Frames:
     def __post_init__(self):
         self.ego_pose = check_pose(self.ego_pose, "Frames.ego_pose")
         if not np.isfinite(self.timestamp):
-            raise ValueError("Frames.timestamp is not finite")
+            raise InputError("Frames.timestamp is not finite")
 
     def __len__(self) -> int:
         return len(self.images)
@@ -69,4 +70,4 @@ class Frames:
         for im in self.images:
             if im.name == name:
                 return im
-        raise KeyError(f"no camera {name!r}; have {', '.join(self.names)}")
+        raise NotFoundError(f"no camera {name!r}; have {', '.join(self.names)}")

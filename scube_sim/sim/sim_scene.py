@@ -7,27 +7,33 @@ moved back: rigid motions keep ray lengths, so ranges are unchanged. Actors move
 pose, per tick or per ray (a LiDAR's rays fire at different times: the actor is where it is at
 each ray's fire time, so motion distortion applies to actors too). Rays are culled per part by a
 bounding sphere first, so an actor costs only the rays that come near it.
+
+`SimScene` is the simulator's `SimulatedScene`; `StaticScene` makes a bare `Tracer` (or a list of
+them) one without touching its rays.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
+from ..boxes import Box
 from ..mesh import TriangleMesh
-from ..raytrace.tracer import Hits, Tracer
-from ..transforms import interpolate_poses, invert_pose
+from ..raytrace.compose import nearest_hits
+from ..raytrace.contracts import TraceableScene
+from ..raytrace.hits import Hits
+from ..raytrace.tracer import Tracer
+from ..transforms import PoseFn
 from ..voxsplat import VoxSplat
-
-PoseFn = Callable[[np.ndarray], np.ndarray]  # times (N,) -> (N, 4, 4) part-to-world poses
+from .contracts import SimulatedScene
 
 
 def _bounding_sphere(tracer: Tracer) -> tuple[np.ndarray, float]:
-    """Centre (local frame of the tracer's scene) and radius of the tracer's bounds."""
-    lo, hi = tracer._lo, tracer._hi
+    """Centre (the frame the tracer traces in: its local frame + origin) and radius (metres) of
+    the tracer's bounds."""
+    lo, hi = tracer.bounds
     return 0.5 * (lo + hi) + tracer.origin, float(0.5 * np.linalg.norm(hi - lo))
 
 
@@ -36,14 +42,15 @@ class Part:
     """One traced piece of the world: a tracer in its own frame and where that frame is.
 
     pose: fixed part-to-world (4, 4), or None for identity; pose_fn: times -> poses for moving
-    parts (overrides `pose`). instance / label / size / name: for boxes of actors."""
+    parts (overrides `pose`). instance / label / size / name: for boxes of actors (size (3,)
+    l w h metres in the part frame, the footprint's centre at the part's origin)."""
 
     tracer: Tracer
     pose: np.ndarray | None = None
     pose_fn: PoseFn | None = None
     instance: int = 0
     label: int = 0
-    size: np.ndarray | None = None  # (l, w, h) box in the part frame, footprint centre at the origin
+    size: np.ndarray | None = None
     name: str = ""
     _sphere: tuple = field(default=None, init=False, repr=False)
 
@@ -51,7 +58,8 @@ class Part:
     def moving(self) -> bool:
         return self.pose_fn is not None
 
-    def sphere(self):
+    def sphere(self) -> tuple[np.ndarray, float]:
+        """Bounding sphere (centre (3,) in the part frame, radius m) of the part's geometry."""
         if self._sphere is None:
             self._sphere = _bounding_sphere(self.tracer)
         return self._sphere
@@ -62,44 +70,25 @@ class Part:
         p = np.eye(4) if self.pose is None else self.pose
         return np.broadcast_to(p, (np.atleast_1d(times).shape[0], 4, 4))
 
-    def box_at(self, t: float) -> dict:
+    def box_at(self, t: float) -> Box:
+        """The part's box at time t (world frame; a zero-size box when `size` is None)."""
         p = self.poses_at(np.array([t]))[0]
-        size = np.zeros(3) if self.size is None else np.asarray(self.size, np.float64)
-        centre = p[:3, :3] @ np.array([0.0, 0.0, size[2] / 2]) + p[:3, 3]
-        return {"instance": self.instance, "label": self.label, "center": centre, "size": size.copy(),
-                "yaw": float(np.arctan2(p[1, 0], p[0, 0]))}
-
-
-def track_pose_fn(times: np.ndarray, poses: np.ndarray) -> PoseFn:
-    """A pose function from a sampled track (linear position, SLERP rotation, held at the ends)."""
-    times = np.asarray(times, np.float64)
-    poses = np.asarray(poses, np.float64)
-
-    def fn(t: np.ndarray) -> np.ndarray:
-        t = np.clip(np.atleast_1d(np.asarray(t, np.float64)), times[0], times[-1])
-        if len(times) == 1:
-            return np.broadcast_to(poses[0], (t.shape[0], 4, 4)).copy()
-        i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
-        s = (t - times[i]) / (times[i + 1] - times[i])
-        out = np.empty((t.shape[0], 4, 4))
-        for k in np.unique(i):  # SLERP per segment (few segments per sweep)
-            sel = i == k
-            out[sel] = interpolate_poses(poses[k], poses[k + 1], s[sel])
-        return out
-
-    return fn
+        size = np.zeros(3) if self.size is None else self.size
+        return Box.on_ground(p, size, label=self.label, instance=self.instance)
 
 
 class SimScene:
-    """Static parts, actors and lazily loaded chunks, traced together (nearest hit wins).
+    """Static parts, actors and lazily loaded chunks, traced together (nearest hit wins): a
+    `SimulatedScene`.
 
     `trace_world(o, d, t_min, t_max, times=None)`: float64 world rays; `times` (N,) absolute fire
-    times place moving parts per ray (default: `self.time`, the current tick)."""
+    times place moving parts per ray (default: `self.time`, the current tick). static_boxes:
+    boxes of static objects (e.g. parked cars), reported with the actors' by `boxes_at`."""
 
     accepts_times = True
 
     def __init__(self, static: list[Part] | None = None, actors: list[Part] | None = None,
-                 chunks: "ChunkSet | None" = None, static_boxes: list[dict] | None = None):
+                 chunks: ChunkSet | None = None, static_boxes: list[Box] | None = None):
         self.static = list(static or [])
         self.actors = list(actors or [])
         self.chunks = chunks
@@ -116,7 +105,8 @@ class SimScene:
         if self.chunks is not None and ego_position is not None:
             self.chunks.update(np.asarray(ego_position, np.float64))
 
-    def boxes_at(self, t: float) -> list[dict]:
+    def boxes_at(self, t: float) -> list[Box]:
+        """The static boxes, then every actor's box at time t (world frame)."""
         return self.static_boxes + [a.box_at(t) for a in self.actors]
 
     def trace_world(self, origins, dirs, t_min=0.0, t_max=np.inf, times=None) -> Hits:
@@ -238,4 +228,42 @@ class ChunkSet:
 
 
 def mesh_part(mesh: TriangleMesh, **kw) -> Part:
+    """A part traced on a triangle mesh (its exact geometry); `kw` as for `Part`."""
     return Part(Tracer(mesh), **kw)
+
+
+class StaticScene:
+    """A plain `TraceableScene` (a `Tracer`, any scene with `trace_world`, or a list of tracers:
+    nearest hit wins) as a `SimulatedScene`: nothing moves, there are no boxes, `update` only
+    keeps the time. Rays go to the wrapped scene as they come (no culling, no re-normalising),
+    so the hits are exactly the bare scene's."""
+
+    def __init__(self, scene: TraceableScene | list[Tracer]):
+        self.scene = list(scene) if isinstance(scene, (list, tuple)) else scene
+        # a list traces through `nearest_hits`, which takes no fire times
+        self.accepts_times = False if isinstance(self.scene, list) else bool(self.scene.accepts_times)
+        self.time = 0.0
+
+    def update(self, time: float, ego_position: np.ndarray | None = None) -> None:
+        self.time = float(time)
+
+    def boxes_at(self, t: float) -> list[Box]:
+        return []
+
+    def trace_world(self, origins, dirs, t_min=0.0, t_max=np.inf, times=None) -> Hits:
+        if isinstance(self.scene, list):
+            return nearest_hits(self.scene, origins, dirs, t_min, t_max)
+        if self.accepts_times:
+            return self.scene.trace_world(origins, dirs, t_min, t_max, times=times)
+        return self.scene.trace_world(origins, dirs, t_min, t_max)
+
+
+def as_simulated_scene(scene) -> SimulatedScene:
+    """`scene` itself when it is a `SimulatedScene` (e.g. a `SimScene`), else a `StaticScene`
+    around it (a `TraceableScene` or a list of tracers)."""
+    if isinstance(scene, SimulatedScene):
+        return scene
+    if isinstance(scene, (list, tuple, TraceableScene)):
+        return StaticScene(scene)
+    raise TypeError(f"scene: expected a SimulatedScene, a TraceableScene (e.g. a Tracer) or a list of tracers, "
+                    f"got {type(scene).__name__}")

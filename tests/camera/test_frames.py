@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.camera.model import Intrinsics
-from scube_sim.frames import CameraImage, Frames
 
 INTR = Intrinsics(64, 48, 50.0, 50.0, 32.0, 24.0)
 

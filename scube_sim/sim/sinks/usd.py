@@ -45,12 +45,22 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.usd import (add_points_prim, add_scene, check_usd_suffix, matrix4d, points_extent, primvar_type,
-                      set_stage_metadata, vec3f, write_layer)
-from ..lidar.model import POINT_DTYPE
-from ..transforms import check_pose
-from .frame import Frame
-from .sinks import RunInfo, Sink
+from ...errors import InputError
+from ...io.usd import (
+    add_points_prim,
+    add_scene,
+    check_usd_suffix,
+    matrix4d,
+    points_extent,
+    primvar_type,
+    set_stage_metadata,
+    vec3f,
+    write_layer,
+)
+from ...lidar.model import POINT_DTYPE
+from ...transforms import check_pose
+from ..frame import Frame
+from .base import RunInfo, Sink
 
 __all__ = ["UsdSink", "SCENE_PATH", "EGO_PATH", "SENSORS_PATH", "POINTS_NAME", "DEFAULT_PRIMVARS"]
 
@@ -100,10 +110,10 @@ class UsdSink(Sink):
         self.suffix = check_usd_suffix(self.path)
         check_usd_suffix(Path("clip" + clip_suffix))
         if int(frames_per_clip) < 1:
-            raise ValueError(f"UsdSink: frames_per_clip must be >= 1, got {frames_per_clip}")
+            raise InputError(f"UsdSink: frames_per_clip must be >= 1, got {frames_per_clip}")
         unknown = set(primvars) - set(POINT_DTYPE.names) | set(primvars) & {"x", "y", "z"}
         if unknown:
-            raise ValueError(f"UsdSink: primvars {sorted(unknown)} are not LiDAR point fields (besides x y z)")
+            raise InputError(f"UsdSink: primvars {sorted(unknown)} are not LiDAR point fields (besides x y z)")
         self.clips = bool(clips)
         self.frames_per_clip = int(frames_per_clip)
         self.write_scene = bool(write_scene)
@@ -131,7 +141,7 @@ class UsdSink(Sink):
         self._tcps = float(run.time_codes_per_second)
         self._start = float(run.start_time)
         if not np.isfinite(self._start):
-            raise ValueError(f"UsdSink: start_time must be finite, got {run.start_time!r}")
+            raise InputError(f"UsdSink: start_time must be finite, got {run.start_time!r}")
         self._stage = stage = Usd.Stage.CreateInMemory(f"scube_sim_run{self.suffix}")
         set_stage_metadata(stage, documentation="scube_sim simulation run", time_codes_per_second=self._tcps)
         origin = np.asarray(run.origin, np.float64).reshape(3)
@@ -175,7 +185,7 @@ class UsdSink(Sink):
 
         prim_name = Tf.MakeValidIdentifier(name)
         if prim_name in self._prim_names:
-            raise ValueError(f"UsdSink: sensors {self._prim_names[prim_name]!r} and {name!r} map to the "
+            raise InputError(f"UsdSink: sensors {self._prim_names[prim_name]!r} and {name!r} map to the "
                              f"same prim name {prim_name!r}")
         self._prim_names[prim_name] = name
         path = f"{SENSORS_PATH}/{prim_name}"
@@ -219,7 +229,7 @@ class UsdSink(Sink):
         def advance(track: _Track, tc: float, what: str) -> None:
             prev = last.get(track.path, track.last_tc)
             if not np.isfinite(tc) or (prev is not None and tc <= prev):
-                raise ValueError(f"UsdSink: {what}: time code {tc} is not after the previous sample {prev}")
+                raise InputError(f"UsdSink: {what}: time code {tc} is not after the previous sample {prev}")
             last[track.path] = tc
 
         tc = self._tc(frame.time)
@@ -235,16 +245,16 @@ class UsdSink(Sink):
             if track is None:
                 track = self._define_sensor(s.name, {"kind": s.kind})
             elif track.name != s.name:
-                raise ValueError(f"UsdSink: sensors {track.name!r} and {s.name!r} map to the same prim {path}")
+                raise InputError(f"UsdSink: sensors {track.name!r} and {s.name!r} map to the same prim {path}")
             stc = self._tc(s.t_end)
             advance(track, stc, f"sensor {s.name!r} sweep {s.sweep_index}")
             pts = np.asarray(s.points)
             missing = {"x", "y", "z", *self.primvars} - set(pts.dtype.names or ())
             if missing:
-                raise ValueError(f"UsdSink: sensor {s.name!r}: points lack fields {sorted(missing)}")
+                raise InputError(f"UsdSink: sensor {s.name!r}: points lack fields {sorted(missing)}")
             xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float32, copy=False)
             if not np.all(np.isfinite(xyz)):
-                raise ValueError(f"UsdSink: sensor {s.name!r} sweep {s.sweep_index}: NaN or Inf points")
+                raise InputError(f"UsdSink: sensor {s.name!r} sweep {s.sweep_index}: NaN or Inf points")
             ops.append((track, f"{path}.xformOp:transform", stc, matrix4d(check_pose(s.pose, f"{s.name} pose"))))
             ops.append((track, f"{path}.scube_sim:tStart", stc, float(s.t_start)))
             ops.append((track, f"{path}.scube_sim:tRef", stc, float(s.t_ref)))

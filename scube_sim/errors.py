@@ -1,0 +1,24 @@
+"""The one error base. Every error a user can cause derives from `ScubeSimError`, so the CLI
+reports ours in one line (exit 2) and lets anything else show as the bug it is."""
+
+from __future__ import annotations
+
+
+class ScubeSimError(Exception):
+    """Base of scube-sim's typed errors; the message names the file, key or argument at fault."""
+
+
+class InputError(ScubeSimError, ValueError):
+    """A value, array or file content the caller gave that cannot be used (a `ValueError` too,
+    so code written against the plain exception keeps working)."""
+
+
+class NotFoundError(ScubeSimError, KeyError):
+    """A name that is not there (a label, a sensor, a camera); the message lists what is."""
+
+    def __str__(self) -> str:  # KeyError's str() quotes its message
+        return str(self.args[0]) if self.args else ""
+
+
+class OutOfRangeError(ScubeSimError, IndexError):
+    """An index past the end (a dataset sample, a frame); an `IndexError`, so iteration stops."""
