@@ -17,7 +17,7 @@ import numpy as np
 from .hits import Hits, TraceStats
 
 if TYPE_CHECKING:  # annotations only: the prepared scene is built by the tracer
-    from .reference import PreparedGaussians
+    from .reference import PreparedGaussians, TraceOptions
 
 
 @runtime_checkable
@@ -64,14 +64,15 @@ class TracerBackend(Protocol):
 class TraceCore(Protocol):
     """Traversal of prepared Gaussians for rays already clipped to the scene bounds.
 
+    scene: the proxies and Gaussians, built once; opts: this call's mode and walk settings;
     o, d (N, 3) float64 local frame (d unit); tmin, tmax (N,) the asked range; t_lo, t_hi (N,)
     the part of it inside the bounds. Both return per-ray (t (N,) float64, inf on a miss;
     gaussian (N,) int64, -1 on a miss); `trace_soft` also the accumulated alpha (N,)."""
 
     name: str
 
-    def trace_hard(self, scene: "PreparedGaussians", o, d, tmin, tmax, t_lo, t_hi,
+    def trace_hard(self, scene: "PreparedGaussians", opts: "TraceOptions", o, d, tmin, tmax, t_lo, t_hi,
                    stats: TraceStats) -> tuple[np.ndarray, np.ndarray]: ...
 
-    def trace_soft(self, scene: "PreparedGaussians", o, d, tmin, tmax, t_lo, t_hi,
+    def trace_soft(self, scene: "PreparedGaussians", opts: "TraceOptions", o, d, tmin, tmax, t_lo, t_hi,
                    stats: TraceStats) -> tuple[np.ndarray, np.ndarray, np.ndarray]: ...

@@ -41,7 +41,6 @@ class PreparedGaussians:
     a: np.ndarray
     opacity: np.ndarray
     k: float
-    mode: str
     proxy: str
     backend: TracerBackend
     faces_per_proxy: int
@@ -51,6 +50,16 @@ class PreparedGaussians:
     box_center: np.ndarray | None = None
     box_half: np.ndarray | None = None
     box_members: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class TraceOptions:
+    """How one trace call walks (read from the `Tracer` at each call, so its settings may change
+    between calls): mode 'entry' | 'max_response' | 'soft'; exact_order False stops a hard ray
+    at its first exact hit; max_iterations caps the casts per ray; soft_min_transmittance ends a
+    soft ray; soft_alpha_min drops fainter soft contributions."""
+
+    mode: str = "entry"
     exact_order: bool = True
     max_iterations: int = 1000
     soft_min_transmittance: float = 1e-3
@@ -63,12 +72,12 @@ class ReferenceCore:
     name = "reference"
 
     @staticmethod
-    def trace_hard(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
-        return trace_hard(scene, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def trace_hard(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
+        return trace_hard(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
 
     @staticmethod
-    def trace_soft(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
-        return trace_soft(scene, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def trace_soft(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
+        return trace_soft(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
 
 
 # --- pieces shared by the walks ------------------------------------------------------------
@@ -98,14 +107,14 @@ def to_template(scene: PreparedGaussians, owner, x, is_dir):
     return np.einsum("nji,nj->ni", q, y)  # Q^T y
 
 
-def candidates(scene: PreparedGaussians, prim, rays, d, start):
+def candidates(scene: PreparedGaussians, soft: bool, prim, rays, d, start):
     """Proxy faces -> (ray index, Gaussian index) pairs to test exactly.
 
     In soft mode a ray visits each (convex) proxy once: when it crosses one of its entering
     faces, or, for a proxy it starts inside, when it leaves through an exiting face. Exit
     faces of proxies already entered are skipped, so no Gaussian is composited twice."""
     owner = prim // scene.faces_per_proxy
-    if scene.mode != "soft":
+    if not soft:
         # Hard modes keep the nearest exact hit, so a repeated pair costs one exact test and
         # changes nothing; the visit test would cost about as much as it saves.
         return expand(scene, rays, owner)
@@ -174,19 +183,19 @@ class FaceWalk:
 
 # --- hard opacity --------------------------------------------------------------------------
 
-def trace_hard(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
+def trace_hard(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
     """Nearest exact hit per ray: (t (N,) float64, inf on a miss; gaussian (N,) int64, -1)."""
     n = o.shape[0]
     best_t = np.full(n, np.inf)
     best_g = np.full(n, -1, np.int64)
     walk = FaceWalk(scene, stats, o, d, t_lo, t_hi)
-    entry_mode = scene.mode == "entry"
+    entry_mode = opts.mode == "entry"
     kk = scene.k * scene.k
-    while walk.active.size and walk.iterations < scene.max_iterations and len(scene.gaussians):
+    while walk.active.size and walk.iterations < opts.max_iterations and len(scene.gaussians):
         active, prim, _ = walk.cast(np.minimum(best_t, t_hi))
         if not active.size:
             break
-        ray_idx, g = candidates(scene, prim, active, d, walk.start_pt)
+        ray_idx, g = candidates(scene, False, prim, active, d, walk.start_pt)
         t_star, d2, half = exact(scene, ray_idx, g, o, d, stats)
         inside = d2 <= kk
         if entry_mode:
@@ -207,49 +216,49 @@ def trace_hard(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: Tr
         best_t[ri[better]] = th[better]
         best_g[ri[better]] = gi[better]
         go_on = walk.t_cur[active] < np.minimum(best_t[active], t_hi[active])
-        if not scene.exact_order:
+        if not opts.exact_order:
             go_on &= best_g[active] < 0  # stop at the first exact hit found (see Tracer's doc)
         walk.active = active[go_on]
-    stats.unfinished += int(walk.active.size) if walk.iterations >= scene.max_iterations else 0
+    stats.unfinished += int(walk.active.size) if walk.iterations >= opts.max_iterations else 0
     return best_t, best_g
 
 
 # --- soft opacity --------------------------------------------------------------------------
 
-def _soft_contributions(scene: PreparedGaussians, ray_idx, g, o, d, tmin, tmax, stats):
+def _soft_contributions(scene: PreparedGaussians, opts: TraceOptions, ray_idx, g, o, d, tmin, tmax, stats):
     """(ray, gaussian) pairs -> the ones that contribute: (ray, gaussian, t*, alpha)."""
     t_star, d2, _ = exact(scene, ray_idx, g, o, d, stats)
     alpha = scene.opacity[g] * np.exp(-0.5 * d2)
     ok = ((d2 <= scene.k * scene.k) & (t_star >= tmin[ray_idx]) & (t_star <= tmax[ray_idx])
-          & (alpha >= scene.soft_alpha_min))
+          & (alpha >= opts.soft_alpha_min))
     return ray_idx[ok], g[ok], t_star[ok], np.minimum(alpha[ok], 0.999)
 
 
-def _soft_result(scene: PreparedGaussians, n, parts):
+def _soft_result(opts: TraceOptions, n, parts):
     cr, cg, ct, ca = (np.concatenate([x[i] for x in parts]) for i in range(4))
     if not cr.size:
         return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n)
-    return composite_front_to_back(cr, ct, ca, cg, n, scene.soft_min_transmittance)
+    return composite_front_to_back(cr, ct, ca, cg, n, opts.soft_min_transmittance)
 
 
-def trace_soft(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
+def trace_soft(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
     """Front-to-back compositing per ray: (depth (N,) float64, inf where nothing; gaussian of
     the largest weight (N,) int64, -1; accumulated alpha (N,) float64)."""
     if scene.backend.lists_all_hits:
-        return _trace_soft_listed(scene, o, d, tmin, tmax, t_lo, t_hi, stats)
+        return _trace_soft_listed(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
     n = o.shape[0]
     walk = FaceWalk(scene, stats, o, d, t_lo, t_hi)
-    log_t_min = np.log(scene.soft_min_transmittance)
+    log_t_min = np.log(opts.soft_min_transmittance)
     log_tr = np.zeros(n)  # log transmittance of the contributions known to be final
     done = []  # finalised contributions (ray, gaussian, t*, alpha) per round
     pend = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
-    while walk.active.size and walk.iterations < scene.max_iterations and len(scene.gaussians):
+    while walk.active.size and walk.iterations < opts.max_iterations and len(scene.gaussians):
         active, prim, again = walk.cast(t_hi)
         if not active.size:
             break
-        ray_idx, g = candidates(scene, prim[~again], active[~again], d, walk.start_pt)
+        ray_idx, g = candidates(scene, True, prim[~again], active[~again], d, walk.start_pt)
         pend = tuple(np.concatenate([a, b]) for a, b in
-                     zip(pend, _soft_contributions(scene, ray_idx, g, o, d, tmin, tmax, stats)))
+                     zip(pend, _soft_contributions(scene, opts, ray_idx, g, o, d, tmin, tmax, stats)))
         # Any Gaussian not found yet has its proxy entry, hence its t*, beyond this ray's last
         # face: contributions in front of it are final, and once their transmittance is below
         # the threshold the ray is done.
@@ -259,12 +268,12 @@ def trace_soft(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats: Tr
             np.add.at(log_tr, pend[0][final], np.log1p(-pend[3][final]))
             pend = tuple(a[~final] for a in pend)
         walk.active = active[(log_tr[active] > log_t_min) & (walk.t_cur[active] < t_hi[active])]
-    stats.unfinished += int(walk.active.size) if walk.iterations >= scene.max_iterations else 0
+    stats.unfinished += int(walk.active.size) if walk.iterations >= opts.max_iterations else 0
     done.append(pend)
-    return _soft_result(scene, n, done)
+    return _soft_result(opts, n, done)
 
 
-def _trace_soft_listed(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, stats):
+def _trace_soft_listed(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats):
     """Soft mode with a backend that lists all crossings in one traversal (open3d): every proxy
     along the ray at once, then the exact compositing."""
     n = o.shape[0]
@@ -278,12 +287,12 @@ def _trace_soft_listed(scene: PreparedGaussians, o, d, tmin, tmax, t_lo, t_hi, s
         stats.rays_cast += active.size
         for r, _, prim in scene.backend.all_hits(start_pt[active].astype(np.float32),
                                                  d[active].astype(np.float32), (t_hi - t0)[active]):
-            ray_idx, g = candidates(scene, prim, active[r], d, start_pt)
+            ray_idx, g = candidates(scene, True, prim, active[r], d, start_pt)
             # A ray through a shared edge or vertex crosses several faces of one proxy at once.
             key = np.unique(ray_idx * num + g)
             ray_idx, g = key // num, key % num
-            parts.append(_soft_contributions(scene, ray_idx, g, o, d, tmin, tmax, stats))
-    return _soft_result(scene, n, parts)
+            parts.append(_soft_contributions(scene, opts, ray_idx, g, o, d, tmin, tmax, stats))
+    return _soft_result(opts, n, parts)
 
 
 def composite_front_to_back(ray, t, alpha, gid, n, min_transmittance):

@@ -31,7 +31,7 @@ from . import gaussian_math as gm
 from .backends import BACKENDS, make_backend
 from .contracts import TraceCore
 from .hits import Hits, TraceStats
-from .reference import PreparedGaussians, ReferenceCore
+from .reference import PreparedGaussians, ReferenceCore, TraceOptions
 
 MODES = ("entry", "max_response", "soft")
 # Measured by `make bench` (bench/bench_tracer.py): open3d's multi-threaded Embree sweeps faster on
@@ -184,11 +184,9 @@ class Tracer:
         self.num_primitives = int(f.shape[0])
         self._backend = make_backend(self.backend_name, v, f)
         self.prepared = PreparedGaussians(
-            gaussians=g, mu=self._mu, a=self._a, opacity=g.opacities, k=self.k, mode=self.mode, proxy=self.proxy,
+            gaussians=g, mu=self._mu, a=self._a, opacity=g.opacities, k=self.k, proxy=self.proxy,
             backend=self._backend, faces_per_proxy=fpp, planes_n=planes_n, planes_h=planes_h,
-            frame_scale=frame_scale, box_center=box_center, box_half=box_half, box_members=box_members,
-            exact_order=self.exact_order, max_iterations=self.max_iterations,
-            soft_min_transmittance=self.soft_min_transmittance, soft_alpha_min=self.soft_alpha_min)
+            frame_scale=frame_scale, box_center=box_center, box_half=box_half, box_members=box_members)
 
     def _set_tolerances(self, extent: float) -> None:
         """float32 tolerances for a scene reaching `extent` metres from the local origin.
@@ -248,12 +246,15 @@ class Tracer:
             return self._trace_mesh(o, d, tmin, tmax)
         # Candidates are searched only inside the scene bounds; exact tests use the full ray.
         t_lo, t_hi = self._clip_to_bounds(o, d, tmin, tmax)
+        # The walk's settings are read now: a tracer's mode or exact_order may change between calls.
+        opts = TraceOptions(self.mode, self.exact_order, self.max_iterations, self.soft_min_transmittance,
+                            self.soft_alpha_min)
         if self.mode == "soft":
-            depth, g, acc = self.core.trace_soft(self.prepared, o, d, tmin, tmax, t_lo, t_hi, self.stats)
+            depth, g, acc = self.core.trace_soft(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
             hit = acc >= self.soft_hit_alpha
             return self._gaussian_hits(o, d, np.where(hit, depth, np.inf), np.where(hit, g, -1),
                                        alpha=acc.astype(np.float32))
-        best_t, best_g = self.core.trace_hard(self.prepared, o, d, tmin, tmax, t_lo, t_hi, self.stats)
+        best_t, best_g = self.core.trace_hard(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
         return self._gaussian_hits(o, d, best_t, best_g)
 
     # --- meshes ------------------------------------------------------------------------------

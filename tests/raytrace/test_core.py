@@ -26,13 +26,13 @@ class RecordingCore:
     def __init__(self, inner):
         self.inner, self.calls = inner, []
 
-    def trace_hard(self, scene, o, d, tmin, tmax, t_lo, t_hi, stats):
-        self.calls.append(("hard", scene, o.shape[0]))
-        return self.inner.trace_hard(scene, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def trace_hard(self, scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats):
+        self.calls.append(("hard", scene, opts, o.shape[0]))
+        return self.inner.trace_hard(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
 
-    def trace_soft(self, scene, o, d, tmin, tmax, t_lo, t_hi, stats):
-        self.calls.append(("soft", scene, o.shape[0]))
-        return self.inner.trace_soft(scene, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def trace_soft(self, scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats):
+        self.calls.append(("soft", scene, opts, o.shape[0]))
+        return self.inner.trace_soft(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
 
 
 @pytest.mark.parametrize("core", sorted(CORES))
@@ -81,8 +81,25 @@ def test_tracer_hands_the_core_its_prepared_scene(mode, rng):
     tr = Tracer(g, mode=mode, core=rec)
     o, d = random_rays(rng, 50)
     h = tr.trace(o, d)
-    kind, scene, n = rec.calls[-1]
+    kind, scene, opts, n = rec.calls[-1]
     assert (kind, n) == ("soft" if mode == "soft" else "hard", 50)
     assert isinstance(scene, PreparedGaussians) and scene is tr.prepared
-    assert len(scene.gaussians) == 30 and scene.mode == mode and scene.k == K
+    assert len(scene.gaussians) == 30 and opts.mode == mode and scene.k == K
     assert np.array_equal(h.t, Tracer(g, mode=mode).trace(o, d).t)  # the wrapper changes nothing
+
+
+def test_settings_changed_after_the_build_take_effect(rng):
+    """`mode` and `exact_order` are read at each trace (the tracer benchmark sweeps them on one
+    build): the result equals a tracer built with those settings, and the brute-force oracle."""
+    g, rots = random_scene(rng, n=150)
+    o, d = random_rays(rng, 1500)
+    tr = Tracer(g, mode="entry", opacity_floor=0.0)
+    tr.mode = "max_response"
+    got = tr.trace(o, d)
+    want = brute_force_hard(o, d, g.means, rots, g.scales, K, "max_response")
+    assert np.array_equal(got.hit, np.isfinite(want))
+    np.testing.assert_allclose(got.t[got.hit], want[got.hit], rtol=1e-9, atol=1e-9)
+    tr.exact_order = False
+    fast = tr.trace(o, d)
+    ref = Tracer(g, mode="max_response", opacity_floor=0.0, exact_order=False).trace(o, d)
+    assert np.array_equal(fast.t, ref.t) and np.array_equal(fast.gaussian, ref.gaussian)
