@@ -21,7 +21,8 @@ from .model import Intrinsics
 class CameraImage:
     """One image. image (H, W, 3) uint8 RGB; optional ground truth from renderers: depth (H, W)
     float32 metres along the optical axis (inf where nothing was hit), semantic (H, W) int16 label
-    ids, sky (H, W) bool."""
+    ids, sky (H, W) bool, instance (H, W) int32 instance ids of the surface seen (0: static scene
+    or sky; an actor's id equals its `Box.instance`)."""
 
     name: str
     image: np.ndarray
@@ -31,6 +32,7 @@ class CameraImage:
     depth: np.ndarray | None = None
     semantic: np.ndarray | None = None
     sky: np.ndarray | None = None
+    instance: np.ndarray | None = None
 
     def __post_init__(self):
         self.cam_to_world = check_pose(self.cam_to_world, f"camera {self.name!r}: cam_to_world")

@@ -13,7 +13,8 @@ What a sample holds (see `WorldsSample`):
 - ``frames``: the posed images at the reference instant T (frame offset 0), each `CameraImage`
   with its own timestamp and pose (the rig's firing offsets) and the renderer's ground truth:
   depth (H, W) float32 metres along the optical axis (inf: sky), semantic (H, W) int16 label ids,
-  sky (H, W) bool; ``boxes``: every box at T (`Box`, world frame);
+  sky (H, W) bool, instance (H, W) int32 ids (0: static or sky; an actor's id is its box's
+  ``instance``; None for samples written before layout version 2); ``boxes``: every box at T (`Box`, world frame);
 - ``timeline``: every stored instant (T, then T+5 and T+10 frames at 10 Hz by default) with its
   Frames and boxes; only T unless ``eval_frames`` (the default);
 - ``sweeps``: the one ground-truth LiDAR sweep over the first sweep period after T, as the sensor
@@ -199,7 +200,7 @@ class WorldsDataset:
             raise DatasetError(f"{meta_path}: frames: expected a non-empty list")
         maps_path = d / "frames.npz"
         maps = _load_npz(maps_path, "per-camera depth and semantic maps")
-        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path)
+        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path, meta["version"])
                     for f, fm in enumerate(frames_meta if self.eval_frames else frames_meta[:1])]
         t0 = timeline[0]
         chunk_to_world = as_matrix(require_key(meta, "chunk_to_world", str(meta_path)), (4, 4), str(meta_path),
@@ -220,7 +221,7 @@ class WorldsDataset:
                                       "layout": meta.get("layout")},
                             ground_truth=gt, timeline=timeline)
 
-    def _frame(self, d: Path, meta_path: Path, f: int, fm, maps: dict, maps_path: Path) -> WorldsFrame:
+    def _frame(self, d: Path, meta_path: Path, f: int, fm, maps: dict, maps_path: Path, version: int) -> WorldsFrame:
         where = f"{meta_path}: frames[{f}]"
         if not isinstance(fm, dict):
             raise DatasetError(f"{where}: expected an object")
@@ -245,14 +246,18 @@ class WorldsDataset:
                 raise DatasetError(f"{rgb_path}: not a readable image ({exc})") from None
             depth = _array(maps, f"depth_{k:02d}_{name}", maps_path).astype(np.float32)
             sem = _array(maps, f"semantic_{k:02d}_{name}", maps_path).astype(np.int16)
-            for what, a in (("depth", depth), ("semantic", sem)):
+            # Per-pixel instance ids came with layout version 2.
+            inst = _array(maps, f"instance_{k:02d}_{name}", maps_path).astype(np.int32) if version >= 2 else None
+            for what, a in (("depth", depth), ("semantic", sem), ("instance", inst)):
+                if a is None:
+                    continue
                 if a.shape != (intr.height, intr.width):
                     raise DatasetError(f"{maps_path}: {what}_{k:02d}_{name} has shape {a.shape}, expected "
                                        f"{(intr.height, intr.width)} (the camera's intrinsics in {meta_path})")
             pose = as_matrix(require_key(cam, "cam_to_world", cwhere), (4, 4), cwhere, "cam_to_world")
             try:
                 images.append(CameraImage(name, rgb, intr, pose, float(require_key(cam, "timestamp", cwhere)),
-                                          depth=depth, semantic=sem, sky=sem == SKY))
+                                          depth=depth, semantic=sem, sky=sem == SKY, instance=inst))
             except ValueError as exc:
                 raise DatasetError(f"{rgb_path}: {exc}") from None
         ego = as_matrix(require_key(fm, "ego_pose", where), (4, 4), where, "ego_pose")

@@ -5,7 +5,10 @@
     DIR/<split>/<index:06d>/rgb_<frame>_<camera>.png     8-bit sRGB images
     DIR/<split>/<index:06d>/frames.npz     depth_<frame>_<camera> (H, W) float16 metres along the
                                            optical axis (inf: sky), semantic_<frame>_<camera> (H, W)
-                                           uint8 label ids (cameras may differ in size)
+                                           uint8 label ids, instance_<frame>_<camera> (H, W)
+                                           int32 instance ids (0: sky; actors' ids are their
+                                           boxes' `instance`; since version 2), cameras may
+                                           differ in size
     DIR/<split>/<index:06d>/voxels.npz     fine and coarse ground-truth grids of the chunk:
                                            <level>_ijk (V, 3) int16, <level>_labels (V,) uint8,
                                            <level>_visible (V,) bool, <level>_voxel_size
@@ -56,7 +59,8 @@ from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
 from .textures import albedo
 
 DATASET_FORMAT = "scube_sim.worlds"
-DATASET_VERSION = 1
+# 2: per-pixel instance ids (instance_<frame>_<camera> in frames.npz).
+DATASET_VERSION = 2
 SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 
 
@@ -120,6 +124,7 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
             images[f"rgb_{k:02d}_{cam.name}.png"] = out["rgb"]
             maps[f"depth_{k:02d}_{cam.name}"] = out["depth"].astype(np.float16)
             maps[f"semantic_{k:02d}_{cam.name}"] = out["semantic"].astype(np.uint8)
+            maps[f"instance_{k:02d}_{cam.name}"] = out["instance"].astype(np.int32)
             cams_meta.append({"name": cam.name, "intrinsics": intr.to_dict(), "cam_to_world": pose.tolist(),
                               "timestamp": t_cam})
         frames_meta.append({"offset": k, "time": t_ref, "ego_pose": world.ego_pose_at(t_ref).tolist(),
@@ -312,9 +317,11 @@ def sample_frames(sample: dict, frame: int = 0) -> Frames:
         d = cam["intrinsics"]
         intr = Intrinsics(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d["model"], tuple(d["dist"]))
         sem = sample["frames"][f"semantic_{k:02d}_{cam['name']}"].astype(np.int16)
+        inst = sample["frames"].get(f"instance_{k:02d}_{cam['name']}")  # absent before version 2
         images.append(CameraImage(cam["name"], sample["images"][f"rgb_{k:02d}_{cam['name']}.png"], intr,
                                   np.asarray(cam["cam_to_world"]), float(cam["timestamp"]),
                                   depth=sample["frames"][f"depth_{k:02d}_{cam['name']}"].astype(np.float32),
-                                  semantic=sem, sky=sem == label_id("sky")))
+                                  semantic=sem, sky=sem == label_id("sky"),
+                                  instance=None if inst is None else inst.astype(np.int32)))
     return Frames(images, np.asarray(fm["ego_pose"]), float(fm["time"]),
                   {"split": meta["split"], "index": meta["index"], "frame_offset": k})
