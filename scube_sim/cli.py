@@ -350,7 +350,8 @@ def worlds_generate_cmd(
     count: int = typer.Option(10, "--count", help="number of samples"),
     start: int = typer.Option(0, "--start", help="index of the first sample"),
     jobs: int = typer.Option(1, "--jobs", "-j", help="worker processes"),
-    rig: Optional[str] = typer.Option(None, "--rig", help="camera rig (default waymo-5); only for a new folder"),
+    rig: Optional[str] = typer.Option(None, "--rig", help="camera rig (default waymo-5), or rigs separated by "
+                                      "commas that the samples cycle through; only for a new folder"),
     image_scale: Optional[float] = typer.Option(None, "--image-scale", help="of the rig's resolution (default 0.25)"),
 ) -> None:
     """Write dataset samples: images at T, T+5, T+10, depth, semantics, poses, boxes, GT voxels and LiDAR."""
@@ -364,7 +365,7 @@ def worlds_generate_cmd(
         if rig is not None or image_scale is not None or not (output / "dataset.json").exists():
             kw = {}
             if rig is not None:
-                kw["rig"] = rig
+                kw["rigs"] = [r.strip() for r in rig.split(",") if r.strip()]
             if image_scale is not None:
                 kw["image_scale"] = image_scale
             cfg = DatasetConfig(**kw)

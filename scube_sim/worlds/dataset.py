@@ -1,7 +1,8 @@
 """Procedural training and test data on disk: a documented, versioned layout.
 
-    DIR/dataset.json                       format, version, DatasetConfig, label table, rig
-    DIR/<split>/<index:06d>/meta.json      world config and seed, poses, cameras, timestamps, boxes
+    DIR/dataset.json                       format, version, DatasetConfig, label table, rigs
+    DIR/<split>/<index:06d>/meta.json      world config and seed, rig, poses, cameras, timestamps,
+                                           boxes
     DIR/<split>/<index:06d>/rgb_<frame>_<camera>.png     8-bit sRGB images
     DIR/<split>/<index:06d>/frames.npz     depth_<frame>_<camera> (H, W) float16 metres along the
                                            optical axis (inf: sky), semantic_<frame>_<camera> (H, W)
@@ -59,7 +60,8 @@ from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
 from .textures import albedo
 
 DATASET_FORMAT = "scube_sim.worlds"
-# 2: per-pixel instance ids (instance_<frame>_<camera> in frames.npz).
+# 2: per-pixel instance ids (instance_<frame>_<camera> in frames.npz); a rig per sample
+# (DatasetConfig.rigs, meta.json `rig`).
 DATASET_VERSION = 2
 SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 
@@ -67,7 +69,7 @@ SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 class DatasetConfig(StrictModel):
     """How samples are made. Stored in dataset.json; frozen once a converter trains on it."""
 
-    rig: str = "waymo-5"
+    rigs: list[str] = Field(default_factory=lambda: ["waymo-5"], min_length=1)
     image_scale: float = Field(default=0.25, gt=0, le=1)
     frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)
     frame_rate_hz: float = 10.0
@@ -76,6 +78,17 @@ class DatasetConfig(StrictModel):
     visibility_scale: float = Field(default=0.5, gt=0, le=1)
     lidar: str = "waymo-top"
     styles: list[str] = Field(default_factory=lambda: list(STYLES))
+
+    @property
+    def rig(self) -> str:
+        """The first rig: the dataset's reference rig (dataset.json `rig`)."""
+        return self.rigs[0]
+
+
+def sample_rig(index: int, cfg: DatasetConfig) -> str:
+    """The camera rig of sample `index`: the samples cycle through `cfg.rigs`, one rig for each
+    full round of styles, so that every style meets every rig."""
+    return cfg.rigs[(index // len(cfg.styles)) % len(cfg.rigs)]
 
 
 def sample_world_config(split: str, index: int, cfg: DatasetConfig) -> WorldConfig:
@@ -109,7 +122,8 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     """Generate one sample in memory: {'meta', 'images', 'frames', 'voxels', 'lidar'}."""
     wcfg = sample_world_config(split, index, cfg)
     world = generate_world(wcfg)
-    rig = load_rig(cfg.rig)
+    rig_name = sample_rig(index, cfg)
+    rig = load_rig(rig_name)
     scene_at = _SceneAt(world)
     chunk_to_world = world.ego_pose_at(0.0)
     frames_meta, images, maps = [], {}, {}
@@ -153,7 +167,7 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     meta = {
         "format": DATASET_FORMAT, "version": DATASET_VERSION, "split": split, "index": index,
         "world": wcfg.model_dump(), "world_version": WORLD_VERSION, "layout": world.layout.kind,
-        "chunk_to_world": chunk_to_world.tolist(), "sun_dir": world.sun_dir.tolist(), "frames": frames_meta,
+        "rig": rig_name, "chunk_to_world": chunk_to_world.tolist(), "sun_dir": world.sun_dir.tolist(), "frames": frames_meta,
         "lidar": {"sensor": cfg.lidar, "pose_start": sweep.pose_start.tolist(), "pose_end": sweep.pose_end.tolist(),
                   "t_start": sweep.t_start, "t_end": sweep.t_end},
         "voxels": {"fine": len(fine), "coarse": len(coarse), "fine_visible_fraction": float(fine.visible.mean())},
@@ -203,6 +217,7 @@ def dataset_header(cfg: DatasetConfig) -> dict:
     return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "config": cfg.model_dump(),
             "world_version": WORLD_VERSION, "label_table_version": LABEL_TABLE_VERSION,
             "labels": [lab.name for lab in LABELS], "rig": rig.model_dump(mode="json"),
+            "rigs": [load_rig(r).model_dump(mode="json") for r in cfg.rigs],
             "split_seed_base": SPLIT_SEED_BASE}
 
 

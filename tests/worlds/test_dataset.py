@@ -166,6 +166,7 @@ def test_dataset_header(dataset_dir):
     assert DatasetConfig.model_validate(head["config"]) == CFG
     assert head["labels"] == list(LABEL_NAMES)
     assert head["rig"]["name"] == CFG.rig
+    assert [r["name"] for r in head["rigs"]] == CFG.rigs
     assert ensure_dataset_config(dataset_dir, None) == CFG
     assert ensure_dataset_config(dataset_dir, CFG.model_copy()) == CFG
 
@@ -229,6 +230,22 @@ def test_splits_have_disjoint_seeds_and_different_worlds():
     assert a.duration_s >= max(CFG.frame_offsets) / CFG.frame_rate_hz
     with pytest.raises(ValueError, match="split"):
         sample_world_config("holdout", 0, CFG)
+
+
+def test_samples_cycle_through_the_rigs():
+    """With two rigs, each full round of styles takes the next rig, and a sample's cameras are
+    its rig's (names, resolution scaled as configured, poses from the rig's mounts)."""
+    cfg = CFG.model_copy(update={"rigs": ["waymo-5", "nuscenes-6"], "styles": ["suburban"]})
+    assert [ds_mod.sample_rig(i, cfg) for i in range(4)] == ["waymo-5", "nuscenes-6", "waymo-5", "nuscenes-6"]
+    two = CFG.model_copy(update={"rigs": ["waymo-5", "nuscenes-6"]})
+    assert [ds_mod.sample_rig(i, two) for i in range(9)] == ["waymo-5"] * 4 + ["nuscenes-6"] * 4 + ["waymo-5"]
+    s = make_sample("train", 1, cfg)
+    rig = load_rig("nuscenes-6")
+    assert s["meta"]["rig"] == "nuscenes-6"
+    cams = s["meta"]["frames"][0]["cameras"]
+    assert [c["name"] for c in cams] == [c.name for c in rig.cameras]
+    for c, rc in zip(cams, rig.cameras):
+        assert c["intrinsics"]["width"] == rc.intrinsics().scaled(cfg.image_scale).width
 
 
 # --- CLI -----------------------------------------------------------------------------------------
