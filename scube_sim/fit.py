@@ -14,8 +14,9 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .splat_params import EMPTY_OPACITY_RAW, NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0
 from .transforms import rotmat_to_quat
-from .voxsplat import NUM_RAW, OFFSET, QUAT, RGB, SCALE, SH_C0, VoxSplat, unique_voxels
+from .voxsplat import VoxSplat, unique_voxels
 
 _PAIRS = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -129,7 +130,7 @@ def fit_voxsplat(
         params[:, RGB] = (cm - 0.5) / SH_C0
     valid = (cnt > 0).reshape(nv, m)
     params = params.reshape(nv, m, NUM_RAW)
-    params[~valid, 3] = -30.0
+    params[~valid, 3] = EMPTY_OPACITY_RAW
     params[~valid, 7:11] = [1, 0, 0, 0]
 
     vox_labels = None

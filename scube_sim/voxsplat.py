@@ -4,7 +4,8 @@ Each occupied voxel holds M Gaussians with 14 raw values each, in this order:
 offset(3), opacity(1), scale(3), quaternion wxyz(4), RGB as the SH degree-0 coefficient(3).
 Activations (paper): ``mu = r * tanh(offset) + voxel_center`` with ``r = offset_range * voxel_size``
 (paper: 3 voxels), ``alpha = sigmoid(opacity)``, ``s = exp(scale)`` in metres,
-``R = quat2rot(normalize(q))``, ``colour = clip(0.5 + C0 * rgb, 0, 1)``.
+``R = quat2rot(normalize(q))``, ``colour = clip(0.5 + C0 * rgb, 0, 1)``. The layout and the
+activations have one definition, `splat_params` (numpy; its torch twin is `model.activations`).
 
 Optional channels: anything a later stage adds (observation flags and confidence per voxel,
 reflectance per Gaussian, a sky panorama per scene) is a named `Channel` in ``VoxSplat.channels``,
@@ -30,12 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
+from . import splat_params as sp
 from .atomic import atomic_path
 from .errors import InputError, NotFoundError
+from .splat_params import NUM_RAW, OFFSET, OPACITY, QUAT, RGB, SCALE, SH_C0  # noqa: F401 (re-exported)
 from .transforms import normalize_quat, quat_to_rotmat
 
-SH_C0 = 0.28209479177387814
-NUM_RAW = 14
 FORMAT_NAME = "scube_sim.voxsplat"
 FORMAT_VERSION = 2  # the newest version this module reads and writes (see the module doc)
 CHANNEL_PER = ("voxel", "gaussian", "scene")
@@ -70,13 +71,6 @@ class Channel:
 
     per: str
     data: np.ndarray
-
-# Slices into the 14 raw values.
-OFFSET, OPACITY, SCALE, QUAT, RGB = slice(0, 3), slice(3, 4), slice(4, 7), slice(7, 11), slice(11, 14)
-
-# exp() of float32 overflows above ~88; a Gaussian larger than 10 km or smaller than 1 nm is
-# not a scene element, so the scale activation is clamped to keep the numerics finite.
-_LOG_SCALE_MIN, _LOG_SCALE_MAX = np.log(1e-9), np.log(1e4)
 
 
 def voxel_keys(ijk: np.ndarray) -> np.ndarray:
@@ -242,12 +236,11 @@ class VoxSplat:
 
     def means(self) -> np.ndarray:
         """(V, M, 3) float64 activated means, local frame."""
-        r = self.offset_range * self.voxel_size
-        return r * np.tanh(self.params[..., OFFSET].astype(np.float64)) + self.voxel_centers()[:, None, :]
+        return sp.offsets(self.params[..., OFFSET], self.offset_range * self.voxel_size) + self.voxel_centers()[:, None, :]
 
     def scales(self) -> np.ndarray:
         """(V, M, 3) float64 metres."""
-        return np.exp(np.clip(self.params[..., SCALE].astype(np.float64), _LOG_SCALE_MIN, _LOG_SCALE_MAX))
+        return sp.scales(self.params[..., SCALE])
 
     def quats(self) -> np.ndarray:
         """(V, M, 4) float64 unit wxyz (zero-norm raw quaternions become the identity)."""
@@ -259,12 +252,11 @@ class VoxSplat:
 
     def opacities(self) -> np.ndarray:
         """(V, M) float64 in [0, 1]."""
-        x = np.clip(self.params[..., 3].astype(np.float64), -60.0, 60.0)
-        return 1.0 / (1.0 + np.exp(-x))
+        return sp.opacities(self.params[..., 3])
 
     def colors(self) -> np.ndarray:
         """(V, M, 3) float32 RGB in [0, 1]."""
-        return np.clip(0.5 + SH_C0 * self.params[..., RGB], 0.0, 1.0).astype(np.float32)
+        return sp.colors(self.params[..., RGB])
 
     def gaussians(self) -> Gaussians:
         """The valid Gaussians, activated and flattened, with their voxel index and slot."""
@@ -341,16 +333,14 @@ class VoxSplat:
         v = uniq.shape[0]
         params = np.zeros((v, m, NUM_RAW), np.float32)
         params[..., 7] = 1.0  # identity quaternion in empty slots
-        params[..., 3] = -30.0  # empty slots are transparent as well as invalid
+        params[..., 3] = sp.EMPTY_OPACITY_RAW  # empty slots are transparent as well as invalid
         valid = np.zeros((v, m), bool)
         centers = (uniq.astype(np.float64) + 0.5) * voxel_size
         r = offset_range * voxel_size
-        off = (local[order] - centers[inv_sorted]) / r
         raw = np.empty((order.shape[0], NUM_RAW), np.float64)
-        raw[:, OFFSET] = np.arctanh(np.clip(off, -1 + 1e-7, 1 - 1e-7))
-        op = np.clip(g.opacities[order], 1e-12, 1 - 1e-7)
-        raw[:, 3] = np.log(op) - np.log1p(-op)
-        raw[:, SCALE] = np.log(np.clip(g.scales[order], 1e-9, None))
+        raw[:, OFFSET] = sp.offsets_to_raw(local[order] - centers[inv_sorted], r)
+        raw[:, 3] = sp.opacities_to_raw(g.opacities[order])
+        raw[:, SCALE] = sp.scales_to_raw(g.scales[order])
         raw[:, QUAT] = normalize_quat(g.quats[order])
         raw[:, RGB] = g.sh_dc[order]
         params[inv_sorted, slot] = raw

@@ -2,9 +2,10 @@
 
     ground        errors config atomic transforms labels resources geodesy boxes mesh
                   io.pointcloud io.safe_pickle
-    representation voxsplat fit io (3DGS PLY, USD) scene_file
+    representation voxsplat splat_params fit io (3DGS PLY, USD) scene_file
     sensors       raytrace camera lidar viz
-    content       worlds datasets reconstruct registration fidelity
+    content       worlds datasets reconstruct registration fidelity model (the converter's networks,
+                  their training data and trainer)
     simulation    sim demo
     cli           cli
 
@@ -23,9 +24,9 @@ PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 LAYERS = [
     ("ground", ["errors", "config", "atomic", "transforms", "labels", "resources", "geodesy", "boxes", "mesh",
                 "io.pointcloud", "io.safe_pickle", "_sensors"]),
-    ("representation", ["voxsplat", "fit", "io", "scene_file"]),
+    ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar", "viz"]),
-    ("content", ["worlds", "datasets", "reconstruct", "registration", "fidelity"]),
+    ("content", ["worlds", "datasets", "reconstruct", "registration", "fidelity", "model"]),
     ("simulation", ["sim", "demo"]),
     ("cli", ["cli"]),
 ]

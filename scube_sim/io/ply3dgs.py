@@ -18,7 +18,8 @@ from plyfile import PlyData, PlyElement, PlyParseError
 from ..atomic import atomic_path
 from ..errors import InputError
 from ..transforms import normalize_quat
-from ..voxsplat import _LOG_SCALE_MAX, _LOG_SCALE_MIN, Gaussians, VoxSplat
+from .. import splat_params as sp
+from ..voxsplat import Gaussians, VoxSplat
 
 __all__ = ["SplatPlyInfo", "read_3dgs_ply_info", "read_3dgs_ply", "write_3dgs_ply",
            "default_voxel_size", "read_splat_file"]
@@ -117,12 +118,11 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
 
     world = cols("x", "y", "z")
     origin = _local_origin(world) if np.all(np.isfinite(world)) else np.zeros(3)
-    logit = np.clip(v["opacity"].astype(np.float64), -60.0, 60.0)  # exp overflow guard
     g = Gaussians(
         means=world - origin,
-        scales=np.exp(np.clip(cols("scale_0", "scale_1", "scale_2"), _LOG_SCALE_MIN, _LOG_SCALE_MAX)),
+        scales=sp.scales(cols("scale_0", "scale_1", "scale_2")),
         quats=normalize_quat(cols("rot_0", "rot_1", "rot_2", "rot_3")),
-        opacities=1.0 / (1.0 + np.exp(-logit)),
+        opacities=sp.opacities(v["opacity"]),
         sh_dc=cols("f_dc_0", "f_dc_1", "f_dc_2").astype(np.float32),
         voxel=None, slot=None, origin=origin,
     )

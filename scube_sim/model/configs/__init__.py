@@ -1,0 +1,1 @@
+"""Shipped training configurations (YAML), resolved by name: see `scube_sim.model.config`."""
