@@ -21,8 +21,8 @@ from .model import Intrinsics
 class CameraImage:
     """One image. image (H, W, 3) uint8 RGB; optional ground truth from renderers: depth (H, W)
     float32 metres along the optical axis (inf where nothing was hit), semantic (H, W) int16 label
-    ids, sky (H, W) bool, instance (H, W) int32 instance ids of the surface seen (0: static scene
-    or sky; an actor's id equals its `Box.instance`)."""
+    ids, sky (H, W) bool, instance (H, W) int32 instance ids of the surface seen (renderer-defined;
+    the worlds: 0 for ground and sky, a boxed object's id equals its `Box.instance`)."""
 
     name: str
     image: np.ndarray

@@ -13,8 +13,8 @@ What a sample holds (see `WorldsSample`):
 - ``frames``: the posed images at the reference instant T (frame offset 0), each `CameraImage`
   with its own timestamp and pose (the rig's firing offsets) and the renderer's ground truth:
   depth (H, W) float32 metres along the optical axis (inf: sky), semantic (H, W) int16 label ids,
-  sky (H, W) bool, instance (H, W) int32 ids (0: static or sky; an actor's id is its box's
-  ``instance``; None for samples written before layout version 2); ``boxes``: every box at T (`Box`, world frame);
+  sky (H, W) bool, instance (H, W) int32 ids (0: ground and sky; each other object has its own
+  id, and a boxed object's is its box's ``instance``); ``boxes``: every box at T (`Box`, world frame);
 - ``timeline``: every stored instant (T, then T+5 and T+10 frames at 10 Hz by default) with its
   Frames and boxes; only T unless ``eval_frames`` (the default);
 - ``sweeps``: the one ground-truth LiDAR sweep over the first sweep period after T, as the sensor
@@ -200,7 +200,7 @@ class WorldsDataset:
             raise DatasetError(f"{meta_path}: frames: expected a non-empty list")
         maps_path = d / "frames.npz"
         maps = _load_npz(maps_path, "per-camera depth and semantic maps")
-        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path, meta["version"])
+        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path)
                     for f, fm in enumerate(frames_meta if self.eval_frames else frames_meta[:1])]
         t0 = timeline[0]
         chunk_to_world = as_matrix(require_key(meta, "chunk_to_world", str(meta_path)), (4, 4), str(meta_path),
@@ -218,10 +218,10 @@ class WorldsDataset:
                             frames=t0.frames, sweeps=[sweep], lidars=dict(self.lidars), boxes=t0.boxes,
                             metadata={"dataset": self.name, "split": self.split, "index": index,
                                       "sample_dir": str(d), "world": meta.get("world"),
-                                      "layout": meta.get("layout")},
+                                      "layout": meta.get("layout"), "rig": meta.get("rig")},
                             ground_truth=gt, timeline=timeline)
 
-    def _frame(self, d: Path, meta_path: Path, f: int, fm, maps: dict, maps_path: Path, version: int) -> WorldsFrame:
+    def _frame(self, d: Path, meta_path: Path, f: int, fm, maps: dict, maps_path: Path) -> WorldsFrame:
         where = f"{meta_path}: frames[{f}]"
         if not isinstance(fm, dict):
             raise DatasetError(f"{where}: expected an object")
@@ -246,11 +246,8 @@ class WorldsDataset:
                 raise DatasetError(f"{rgb_path}: not a readable image ({exc})") from None
             depth = _array(maps, f"depth_{k:02d}_{name}", maps_path).astype(np.float32)
             sem = _array(maps, f"semantic_{k:02d}_{name}", maps_path).astype(np.int16)
-            # Per-pixel instance ids came with layout version 2.
-            inst = _array(maps, f"instance_{k:02d}_{name}", maps_path).astype(np.int32) if version >= 2 else None
+            inst = _array(maps, f"instance_{k:02d}_{name}", maps_path).astype(np.int32)
             for what, a in (("depth", depth), ("semantic", sem), ("instance", inst)):
-                if a is None:
-                    continue
                 if a.shape != (intr.height, intr.width):
                     raise DatasetError(f"{maps_path}: {what}_{k:02d}_{name} has shape {a.shape}, expected "
                                        f"{(intr.height, intr.width)} (the camera's intrinsics in {meta_path})")

@@ -144,20 +144,41 @@ class Grid:
         return self._maps[key]
 
     # --- kernel maps -------------------------------------------------------------------------
+    def _search_own_rows(self, qkeys: torch.Tensor) -> torch.Tensor:
+        """(N,) keys, one per row of this grid and in the same batch -> (N,) row of each key in
+        this grid, -1 if absent (queries aligned with the rows need no batch selection)."""
+        out = torch.full_like(qkeys, -1)
+        for b in range(self.batch_size):
+            n, s = int(self.counts[b]), int(self.starts[b])
+            if n == 0:
+                continue
+            seg, q = self.keys[s:s + n], qkeys[s:s + n]
+            pos = torch.searchsorted(seg, q).clamp_max(n - 1)
+            out[s:s + n] = torch.where(seg[pos] == q, s + pos, -1)
+        return out
+
     def submanifold_map(self, kernel: int, dilation: int = 1) -> KernelMap:
         """Map of a submanifold convolution on this grid (odd kernel)."""
         def build():
             c = (kernel - 1) // 2
             ins, outs = [], []
             rows = torch.arange(len(self), device=self.device)
+            reach = c * dilation
+            # A shift of every index by d moves every key by key(d) - key(0) while no index leaves
+            # its 21-bit field: then the neighbour keys are one addition away.
+            fast = not len(self) or int(self.coords[:, 1:].abs().max()) + reach < _BIAS
             for d in kernel_offsets(kernel, self.device):
                 shift = (d - c) * dilation
                 if not bool(shift.any()):
                     ins.append(rows), outs.append(rows)
                     continue
-                q = self.coords.clone()
-                q[:, 1:] += shift
-                idx = self.lookup(q)
+                if fast:
+                    dk = (int(shift[0]) << (2 * _BITS)) + (int(shift[1]) << _BITS) + int(shift[2])
+                    idx = self._search_own_rows(self.keys + dk)
+                else:
+                    q = self.coords.clone()
+                    q[:, 1:] += shift
+                    idx = self.lookup(q)
                 hit = idx >= 0
                 ins.append(idx[hit]), outs.append(rows[hit])
             return KernelMap(ins, outs)
@@ -291,17 +312,53 @@ def cat_features(*tensors: SparseTensor) -> SparseTensor:
     return SparseTensor(torch.cat([t.feats for t in tensors], 1), g)
 
 
+class _KernelMapConv(torch.autograd.Function):
+    """Gather -> matmul -> scatter along a kernel map, with a backward that recomputes the
+    gathers instead of keeping one gathered copy of the input per kernel offset."""
+
+    @staticmethod
+    def forward(ctx, feats, weight, kmap: KernelMap, num_out: int):
+        out = feats.new_zeros((num_out, weight.shape[2]))
+        for k, (i_idx, o_idx) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
+            if not i_idx.numel():
+                continue
+            if o_idx is i_idx:  # the identity offset of a submanifold map: no gather, no scatter
+                out.addmm_(feats, weight[k])
+            else:
+                out.index_add_(0, o_idx, feats.index_select(0, i_idx) @ weight[k])
+        ctx.save_for_backward(feats, weight)
+        ctx.kmap = kmap
+        return out
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        feats, weight = ctx.saved_tensors
+        grad_out = grad_out.contiguous()
+        need_x, need_w = ctx.needs_input_grad[0], ctx.needs_input_grad[1]
+        gx = torch.zeros_like(feats) if need_x else None
+        gw = torch.zeros_like(weight) if need_w else None
+        for k, (i_idx, o_idx) in enumerate(zip(ctx.kmap.in_idx, ctx.kmap.out_idx)):
+            if not i_idx.numel():
+                continue
+            same = o_idx is i_idx
+            g = grad_out if same else grad_out.index_select(0, o_idx)
+            if need_w:
+                x = feats if same else feats.index_select(0, i_idx)
+                gw[k] = x.T @ g
+            if need_x:
+                if same:
+                    gx.addmm_(g, weight[k].T)
+                else:
+                    gx.index_add_(0, i_idx, g @ weight[k].T)
+        return gx, gw, None, None
+
+
 def apply_kernel_map(feats: torch.Tensor, weight: torch.Tensor, kmap: KernelMap, num_out: int) -> torch.Tensor:
     """Gather -> matmul -> scatter: (N_in, C_in) features, (K, C_in, C_out) weight -> (num_out, C_out)."""
-    out = feats.new_zeros((num_out, weight.shape[2]))
-    for k, (i_idx, o_idx) in enumerate(zip(kmap.in_idx, kmap.out_idx)):
-        if not i_idx.numel():
-            continue
-        if o_idx is i_idx and i_idx.numel() == num_out == feats.shape[0]:  # the identity offset
-            out += feats @ weight[k]
-        else:
-            out.index_add_(0, o_idx, feats.index_select(0, i_idx) @ weight[k])
-    return out
+    if feats.dtype != weight.dtype:
+        raise InputError(f"sparse convolution: features are {feats.dtype} but the weight is {weight.dtype}")
+    return _KernelMapConv.apply(feats, weight, kmap, num_out)
 
 
 class _SparseConvBase(nn.Module):

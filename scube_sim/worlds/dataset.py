@@ -7,8 +7,9 @@
     DIR/<split>/<index:06d>/frames.npz     depth_<frame>_<camera> (H, W) float16 metres along the
                                            optical axis (inf: sky), semantic_<frame>_<camera> (H, W)
                                            uint8 label ids, instance_<frame>_<camera> (H, W)
-                                           int32 instance ids (0: sky; actors' ids are their
-                                           boxes' `instance`; since version 2), cameras may
+                                           int32 instance ids (0: ground and sky; each other
+                                           object has its own id, a boxed one's is its box's
+                                           `instance`; since version 2), cameras may
                                            differ in size
     DIR/<split>/<index:06d>/voxels.npz     fine and coarse ground-truth grids of the chunk:
                                            <level>_ijk (V, 3) int16, <level>_labels (V,) uint8,
