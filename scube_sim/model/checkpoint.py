@@ -1,0 +1,106 @@
+"""Training checkpoints: tensors and plain Python values only, written atomically, read back with
+`torch.load(weights_only=True)` so that loading a file never runs code from it.
+
+A checkpoint is a dict (see `trainer` for the keys it writes) carrying `format` = FORMAT and
+`version` = VERSION. RNG states are stored as a torch uint8 tensor (torch's CPU generator) and
+plain ints/lists/floats (numpy's global MT19937, Python's `random`).
+"""
+
+from __future__ import annotations
+
+import random
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..atomic import atomic_path
+from ..errors import InputError
+
+FORMAT = "scube-sim-train"
+VERSION = 1
+
+_PLAIN = (int, float, bool, str, type(None))
+
+
+class CheckpointError(InputError):
+    """A checkpoint file that cannot be used; the message names the file."""
+
+
+def check_plain(obj: object, where: str = "checkpoint") -> None:
+    """Raise TypeError unless `obj` is built from tensors, dicts, lists, tuples and plain scalars.
+
+    Exact types, not isinstance: numpy scalars subclass float but would be pickled as numpy
+    objects, which `weights_only` loading refuses.
+    """
+    if isinstance(obj, torch.Tensor) or type(obj) in _PLAIN:
+        return
+    if isinstance(obj, dict):  # includes the OrderedDict of a state_dict
+        for k, v in obj.items():
+            if type(k) not in (str, int):
+                raise TypeError(f"{where}: key {k!r} is a {type(k).__name__}, expected str or int")
+            check_plain(v, f"{where}.{k}")
+        return
+    if type(obj) in (list, tuple):
+        for i, v in enumerate(obj):
+            check_plain(v, f"{where}[{i}]")
+        return
+    raise TypeError(f"{where}: {type(obj).__module__}.{type(obj).__qualname__} is not a tensor or a plain value")
+
+
+def save_checkpoint(path: str | Path, state: dict) -> Path:
+    """Write `state` (plus format and version) to `path` through a temporary file and a rename,
+    so `path` always holds a complete checkpoint, even if the process dies mid-write."""
+    path = Path(path)
+    state = {"format": FORMAT, "version": VERSION, **state}
+    check_plain(state)
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """The checkpoint dict at `path`, loaded with weights_only=True onto the CPU."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+    except Exception as exc:  # anything the unpickler or the zip reader raises: the file is at fault
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        raise CheckpointError(f"{path}: not a loadable checkpoint "
+                              f"(torch.load with weights_only=True: {first})") from None
+    if not isinstance(state, dict) or state.get("format") != FORMAT or state.get("version") != VERSION:
+        got = (f"format {state.get('format')!r}, version {state.get('version')!r}" if isinstance(state, dict)
+               else f"a {type(state).__name__}")
+        raise CheckpointError(f"{path}: {got}; expected format {FORMAT!r}, version {VERSION}")
+    return state
+
+
+def rng_state() -> dict:
+    """The torch CPU, numpy global and Python `random` generator states, as plain values."""
+    kind, key, pos, has_gauss, cached = np.random.get_state()
+    version, internal, gauss_next = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": {"bit_generator": str(kind), "key": [int(k) for k in key], "pos": int(pos),
+                  "has_gauss": int(has_gauss), "cached_gaussian": float(cached)},
+        "python": {"version": int(version), "internal": list(internal), "gauss_next": gauss_next},
+    }
+
+
+def set_rng_state(state: dict) -> None:
+    """Restore what `rng_state` returned."""
+    torch.set_rng_state(state["torch"])
+    n = state["numpy"]
+    np.random.set_state((n["bit_generator"], np.asarray(n["key"], dtype=np.uint32), n["pos"],
+                         n["has_gauss"], n["cached_gaussian"]))
+    p = state["python"]
+    random.setstate((p["version"], tuple(p["internal"]), p["gauss_next"]))
+
+
+def seed_everything(seed: int) -> None:
+    """Seed torch, numpy's global generator and Python's `random` from one integer."""
+    torch.manual_seed(seed)
+    np.random.seed(seed % 2**32)
+    random.seed(seed)
