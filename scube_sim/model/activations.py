@@ -22,8 +22,22 @@ from ..splat_params import (
     SH_C0,
 )
 
-__all__ = ["NUM_RAW", "OFFSET", "OPACITY", "SCALE", "QUAT", "RGB", "SH_C0", "offsets", "opacities", "scales",
-           "quats", "colors", "rotations", "activate"]
+__all__ = [
+    "NUM_RAW",
+    "OFFSET",
+    "OPACITY",
+    "QUAT",
+    "RGB",
+    "SCALE",
+    "SH_C0",
+    "activate",
+    "colors",
+    "offsets",
+    "opacities",
+    "quats",
+    "rotations",
+    "scales",
+]
 
 _QUAT_EPS = 1e-12
 

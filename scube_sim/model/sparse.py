@@ -65,7 +65,7 @@ class KernelMap:
     def __init__(self, in_idx: list[torch.Tensor], out_idx: list[torch.Tensor]):
         self.in_idx, self.out_idx = in_idx, out_idx
 
-    def transposed(self) -> "KernelMap":
+    def transposed(self) -> KernelMap:
         return KernelMap(self.out_idx, self.in_idx)
 
     @property
@@ -184,7 +184,7 @@ class Grid:
             return KernelMap(ins, outs)
         return self.cached(("subm", kernel, dilation), build)
 
-    def downsample(self, kernel: int, stride: int, padding: int = 0) -> tuple["Grid", KernelMap]:
+    def downsample(self, kernel: int, stride: int, padding: int = 0) -> tuple[Grid, KernelMap]:
         """The grid and map of a strided convolution from this grid: output sites are every o
         with s * o + delta - p active for some delta (cached: the same grid object each time)."""
         def build():
@@ -204,7 +204,7 @@ class Grid:
             return out_grid, KernelMap(ins, outs)
         return self.cached(("down", kernel, stride, padding), build)
 
-    def upsample_map(self, coarse: "Grid", kernel: int, stride: int, padding: int = 0) -> KernelMap:
+    def upsample_map(self, coarse: Grid, kernel: int, stride: int, padding: int = 0) -> KernelMap:
         """Map of a transposed convolution from `coarse` onto this grid's sites:
         out[s * i + delta - p] += in[i] W[delta] (cached on this grid, the target)."""
         def build():
@@ -220,7 +220,7 @@ class Grid:
             return KernelMap(ins, outs)
         return self.cached(("up", kernel, stride, padding, coarse), build)
 
-    def upsample(self, kernel: int, stride: int, padding: int = 0) -> tuple["Grid", KernelMap]:
+    def upsample(self, kernel: int, stride: int, padding: int = 0) -> tuple[Grid, KernelMap]:
         """Every site a transposed convolution from this grid reaches, and its map."""
         def build():
             offs = kernel_offsets(kernel, self.device)
@@ -228,6 +228,15 @@ class Grid:
             fine = Grid(unique_coords(torch.cat(cand)), self.batch_size, max(self.stride // stride, 1), _sorted=True)
             return fine, fine.upsample_map(self, kernel, stride, padding)
         return self.cached(("up-all", kernel, stride, padding), build)
+
+
+def site_order(coords: torch.Tensor) -> torch.Tensor:
+    """(N,) permutation that sorts (N, 4) [batch, i, j, k] sites by (batch, key): a grid's order."""
+    coords = torch.as_tensor(coords).long()
+    if not coords.shape[0]:
+        return torch.zeros(0, dtype=torch.int64, device=coords.device)
+    order = torch.argsort(voxel_keys(coords[:, 1:]), stable=True)
+    return order[torch.argsort(coords[order, 0], stable=True)]
 
 
 def unique_coords(coords: torch.Tensor) -> torch.Tensor:
@@ -254,15 +263,13 @@ class SparseTensor:
 
     @classmethod
     def from_coords(cls, coords: torch.Tensor, feats: torch.Tensor, batch_size: int | None = None,
-                    stride: int = 1) -> "SparseTensor":
+                    stride: int = 1) -> SparseTensor:
         """Unsorted (N, 4) [batch, i, j, k] sites with their (N, C) features (no duplicates)."""
         coords = torch.as_tensor(coords).long()
         if coords.shape[0] != feats.shape[0]:
             raise InputError(f"coords and feats: {coords.shape[0]} sites but {feats.shape[0]} feature rows")
         b = int(coords[:, 0].max()) + 1 if batch_size is None and coords.numel() else (batch_size or 1)
-        keys = voxel_keys(coords[:, 1:]) if coords.numel() else coords[:, 0]
-        order = torch.argsort(keys, stable=True)
-        order = order[torch.argsort(coords[order, 0], stable=True)]
+        order = site_order(coords)
         return cls(feats[order], Grid(coords[order], b, stride, _sorted=True))
 
     @property
@@ -284,7 +291,7 @@ class SparseTensor:
     def __len__(self) -> int:
         return len(self.grid)
 
-    def replace(self, feats: torch.Tensor) -> "SparseTensor":
+    def replace(self, feats: torch.Tensor) -> SparseTensor:
         """Same sites (and cached maps), new features."""
         return SparseTensor(feats, self.grid)
 

@@ -10,9 +10,23 @@ import torch
 from pydantic import ValidationError
 
 from scube_sim.errors import InputError
-from scube_sim.model.augment import (AugmentConfig, BlurConfig, CameraSelection, adjust_color, adjust_exposure,
-                                     choose_cameras, color_jitter, front_camera, gaussian_blur, jpeg, linear_to_srgb,
-                                     photometric, random_exposure, sensor_noise, srgb_to_linear)
+from scube_sim.model.augment import (
+    AugmentConfig,
+    BlurConfig,
+    CameraSelection,
+    adjust_color,
+    adjust_exposure,
+    choose_cameras,
+    color_jitter,
+    front_camera,
+    gaussian_blur,
+    jpeg,
+    linear_to_srgb,
+    photometric,
+    random_exposure,
+    sensor_noise,
+    srgb_to_linear,
+)
 
 WAYMO = ["FRONT", "FRONT_LEFT", "FRONT_RIGHT", "SIDE_LEFT", "SIDE_RIGHT"]
 NUSCENES = ["CAM_FRONT", "CAM_FRONT_LEFT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK_RIGHT", "CAM_BACK"]

@@ -13,8 +13,17 @@ import torch
 
 from scube_sim.errors import ScubeSimError
 from scube_sim.model import checkpoint as ckpt
-from scube_sim.model.checkpoint import (FORMAT, VERSION, CheckpointError, check_plain, load_checkpoint, rng_state,
-                                        save_checkpoint, seed_everything, set_rng_state)
+from scube_sim.model.checkpoint import (
+    FORMAT,
+    VERSION,
+    CheckpointError,
+    check_plain,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    seed_everything,
+    set_rng_state,
+)
 
 
 def test_a_checkpoint_round_trips_tensors_and_plain_values(tmp_path):

@@ -20,8 +20,15 @@ from scube_sim.datasets import open_dataset
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
 from scube_sim.model.augment import CameraSelection
-from scube_sim.model.data import (DataConfig, WorldsTorchDataset, collate, nearest_index, resize_bilinear,
-                                  resize_nearest, scale_intrinsics)
+from scube_sim.model.data import (
+    DataConfig,
+    WorldsTorchDataset,
+    collate,
+    nearest_index,
+    resize_bilinear,
+    resize_nearest,
+    scale_intrinsics,
+)
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
 # One style, two rigs: sample i has rig RIGS[i % 2] (the samples cycle through the rigs once per

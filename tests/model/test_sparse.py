@@ -46,7 +46,7 @@ def random_sparse(seed: int, n: int, channels: int, batch: int, side: int = SIDE
 def dense_weight(w: torch.Tensor, k: int, transposed: bool = False) -> torch.Tensor:
     """(k^3, C_in, C_out) sparse weight -> conv3d (C_out, C_in, k, k, k) or conv_transpose3d
     (C_in, C_out, k, k, k) weight; the offsets run (i, j, k) row-major like the dense axes."""
-    kk, ci, co = w.shape
+    _, ci, co = w.shape
     if transposed:
         return w.permute(1, 2, 0).reshape(ci, co, k, k, k)
     return w.permute(2, 1, 0).reshape(co, ci, k, k, k)
