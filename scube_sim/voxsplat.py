@@ -34,6 +34,7 @@ import numpy as np
 from . import splat_params as sp
 from .atomic import atomic_path
 from .errors import InputError, NotFoundError
+from .labels import NUM_LABELS
 from .splat_params import NUM_RAW, OFFSET, OPACITY, QUAT, RGB, SCALE, SH_C0  # noqa: F401 (re-exported)
 from .transforms import normalize_quat, quat_to_rotmat
 
@@ -401,10 +402,11 @@ class VoxSplat:
             fmt = str(need("format"))
             if fmt != FORMAT_NAME:
                 raise InputError(f"{path}: key 'format' is {fmt!r}, expected {FORMAT_NAME!r}")
-            version = int(need("version"))
-            if version > FORMAT_VERSION:
-                raise InputError(f"{path}: VoxSplat format version {version} is newer than this "
-                                 f"scube_sim reads ({FORMAT_VERSION})")
+            version = _file_version(path, need("version"))
+            a = {k: need(k) for k in ("ijk", "params", "valid", "labels", "voxel_size", "origin", "offset_range",
+                                      "metadata")}
+            if "logits" in z.files:
+                a["logits"] = z["logits"]
             channels = {}
             if version >= 2 and "channels" in z.files:
                 try:
@@ -413,18 +415,81 @@ class VoxSplat:
                 except (ValueError, AssertionError):
                     raise InputError(f"{path}: key 'channels' is not a JSON mapping of channel name to kind") from None
                 channels = {n: Channel(str(per), need(f"channel.{n}")) for n, per in manifest.items()}
+        _check_arrays(path, a)
+        try:
+            vs = cls(ijk=a["ijk"], params=a["params"], voxel_size=float(a["voxel_size"]), origin=a["origin"],
+                     valid=a["valid"], labels=a["labels"], logits=a.get("logits"),
+                     offset_range=float(a["offset_range"]), metadata=json.loads(str(a["metadata"])),
+                     channels={})
+        except ValueError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        for name, ch in channels.items():
             try:
-                vs = cls(
-                    ijk=need("ijk"), params=need("params"), voxel_size=float(need("voxel_size")),
-                    origin=need("origin"), valid=need("valid"), labels=need("labels"),
-                    logits=z["logits"] if "logits" in z.files else None,
-                    offset_range=float(need("offset_range")),
-                    metadata=json.loads(str(need("metadata"))),
-                    channels=channels,
-                )
-            except InputError as exc:  # `need` names the file already
-                raise exc if str(exc).startswith(f"{path}:") else InputError(f"{path}: {exc}") from None
-            except ValueError as exc:
-                raise InputError(f"{path}: {exc}") from None
+                vs.set_channel(name, ch.data, ch.per)
+            except InputError as exc:
+                raise InputError(f"{path}: key 'channel.{name}': {exc}") from None
         vs.check_finite(str(path))
         return vs
+
+
+# --- load-time checks: every key of a VoxSplat .npz, named when it is wrong ------------------------
+
+def _file_version(path: Path, raw) -> int:
+    if raw.shape != () or raw.dtype.kind not in "iu":
+        raise InputError(f"{path}: key 'version': expected an integer scalar, got {raw.dtype} of shape {raw.shape}")
+    version = int(raw)
+    if version < 1:
+        raise InputError(f"{path}: key 'version' is {version}: VoxSplat format versions start at 1")
+    if version > FORMAT_VERSION:
+        raise InputError(f"{path}: VoxSplat format version {version} is newer than this "
+                         f"scube_sim reads ({FORMAT_VERSION})")
+    return version
+
+
+def _expect(path: Path, key: str, arr: np.ndarray, kinds: str, shape: tuple, what: str) -> None:
+    """arr's dtype kind in `kinds` (numpy kind letters) and its shape `shape` (None: any length)."""
+    if arr.dtype.kind not in kinds:
+        raise InputError(f"{path}: key {key!r}: expected {what}, got dtype {arr.dtype}")
+    if arr.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, arr.shape)):
+        want = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+        raise InputError(f"{path}: key {key!r}: expected shape {want}, got {arr.shape}")
+
+
+def _check_arrays(path: Path, a: dict) -> None:
+    """Dtypes, shapes, ranges and finiteness of a loaded .npz's arrays (the raw parameters'
+    finiteness is `VoxSplat.check_finite`'s, which names the group, voxel and slot)."""
+    _expect(path, "ijk", a["ijk"], "iu", (None, 3), "integer voxel indices")
+    v = a["ijk"].shape[0]
+    if v and int(np.abs(a["ijk"].astype(np.int64)).max()) >= 1 << 20:
+        raise InputError(f"{path}: key 'ijk': voxel indices beyond +-2^20 (expected |i|, |j|, |k| < 1048576)")
+    if v and len(np.unique(voxel_keys(a["ijk"]))) != v:
+        dup = v - len(np.unique(voxel_keys(a["ijk"])))
+        raise InputError(f"{path}: key 'ijk': {dup} duplicate voxel(s); each voxel appears once")
+    _expect(path, "params", a["params"], "f", (v, None, NUM_RAW), f"float raw values (V, M, {NUM_RAW})")
+    if a["params"].shape[1] < 1:
+        raise InputError(f"{path}: key 'params': expected at least one Gaussian slot per voxel, got M = 0")
+    m = a["params"].shape[1]
+    _expect(path, "valid", a["valid"], "b", (v, m), "a bool mask (V, M)")
+    _expect(path, "labels", a["labels"], "iu", (v,), "integer label ids (V,)")
+    if v and (int(a["labels"].min()) < 0 or int(a["labels"].max()) >= NUM_LABELS):
+        raise InputError(f"{path}: key 'labels': ids must lie in [0, {NUM_LABELS}) (labels.py), got "
+                         f"[{int(a['labels'].min())}, {int(a['labels'].max())}]")
+    if "logits" in a:
+        _expect(path, "logits", a["logits"], "f", (v, None), "float logits (V, C)")
+        if not np.all(np.isfinite(a["logits"])):
+            raise InputError(f"{path}: key 'logits' contains NaN or Inf")
+    for key in ("voxel_size", "offset_range"):
+        _expect(path, key, a[key], "fiu", (), "a number")
+        if not (np.isfinite(a[key]) and float(a[key]) > 0):
+            raise InputError(f"{path}: key {key!r}: expected a positive finite number, got {float(a[key])}")
+    _expect(path, "origin", a["origin"], "fiu", (3,), "a float (3,) world position")
+    if not np.all(np.isfinite(a["origin"])):
+        raise InputError(f"{path}: key 'origin' contains NaN or Inf")
+    if a["metadata"].dtype.kind != "U" or a["metadata"].shape != ():
+        raise InputError(f"{path}: key 'metadata': expected a JSON string, got {a['metadata'].dtype}")
+    try:
+        meta = json.loads(str(a["metadata"]))
+    except ValueError:
+        raise InputError(f"{path}: key 'metadata': not valid JSON") from None
+    if not isinstance(meta, dict):
+        raise InputError(f"{path}: key 'metadata': expected a JSON object, got {type(meta).__name__}")
