@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
+from .. import splat_params as sp
 from ..atomic import atomic_path
 from ..errors import InputError
 from ..transforms import normalize_quat
-from .. import splat_params as sp
 from ..voxsplat import Gaussians, VoxSplat
 
 __all__ = ["SplatPlyInfo", "read_3dgs_ply_info", "read_3dgs_ply", "write_3dgs_ply",
@@ -116,8 +116,16 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
     def cols(*names):
         return np.stack([v[n].astype(np.float64) for n in names], axis=1)
 
+    # Raw values are checked before the activations, which would hide them: a NaN quaternion
+    # normalises to the identity, an infinite scale logit clips to a 10 km Gaussian.
+    for name in ("x", "y", "z", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+                 "f_dc_0", "f_dc_1", "f_dc_2"):
+        bad = ~np.isfinite(v[name])
+        if bad.any():
+            raise InputError(f"{path}: property {name!r} is NaN or Inf at {int(bad.sum())} vertices "
+                             f"(first: vertex {int(np.argmax(bad))})")
     world = cols("x", "y", "z")
-    origin = _local_origin(world) if np.all(np.isfinite(world)) else np.zeros(3)
+    origin = _local_origin(world)
     g = Gaussians(
         means=world - origin,
         scales=sp.scales(cols("scale_0", "scale_1", "scale_2")),

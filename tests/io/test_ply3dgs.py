@@ -8,6 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
+from scube_sim.errors import InputError
 from scube_sim.io.ply3dgs import (
     default_voxel_size, read_3dgs_ply, read_3dgs_ply_info, read_splat_file, write_3dgs_ply,
 )
@@ -247,3 +248,22 @@ def test_write_is_atomic(tmp_path, splat_dir, monkeypatch):
         write_3dgs_ply(tmp_path / "g.ply", g)
     assert os.listdir(tmp_path) == []
     monkeypatch.setattr(plyfile.PlyData, "write", real_write)
+
+
+@pytest.mark.parametrize("prop, value", [("rot_2", np.nan), ("scale_0", np.inf), ("x", -np.inf), ("opacity", np.nan),
+                                         ("f_dc_1", np.nan)])
+def test_non_finite_raw_values_are_refused_before_the_activations_hide_them(tmp_path, prop, value):
+    """A NaN quaternion would normalise to the identity and an infinite scale logit clip to a
+    10 km Gaussian: the raw property is refused, named with the count and the first vertex."""
+    from plyfile import PlyData, PlyElement
+
+    g = Gaussians(means=np.arange(12.0).reshape(4, 3), scales=np.full((4, 3), 0.1),
+                  quats=np.tile([1.0, 0, 0, 0], (4, 1)), opacities=np.full(4, 0.5), sh_dc=np.zeros((4, 3), np.float32))
+    ok = write_3dgs_ply(tmp_path / "ok.ply", g)
+    v = _raw(ok).copy()
+    v[prop][[1, 3]] = value
+    bad = tmp_path / "bad.ply"
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(bad))
+    with pytest.raises(InputError, match=rf"bad\.ply: property '{prop}' is NaN or Inf at 2 vertices \(first: vertex 1\)"):
+        read_3dgs_ply(bad)
+    assert len(read_3dgs_ply(ok)) == 4
