@@ -1,4 +1,5 @@
-"""Atomic file output: write to a temporary name beside the target, then rename."""
+"""Atomic file output: write to a temporary name beside the target, then rename; and write errors
+that name the file they were writing (a full disk reports "[Errno 28]" with no path otherwise)."""
 
 from __future__ import annotations
 
@@ -20,7 +21,17 @@ def atomic_path(path: str | Path):
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        if isinstance(exc, OSError):
+            raise with_path(exc, path) from exc
         raise
+
+
+def with_path(exc: OSError, path: str | Path) -> OSError:
+    """`exc` itself if it names a file already, else the same error (same class, errno and
+    message) naming `path`."""
+    if exc.filename is not None or exc.errno is None:
+        return exc
+    return type(exc)(exc.errno, exc.strerror, str(path))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ...atomic import atomic_path
+from ...atomic import atomic_path, with_path
 from ...errors import InputError
 from ...io.pointcloud import write_kitti_bin, write_npz, write_pcd, write_ply_points
 from ..frame import Frame
@@ -57,20 +57,27 @@ class FileSink(Sink):
                     write_npz(path, s.points, pose=s.pose, pose_start=s.pose_start, pose_end=s.pose_end,
                               t_start=s.t_start, t_end=s.t_end, t_ref=s.t_ref, tick=frame.index)
                 files.append(path.relative_to(self.folder).as_posix())
-            self._manifest.write(json.dumps({
+            _append(self._manifest, json.dumps({
                 "tick": frame.index, "time": frame.time, "sensor": s.name, "sweep": s.sweep_index,
                 "t_start": s.t_start, "t_end": s.t_end, "t_ref": s.t_ref, "points": int(len(s.points)),
                 "pose": s.pose.tolist(), "ego_pose": frame.ego_pose.tolist(), "files": files}) + "\n")
-        self._boxes.write(json.dumps({"tick": frame.index, "time": frame.time,
-                                      "boxes": [b.to_json() for b in frame.boxes]}) + "\n")
-        self._manifest.flush()
-        self._boxes.flush()
+        _append(self._boxes, json.dumps({"tick": frame.index, "time": frame.time,
+                                         "boxes": [b.to_json() for b in frame.boxes]}) + "\n")
 
     def close(self) -> None:
         for fh in (self._manifest, self._boxes):
             if fh is not None:
                 fh.close()
         self._manifest = self._boxes = None
+
+
+def _append(fh, line: str) -> None:
+    """Append a manifest line and flush it; a write error names the manifest."""
+    try:
+        fh.write(line)
+        fh.flush()
+    except OSError as exc:
+        raise with_path(exc, fh.name) from exc
 
 
 def _jsonable(obj):
