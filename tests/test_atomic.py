@@ -76,3 +76,35 @@ def test_an_unexpected_exception_still_shows_as_a_bug(tmp_path, monkeypatch):
     monkeypatch.setattr(np, "savez_compressed", broken)
     res = CliRunner().invoke(app, ["export", str(src), "--to", "npz", "-o", str(tmp_path / "c.npz")])
     assert res.exit_code == 1 and isinstance(res.exception, ZeroDivisionError)
+
+
+def _limited_file_size(limit: int):
+    """preexec_fn: writes past `limit` bytes fail with EFBIG (SIGXFSZ ignored), as on a full disk."""
+    import resource
+    import signal
+
+    def apply():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    return apply
+
+
+@pytest.mark.parametrize("to", ["usdc", "npz", "ply"])
+def test_export_past_the_file_size_limit_is_one_line_naming_the_output(tmp_path, to):
+    """A real failing write (RLIMIT_FSIZE in a child process; pxr's own writer for usdc) ends as
+    one line naming the output, exit code 2, and no output file."""
+    import subprocess
+    import sys
+
+    rng = np.random.default_rng(0)
+    n = 20_000
+    src = VoxSplat(ijk=np.stack([np.arange(n), np.zeros(n), np.zeros(n)], 1), params=rng.normal(0, 1, (n, 1, 14)),
+                   voxel_size=0.1).save(tmp_path / "s.npz")
+    out = tmp_path / f"out.{to}"
+    res = subprocess.run([sys.executable, "-m", "scube_sim.cli", "export", str(src), "--to", to, "-o", str(out)],
+                         capture_output=True, text=True, preexec_fn=_limited_file_size(src.stat().st_size // 4))
+    lines = [ln for ln in (res.stdout + res.stderr).splitlines() if ln.strip()]
+    assert res.returncode == 2, res.stdout + res.stderr
+    assert len(lines) == 1 and str(out) in lines[0] and "large" in lines[0].lower(), lines
+    assert not out.exists() and [p.name for p in tmp_path.iterdir()] == ["s.npz"]

@@ -15,6 +15,7 @@ simulator's `UsdSink`) build stages with the same conventions.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -281,16 +282,30 @@ def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
 def write_layer(layer, path: str | Path) -> Path:
     """Export `layer` to `path` atomically. USD picks the file format from the suffix, so the
     export goes to a temporary name that keeps it, then moves onto atomic_path's temporary."""
+    from pxr import Tf
+
     path = Path(path)
     with atomic_path(path) as tmp:
         usd_tmp = tmp.with_name(tmp.name + path.suffix)
         try:
-            if not layer.Export(str(usd_tmp)):
+            try:
+                ok = layer.Export(str(usd_tmp))
+            except Tf.ErrorException as exc:  # a full disk, a folder without write access
+                raise OSError(f"{path}: USD export failed: {tf_reason(exc)}") from None
+            if not ok:
                 raise OSError(f"{path}: USD export failed")
             os.replace(usd_tmp, tmp)
         finally:
             usd_tmp.unlink(missing_ok=True)
     return path
+
+
+def tf_reason(exc: Exception) -> str:
+    """The innermost reason of a pxr Tf error (its messages repeat one 'Error in ... : REASON'
+    per layer of the call stack), on one line."""
+    text = " ".join(str(exc).split())
+    quoted = re.findall(r": '([^']+)'", text)
+    return quoted[0] if quoted else (text[:200] or type(exc).__name__)
 
 
 _write_layer = write_layer
