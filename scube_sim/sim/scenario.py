@@ -28,11 +28,11 @@ import copy
 import json
 import os
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
@@ -132,11 +132,23 @@ class CanOutputSpec(StrictModel):
 
 class OutputsSpec(StrictModel):
     files: list[Literal["pcd", "bin", "npz", "ply"]] = Field(default_factory=lambda: ["pcd"])
-    usd: str | None = "replay.usdc"
+    usd: str | None = "replay.usdc"  # a file name inside the output folder (-o)
     usd_clips: bool = False
     frames_per_clip: int = Field(default=100, ge=1)
     usd_scene: bool = True
     can: CanOutputSpec | None = None
+
+    @field_validator("usd")
+    @classmethod
+    def _inside_the_output_folder(cls, v: str | None) -> str | None:
+        # Every output stays inside -o: a scenario must not write wherever a path points.
+        if v is None:
+            return v
+        posix, win = PurePosixPath(v), PureWindowsPath(v)
+        if (not v.strip() or posix.is_absolute() or win.is_absolute() or win.drive or v.startswith("~")
+                or ".." in posix.parts or ".." in win.parts):
+            raise ValueError(f"expected a relative path inside the output folder (-o), without '..', got {v!r}")
+        return v
 
 
 class Scenario(StrictModel):

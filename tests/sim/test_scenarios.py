@@ -62,6 +62,22 @@ def test_scenario_errors_name_the_key(tmp_path):
         build_run(sc, base, tmp_path / "out")
 
 
+@pytest.mark.parametrize("usd", ["../x.usdc", "a/../../x.usdc", "/tmp/x.usdc", "~/x.usdc", "C:\\x.usdc",
+                                 "..\\x.usdc", " "])
+def test_outputs_stay_inside_the_output_folder(tmp_path, usd):
+    """A scenario's output path that leaves -o (parent links, absolute, home, a drive) is refused
+    when the file is read, naming the key; nothing is written."""
+    text = TINY.replace("usd: run.usda", f"usd: {json.dumps(usd)}")
+    assert text != TINY
+    bad = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=r"s\.yaml: outputs\.usd: .*inside the output folder"):
+        load_scenario(bad)
+    res = runner.invoke(app, ["replay", str(bad), "-o", str(tmp_path / "r")])
+    assert res.exit_code == 2 and "outputs.usd" in res.output and not (tmp_path / "r").exists()
+    ok = write(tmp_path, TINY.replace("usd: run.usda", "usd: stages/run.usdc"), "ok.yaml")
+    assert load_scenario(ok)[0].outputs.usd == "stages/run.usdc"
+
+
 def test_run_usd_samples_equal_the_frames(tmp_path):
     """The stage of a run opens, validates, and holds exactly the sweeps the callback got."""
     from pxr import Usd, UsdGeom
