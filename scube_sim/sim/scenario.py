@@ -90,6 +90,13 @@ class EditSpec(StrictModel):
     speed_scale: float = Field(default=1.0, gt=0)
     time_shift_s: float = 0.0
 
+    @field_validator("lateral_ramp_s")
+    @classmethod
+    def _ramp_runs_forward(cls, v):
+        if v is not None and not v[1] > v[0]:
+            raise ValueError(f"expected [start, end] seconds with end > start, got {list(v)}")
+        return v
+
 
 class TrajectorySpec(StrictModel):
     source: Literal["world", "file", "can"] = "world"
@@ -223,6 +230,11 @@ def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
     source = build_pose_source(sc, base, built.world)
     t0 = source.t_start
     t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
+    if not t1 > t0:
+        edit = sc.trajectory.edit
+        why = (f"; trajectory.edit (time_shift_s {edit.time_shift_s:g}, speed_scale {edit.speed_scale:g}) moves it "
+               f"past the end of the {sc.trajectory.source} trajectory") if edit is not None else ""
+        raise ConfigError(f"trajectory: the run would simulate no time (from {t0:.3f} s to {t1:.3f} s){why}")
     sensors = build_sensors(sc, configs)
     sinks = build_sinks(sc.outputs, out)
     info = RunInfo(scene=built.file_scene, metadata={"scenario": sc.model_dump(mode="json")},

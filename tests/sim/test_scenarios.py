@@ -78,6 +78,21 @@ def test_outputs_stay_inside_the_output_folder(tmp_path, usd):
     assert load_scenario(ok)[0].outputs.usd == "stages/run.usdc"
 
 
+def test_trajectory_edits_that_leave_no_time_or_run_backwards_are_refused(tmp_path):
+    """A time shift past the trajectory's end simulated '0 ticks (-97 s)' before; a lane-change
+    ramp that ends before it starts failed without the file or key."""
+    past = write(tmp_path, TINY.replace("{source: world}", "{source: world, edit: {time_shift_s: 1000}}"), "past.yaml")
+    sc, base = load_scenario(past)
+    with pytest.raises(ConfigError, match=r"trajectory: the run would simulate no time .*time_shift_s 1000"):
+        build_run(sc, base, tmp_path / "out")
+    res = runner.invoke(app, ["replay", str(past), "-o", str(tmp_path / "r")])
+    assert res.exit_code == 2 and "simulate no time" in res.output
+    ramp = write(tmp_path, TINY.replace("{source: world}", "{source: world, edit: {lateral_offset_m: 3.5, "
+                                                           "lateral_ramp_s: [2.0, 1.0]}}"), "ramp.yaml")
+    with pytest.raises(ConfigError, match=r"ramp\.yaml: trajectory\.edit\.lateral_ramp_s: .*end > start"):
+        load_scenario(ramp)
+
+
 def test_run_usd_samples_equal_the_frames(tmp_path):
     """The stage of a run opens, validates, and holds exactly the sweeps the callback got."""
     from pxr import Usd, UsdGeom
