@@ -104,6 +104,19 @@ class EmitterPattern(StrictModel):
     channel: list[int] | None = None
     period_s: float = Field(default=0.1, gt=0)
 
+    @field_validator("azimuth_deg", "elevation_deg", "time_s")
+    @classmethod
+    def _rays(cls, v, info):
+        # Checked here, where the file and key are known, not deep inside the tracer.
+        if v is None:
+            return v
+        if not v:
+            raise ValueError("an emitter table needs at least one ray")
+        _finite(v)
+        if info.field_name == "elevation_deg" and not all(-90.0 <= e <= 90.0 for e in v):
+            raise ValueError("elevation angles must lie in [-90, 90] degrees")
+        return v
+
     @model_validator(mode="after")
     def _source(self):
         inline = [self.azimuth_deg, self.elevation_deg]

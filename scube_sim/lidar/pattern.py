@@ -119,6 +119,10 @@ def read_emitter_table(path: str | Path) -> dict[str, np.ndarray]:
         raise ConfigError(f"{path}: emitter table must be .csv or .npy")
     if not all(np.all(np.isfinite(v)) for v in out.values()):
         raise ConfigError(f"{path}: emitter table holds NaN or Inf")
+    if not len(out["azimuth_deg"]):
+        raise ConfigError(f"{path}: emitter table has no rays")
+    if np.any(np.abs(out["elevation_deg"]) > 90.0):
+        raise ConfigError(f"{path}: elevation_deg must lie in [-90, 90] degrees")
     return out
 
 

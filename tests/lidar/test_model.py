@@ -344,3 +344,32 @@ def test_bad_pose_is_a_clear_error():
         lidar.scan(tracer, bad)
     with pytest.raises(ValueError, match="pose_end: rotation"):
         lidar.scan(tracer, np.eye(4), np.diag([2.0, 1, 1, 1]))
+
+
+@pytest.mark.parametrize("pattern, match", [
+    ({"azimuth_deg": [0.0, float("inf")], "elevation_deg": [0.0, 1.0]}, r"pattern\.azimuth_deg: .*finite"),
+    ({"azimuth_deg": [0.0, 1.0], "elevation_deg": [float("nan"), 1.0]}, r"pattern\.elevation_deg: .*finite"),
+    ({"azimuth_deg": [0.0], "elevation_deg": [95.0]}, r"pattern\.elevation_deg: .*\[-90, 90\]"),
+    ({"azimuth_deg": [], "elevation_deg": []}, r"pattern\.azimuth_deg: .*at least one ray"),
+    ({"azimuth_deg": [0.0], "elevation_deg": [0.0], "time_s": [float("inf")]}, r"pattern\.time_s: .*finite"),
+])
+def test_bad_inline_emitter_tables_are_refused_in_the_schema(tmp_path, pattern, match):
+    """Infinite or NaN angles, elevations past the pole, an empty table: refused when the sensor
+    file is read, naming the file and key (not deep inside the tracer, and never a silent run)."""
+    import yaml
+
+    from scube_sim.lidar.config import ConfigError
+
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump({"name": "x", "pattern": {"type": "emitter", **pattern}}))
+    with pytest.raises(ConfigError, match=rf"/s\.yaml: {match}"):
+        load_lidar_config(path)
+
+
+def test_an_emitter_file_with_no_rays_is_refused(tmp_path):
+    from scube_sim.lidar.config import ConfigError
+
+    f = tmp_path / "empty.csv"
+    f.write_text("azimuth_deg,elevation_deg\n")
+    with pytest.raises(ConfigError, match=r"empty\.csv: emitter table has no rays"):
+        Lidar(config_from_dict({"name": "x", "pattern": {"type": "emitter", "file": str(f)}}))
