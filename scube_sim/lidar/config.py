@@ -258,6 +258,30 @@ class LidarConfig(StrictModel):
             return p.channels.count
         return len(set(p.channel)) if p.channel else 1
 
+    @model_validator(mode="after")
+    def _rays_fit_in_memory(self):
+        p = self.pattern
+        if isinstance(p, SpinningPattern):
+            rays, what = p.columns * p.channels.count, f"pattern.columns {p.columns} x {p.channels.count} channels"
+        elif p.azimuth_deg is not None:
+            rays, what = len(p.azimuth_deg), f"{len(p.azimuth_deg)} emitter rays"
+        else:
+            return self  # a table file: checked when it is read (`Lidar`)
+        check_rays_per_sweep(rays, self.beam.samples, what)
+        return self
+
+
+# A sweep's rays, sub-rays included, are traced and held in memory at once (about 10^8 of them
+# took over 6 GB); past this many a sensor file is refused instead of exhausting the machine.
+MAX_RAYS_PER_SWEEP = 1 << 25  # 33.5 M
+
+
+def check_rays_per_sweep(rays: int, samples: int, what: str) -> None:
+    """Raise ValueError when rays x beam.samples sub-rays exceed MAX_RAYS_PER_SWEEP."""
+    if rays * samples > MAX_RAYS_PER_SWEEP:
+        raise ValueError(f"{what} x beam.samples {samples} = {rays * samples:,} traced rays per sweep; at most "
+                         f"{MAX_RAYS_PER_SWEEP:,} fit in memory at once (fewer columns or sub-rays)")
+
 
 # --- loading ---------------------------------------------------------------------------------
 

@@ -19,12 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..config import ConfigError
 from ..errors import InputError
 from ..labels import LABEL_IDS, LABEL_REFLECTIVITY
 from ..raytrace.compose import nearest_hits
 from ..raytrace.tracer import Tracer
 from ..transforms import PoseFn, check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
-from .config import LidarConfig
+from .config import LidarConfig, check_rays_per_sweep
 from .pattern import ScanPattern, make_pattern
 
 POINT_DTYPE = np.dtype([
@@ -129,6 +130,10 @@ class Lidar:
         self.config = config
         self.pattern: ScanPattern = make_pattern(config) if pattern is None else pattern
         b = config.beam
+        try:
+            check_rays_per_sweep(len(self.pattern.time), b.samples, f"{config.name}: {len(self.pattern.time):,} rays")
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         self._sub_rho, self._sub_phi, self._sub_w = _subray_offsets(b.samples, b.divergence_mrad * 1e-3)
         refl = LABEL_REFLECTIVITY.astype(np.float64).copy()
         for name, rho in config.intensity.class_reflectivity.items():

@@ -373,3 +373,30 @@ def test_an_emitter_file_with_no_rays_is_refused(tmp_path):
     f.write_text("azimuth_deg,elevation_deg\n")
     with pytest.raises(ConfigError, match=r"empty\.csv: emitter table has no rays"):
         Lidar(config_from_dict({"name": "x", "pattern": {"type": "emitter", "file": str(f)}}))
+
+
+def test_a_sensor_asking_for_too_many_rays_is_refused_before_any_is_made(tmp_path):
+    """100 000 columns x 16 channels x 64 sub-rays (10^8 rays; past 6 GB before) is refused when
+    the file is read, naming the keys and the limit; the same sensor with 1 sub-ray loads."""
+    import yaml
+
+    from scube_sim.lidar.config import MAX_RAYS_PER_SWEEP, ConfigError
+
+    spec = load_lidar_config("vlp16").model_dump(mode="json")
+    spec["pattern"]["columns"] = 100_000
+    spec["beam"]["samples"] = 64
+    path = tmp_path / "huge.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(ConfigError, match=r"huge\.yaml: .*pattern\.columns 100000 x 16 channels x beam\.samples 64 = "
+                                          r"102,400,000 traced rays per sweep; at most 33,554,432"):
+        load_lidar_config(path)
+    spec["beam"]["samples"] = 1
+    path.write_text(yaml.safe_dump(spec))
+    assert load_lidar_config(path).pattern.columns * 16 <= MAX_RAYS_PER_SWEEP
+    # an emitter table file is checked when the Lidar reads it
+    rays = tmp_path / "rays.npy"
+    np.save(rays, np.zeros((MAX_RAYS_PER_SWEEP // 64 + 1, 2)))
+    cfg = config_from_dict({"name": "dense", "pattern": {"type": "emitter", "file": str(rays)},
+                            "beam": {"samples": 64, "divergence_mrad": 1.0}})
+    with pytest.raises(ConfigError, match=r"dense: 524,289 rays x beam\.samples 64"):
+        Lidar(cfg)
