@@ -199,6 +199,8 @@ def replay_cmd(
                 raise CliError(f"--duration: expected > 0 seconds, got {duration}")
             sc.duration_s = duration
         if seed is not None:
+            if seed < 0:
+                raise CliError(f"--seed: expected a non-negative integer, got {seed}")
             sc.seed = seed
         t0 = time.perf_counter()
         sim, source, t_start, t_end = build_run(sc, base, output, progress=lambda m: typer.echo(m))

@@ -80,6 +80,9 @@ def load_yaml(path: str | Path, error: type[Exception] = ConfigError) -> object:
     try:
         with open(path, encoding="utf-8") as fh:
             return yaml.safe_load(fh)
+    except UnicodeDecodeError as exc:
+        raise error(f"{path}: not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start}); "
+                    f"YAML files must be UTF-8") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

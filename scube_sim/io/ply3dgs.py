@@ -44,10 +44,15 @@ def _load_vertex(path: Path):
 
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such splat file")
+    with open(path, "rb") as fh:
+        if fh.readline(8).strip() != b"ply":
+            raise InputError(f"{path}: not a PLY file (no 'ply' magic line)")
     try:
         ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: 500x slower
     except PlyParseError as exc:  # header errors and early end-of-file alike
         raise InputError(f"{path}: malformed or truncated PLY ({exc})") from None
+    except (ValueError, TypeError, UnicodeDecodeError) as exc:  # e.g. a negative element count in the header
+        raise InputError(f"{path}: malformed PLY header ({exc})") from None
     if "vertex" not in ply:
         raise InputError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
     return np.array(ply["vertex"].data)  # a copy: no memory map left open on the file

@@ -170,6 +170,8 @@ class Lidar:
         cfg, pat = self.config, self.pattern
         t_end = t_start + pat.period_s
         pose_start, pose_end = self._end_poses(pose_start, pose_end, pose_fn, t_start, t_end)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
         rng = np.random.default_rng(seed)
         d_sub, o_sub, t_sub = self._sub_rays()
         static = pose_fn is None and np.array_equal(pose_start, pose_end)

@@ -161,7 +161,7 @@ class OutputsSpec(StrictModel):
 class Scenario(StrictModel):
     name: str
     description: str = ""
-    seed: int = 0
+    seed: int = Field(default=0, ge=0)
     duration_s: float | None = Field(default=None, gt=0)
     tick_hz: float = Field(default=10.0, gt=0, le=1000)
     scene: SceneSpec

@@ -107,6 +107,8 @@ class Simulator:
         self.scene: SimulatedScene = as_simulated_scene(scene)
         self.sensors = list(sensors)
         self.sinks = list(sinks or [])
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed: expected a non-negative integer, got {seed!r}")
         self.seed = int(seed)
         self.queue_size = int(queue_size)
         self.run_info = run_info or RunInfo()

@@ -45,8 +45,12 @@ class TrajectorySource:
     (T, 4, 4) ego-to-world."""
 
     def __init__(self, times, poses, name: str = "trajectory"):
-        times = np.asarray(times, np.float64).reshape(-1)
-        poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
+        times, poses = np.asarray(times, np.float64), np.asarray(poses, np.float64)
+        if times.ndim != 1:
+            raise InputError(f"{name}: times: expected shape (T,), got {times.shape}")
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+            # (T, 3, 4) would reshape into wrong poses without a word when 12 T divides by 16
+            raise InputError(f"{name}: poses: expected shape (T, 4, 4), got {poses.shape}")
         if times.shape[0] != poses.shape[0] or times.shape[0] < 1:
             raise InputError(f"{name}: need as many poses as timestamps (got {poses.shape[0]} and {times.shape[0]})")
         if np.any(np.diff(times) <= 0) or not np.all(np.isfinite(times)):
