@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import sys
 import time
+import warnings
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 import typer
 
-from .errors import ScubeSimError
+from .errors import ScubeSimError, ScubeSimWarning
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
                   help="LiDAR simulation on VoxSplats (SCube): hard-opacity Gaussian ray tracing with Embree.")
@@ -470,7 +471,19 @@ def eval_cmd(
     _run(body)
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    # Ours are for the user, one line each; anyone else's keep Python's format.
+    if issubclass(category, ScubeSimWarning):
+        typer.echo(f"warning: {message}", err=True)
+    else:
+        _python_showwarning(message, category, filename, lineno, file, line)
+
+
+_python_showwarning = warnings.showwarning
+
+
 def main() -> None:
+    warnings.showwarning = _show_warning
     app()
 
 

@@ -22,3 +22,8 @@ class NotFoundError(ScubeSimError, KeyError):
 
 class OutOfRangeError(ScubeSimError, IndexError):
     """An index past the end (a dataset sample, a frame); an `IndexError`, so iteration stops."""
+
+
+class ScubeSimWarning(UserWarning):
+    """Something a user's input made us change and say so (a clamp, a skipped record); the
+    message names the file or key and counts what changed. The CLI prints it as one line."""

@@ -28,6 +28,10 @@ OFFSET, OPACITY, SCALE, QUAT, RGB = slice(0, 3), slice(3, 4), slice(4, 7), slice
 LOG_SCALE_MIN, LOG_SCALE_MAX = float(np.log(1e-9)), float(np.log(1e4))
 # Past +-60 the logistic is 0 or 1 to float64 precision; the clip keeps exp() finite.
 OPACITY_LOGIT_MAX = 60.0
+# A VoxSplat Gaussian belongs to its voxel (its mean lies within offset_range voxels of the
+# centre): one wider than this many voxels is a fitting or training failure, not a scene element.
+# Such Gaussians turn a sweep into a crawl at hard opacity, so `VoxSplat.load` clamps them.
+MAX_SCALE_VOXELS = 100.0
 # Raw values of an empty slot: transparent, identity rotation.
 EMPTY_OPACITY_RAW = -30.0
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,7 +34,7 @@ import numpy as np
 
 from . import splat_params as sp
 from .atomic import atomic_path
-from .errors import InputError, NotFoundError
+from .errors import InputError, NotFoundError, ScubeSimWarning
 from .labels import NUM_LABELS
 from .splat_params import NUM_RAW, OFFSET, OPACITY, QUAT, RGB, SCALE, SH_C0  # noqa: F401 (re-exported)
 from .transforms import normalize_quat, quat_to_rotmat
@@ -429,7 +430,22 @@ class VoxSplat:
             except InputError as exc:
                 raise InputError(f"{path}: key 'channel.{name}': {exc}") from None
         vs.check_finite(str(path))
+        vs.clamp_scales(str(path))
         return vs
+
+    def clamp_scales(self, source: str = "VoxSplat") -> int:
+        """Clamp raw scales of the valid Gaussians above MAX_SCALE_VOXELS voxels to that size,
+        with a ScubeSimWarning that counts them; returns the count."""
+        limit = float(np.log(sp.MAX_SCALE_VOXELS * self.voxel_size))
+        big = (self.params[..., SCALE] > limit).any(axis=-1) & self.valid
+        n = int(big.sum())
+        if n:
+            s = self.params[..., SCALE]
+            self.params[..., SCALE] = np.where(big[..., None], np.minimum(s, np.float32(limit)), s)
+            warnings.warn(f"{source}: {n} of {self.num_gaussians} Gaussians are wider than "
+                          f"{sp.MAX_SCALE_VOXELS:g} voxels ({sp.MAX_SCALE_VOXELS * self.voxel_size:g} m); "
+                          f"clamped to that", ScubeSimWarning, stacklevel=2)
+        return n
 
 
 # --- load-time checks: every key of a VoxSplat .npz, named when it is wrong ------------------------

@@ -119,3 +119,64 @@ def test_the_cli_reports_a_broken_scene_in_one_line(tmp_path):
     lines = [ln for ln in res.output.splitlines() if ln.strip()]
     assert len(lines) == 1 and "key 'labels'" in lines[0] and str(path) in lines[0]
     assert not (tmp_path / "x.pcd").exists()
+
+
+def test_gaussians_wider_than_100_voxels_are_clamped_with_a_counted_warning(tmp_path):
+    """Scale logits of +1e4 (finite, so not refused) would be 10 km needles that make a sweep
+    crawl: load clamps them to 100 voxels and says how many, leaving the others bit for bit."""
+    from scube_sim.errors import ScubeSimWarning
+
+    a = valid_arrays(tmp_path)
+    params = a["params"].copy()
+    params[0, 0, 4] = 1e4          # valid slot, one axis
+    params[1, 1, 4:7] = 50.0       # valid slot, all axes
+    valid = a["valid"].copy()
+    valid[2, 0] = False
+    params[2, 0, 5] = 1e4          # an empty slot: not counted, left as it is
+    path = rewrite(tmp_path, a, params=params, valid=valid)
+    with pytest.warns(ScubeSimWarning, match=r"bad\.npz: 2 of 11 Gaussians are wider than 100 voxels \(20 m\)"):
+        vs = VoxSplat.load(path)
+    limit = np.float32(np.log(100 * 0.2))
+    assert vs.params[0, 0, 4] == limit and np.all(vs.params[1, 1, 4:7] == limit)
+    np.testing.assert_allclose(vs.scales()[0, 0, 0], 20.0, rtol=1e-6)
+    assert vs.params[2, 0, 5] == np.float32(1e4)
+    untouched = np.ones(params.shape[:2], bool)
+    untouched[0, 0] = untouched[1, 1] = False
+    np.testing.assert_array_equal(vs.params[untouched], params[untouched])
+    # the CLI shows it as one warning line and carries on
+    with pytest.warns(ScubeSimWarning):
+        res = CliRunner().invoke(app, ["lidar", str(path), "--sensor", "vlp16", "-o", str(tmp_path / "x.pcd")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "x.pcd").exists()
+
+
+def test_cli_prints_our_warnings_as_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    a = valid_arrays(tmp_path)
+    params = a["params"].copy()
+    params[0, 0, 4] = 1e4
+    path = rewrite(tmp_path, a, params=params)
+    res = subprocess.run([sys.executable, "-m", "scube_sim.cli", "lidar", str(path), "--sensor", "vlp16", "-o",
+                          str(tmp_path / "x.pcd")], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    warn = [ln for ln in (res.stdout + res.stderr).splitlines() if ln.startswith("warning")]
+    assert warn == [f"warning: {path}: 1 of 12 Gaussians are wider than 100 voxels (20 m); clamped to that"]
+
+
+def test_ply_gaussians_wider_than_the_scene_are_clamped(tmp_path):
+    from scube_sim.errors import ScubeSimWarning
+    from scube_sim.io.ply3dgs import read_3dgs_ply, write_3dgs_ply
+    from scube_sim.voxsplat import Gaussians
+
+    n = 5
+    scales = np.full((n, 3), 0.1)
+    scales[3] = [1e4, 0.1, 0.1]
+    g = Gaussians(means=np.c_[np.arange(n, dtype=float) * 3, np.zeros(n), np.zeros(n)], scales=scales,
+                  quats=np.tile([1.0, 0, 0, 0], (n, 1)), opacities=np.full(n, 0.5), sh_dc=np.zeros((n, 3), np.float32))
+    path = write_3dgs_ply(tmp_path / "wide.ply", g)
+    with pytest.warns(ScubeSimWarning, match=r"wide\.ply: 1 of 5 Gaussians are wider than the scene \(12 m"):
+        h = read_3dgs_ply(path)
+    np.testing.assert_allclose(h.scales[3], [12.0, 0.1, 0.1], rtol=1e-6)
+    np.testing.assert_allclose(h.scales[[0, 1, 2, 4]], 0.1, rtol=1e-6)

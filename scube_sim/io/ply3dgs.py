@@ -9,6 +9,7 @@ file's world frame (scene units; metres for our own files).
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,7 +18,7 @@ from plyfile import PlyData, PlyElement, PlyParseError
 
 from .. import splat_params as sp
 from ..atomic import atomic_path
-from ..errors import InputError
+from ..errors import InputError, ScubeSimWarning
 from ..transforms import normalize_quat
 from ..voxsplat import Gaussians, VoxSplat
 
@@ -140,7 +141,24 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
         voxel=None, slot=None, origin=origin,
     )
     g.check_finite(str(path))
+    _clamp_to_extent(g, str(path))
     return g
+
+
+def _clamp_to_extent(g: Gaussians, source: str) -> int:
+    """Clamp scales above the scene's extent (the means' bounding-box diagonal, 1 m at least):
+    a Gaussian wider than the whole scene is a training failure that would make every ray a
+    candidate. Warns with the count (ScubeSimWarning); returns it."""
+    if not len(g):
+        return 0
+    extent = max(float(np.linalg.norm(g.means.max(0) - g.means.min(0))), 1.0)
+    big = (g.scales > extent).any(axis=1)
+    n = int(big.sum())
+    if n:
+        g.scales[big] = np.minimum(g.scales[big], extent)
+        warnings.warn(f"{source}: {n} of {len(g)} Gaussians are wider than the scene ({extent:.3g} m, the "
+                      f"diagonal of their centres' bounding box); clamped to that", ScubeSimWarning, stacklevel=3)
+    return n
 
 
 def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
