@@ -478,8 +478,8 @@ def _check_arrays(path: Path, a: dict) -> None:
     v = a["ijk"].shape[0]
     if v and int(np.abs(a["ijk"].astype(np.int64)).max()) >= 1 << 20:
         raise InputError(f"{path}: key 'ijk': voxel indices beyond +-2^20 (expected |i|, |j|, |k| < 1048576)")
-    if v and len(np.unique(voxel_keys(a["ijk"]))) != v:
-        dup = v - len(np.unique(voxel_keys(a["ijk"])))
+    dup = v - len(np.unique(voxel_keys(a["ijk"]))) if v else 0
+    if dup:
         raise InputError(f"{path}: key 'ijk': {dup} duplicate voxel(s); each voxel appears once")
     _expect(path, "params", a["params"], "f", (v, None, NUM_RAW), f"float raw values (V, M, {NUM_RAW})")
     if a["params"].shape[1] < 1:
