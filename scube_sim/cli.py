@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 import warnings
@@ -185,14 +186,19 @@ def demo_cmd(
 @app.command("replay")
 def replay_cmd(
     scenario: Path = typer.Argument(..., help="scenario YAML (see scenarios/)"),
-    output: Path = typer.Option(..., "-o", "--output", help="output folder"),
+    output: Path = typer.Option(..., "-o", "--output", help="output folder (new or empty; see --overwrite, --resume)"),
     duration: Optional[float] = typer.Option(None, "--duration", help="seconds to simulate (default: the scenario's)"),
     seed: Optional[int] = typer.Option(None, "--seed", help="override the scenario's seed"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="clear the output folder's earlier run first "
+                                   "(the VoxSplat chunk cache scene_chunks/ is kept)"),
+    resume: bool = typer.Option(False, "--resume", help="continue the same run (same inputs and settings, "
+                                "by its manifest.json): nothing to do if complete, else run it again"),
 ) -> None:
     """Run a scenario end to end: frames (PCD/BIN/NPZ + manifest), a USD stage, CAN out."""
 
     def body():
-        from .sim.scenario import build_run, load_scenario
+        from .run_manifest import finish_run, prepare_output
+        from .sim.scenario import CACHE_FOLDERS, build_run, load_scenario, run_manifest
 
         sc, base = load_scenario(scenario)
         if duration is not None:
@@ -203,19 +209,33 @@ def replay_cmd(
             if seed < 0:
                 raise CliError(f"--seed: expected a non-negative integer, got {seed}")
             sc.seed = seed
-        t0 = time.perf_counter()
-        sim, source, t_start, t_end = build_run(sc, base, output, progress=lambda m: typer.echo(m))
-        t1 = time.perf_counter()
-        ticks = sweeps = points = 0
-        for frame in sim.run(source, t_start=t_start, t_end=t_end, dt=1.0 / sc.tick_hz, progress=True):
-            ticks += 1
-            for s in frame.sweeps():
-                sweeps += 1
-                points += len(s.points)
-        t2 = time.perf_counter()
+        manifest = run_manifest(sc, base, scenario)
+        state = prepare_output(output, manifest, overwrite=overwrite, resume=resume, keep=CACHE_FOLDERS)
+        if state == "complete":
+            typer.echo(f"{sc.name}: {output} already holds this run, complete ({len(manifest.outputs)} output "
+                       f"files, checksums verified); nothing to do")
+            return
+        try:
+            t0 = time.perf_counter()
+            sim, source, t_start, t_end = build_run(sc, base, output, progress=lambda m: typer.echo(m))
+            t1 = time.perf_counter()
+            ticks = sweeps = points = 0
+            for frame in sim.run(source, t_start=t_start, t_end=t_end, dt=1.0 / sc.tick_hz, progress=True):
+                ticks += 1
+                for s in frame.sweeps():
+                    sweeps += 1
+                    points += len(s.points)
+            t2 = time.perf_counter()
+        except BaseException as exc:
+            status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+            with contextlib.suppress(OSError):  # a full disk: the manifest stays "running", not complete
+                finish_run(output, manifest, status, " ".join(str(exc).split()) or type(exc).__name__,
+                           keep=CACHE_FOLDERS)
+            raise
+        finish_run(output, manifest, "complete", keep=CACHE_FOLDERS)
         typer.echo(f"{sc.name}: {ticks} ticks ({t_end - t_start:.1f} s simulated), {sweeps} sweeps, {points} points "
                    f"in {t2 - t1:.1f} s ({ticks / max(t2 - t1, 1e-9):.1f} ticks/s; scene set-up {t1 - t0:.1f} s) "
-                   f"-> {output}")
+                   f"-> {output}" + (" (run again: the earlier attempt was incomplete)" if state == "redo" else ""))
 
     _run(body)
 

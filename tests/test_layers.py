@@ -1,6 +1,6 @@
 """The package's layering, read from the source with `ast`: imports run only downwards.
 
-    ground        errors config atomic transforms labels resources geodesy boxes mesh
+    ground        errors config atomic run_manifest transforms labels resources geodesy boxes mesh
                   io.pointcloud io.safe_pickle
     representation voxsplat splat_params fit io (3DGS PLY, USD) scene_file
     sensors       raytrace camera lidar viz
@@ -22,7 +22,7 @@ import pytest
 PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 
 LAYERS = [
-    ("ground", ["errors", "config", "atomic", "transforms", "labels", "resources", "geodesy", "boxes", "mesh",
+    ("ground", ["errors", "config", "atomic", "run_manifest", "transforms", "labels", "resources", "geodesy", "boxes", "mesh",
                 "io.pointcloud", "io.safe_pickle", "_sensors"]),
     ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar", "viz"]),

@@ -27,6 +27,7 @@ from __future__ import annotations
 import copy
 import json
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Literal
@@ -34,9 +35,13 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, field_validator, model_validator
 
+from .. import __version__
+from ..atomic import atomic_path
 from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
+from ..errors import ScubeSimWarning
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
+from ..run_manifest import RunManifest, sha256_file
 from ..scene_file import load_scene
 from ..worlds.generator import World, WorldConfig, generate_world
 from ..worlds.groundtruth import chunk_frames, gt_voxsplat
@@ -217,6 +222,33 @@ def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str
     return config_from_dict(data, f"{where} (preset {spec.preset!r} with overrides)")
 
 
+CACHE_FOLDERS = ("scene_chunks",)  # kept by --overwrite / --resume (entries checked on use)
+
+
+def run_manifest(sc: Scenario, base: Path, scenario_path: str | Path) -> RunManifest:
+    """The replay's run manifest (`scube_sim.run_manifest`): the scenario file and every file it
+    names, checksummed by role; as settings the validated scenario (CLI overrides applied), each
+    sensor's resolved config and the package version."""
+    inputs = {"scenario": Path(scenario_path)}
+    spec = sc.scene
+    if spec.voxsplat is not None:
+        inputs["scene.voxsplat"] = resolve_path(spec.voxsplat, base)
+    if spec.ply is not None:
+        inputs["scene.ply"] = resolve_path(spec.ply, base)
+    for i, c in enumerate(spec.chunks or []):
+        inputs[f"scene.chunks[{i}]"] = resolve_path(c.path, base)
+    tr = sc.trajectory
+    if tr.source == "file":
+        inputs["trajectory.file"] = resolve_path(tr.file, base)
+    if tr.source == "can":
+        inputs["trajectory.can.log"] = resolve_path(tr.can.log, base)
+        inputs["trajectory.can.dbc"] = resolve_path(tr.can.dbc, base)
+    sensors = [sensor_config(s, sc.effects, base, f"sensors[{i}]").model_dump(mode="json")
+               for i, s in enumerate(sc.sensors)]
+    settings = {"scenario": sc.model_dump(mode="json"), "sensors": sensors, "scube_sim": __version__}
+    return RunManifest.for_inputs("replay", inputs, settings)
+
+
 def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
     """A scenario -> (Simulator, pose source, t_start, t_end). Fits and caches VoxSplat chunks of
     procedural worlds under `out/scene_chunks/` (reused by later runs with the same settings).
@@ -342,7 +374,12 @@ def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> CanTrajectory
 
 
 def _world_chunks(world: World, spec: SceneSpec, out: Path, progress=None) -> list[ChunkSpec]:
-    """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk."""
+    """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk.
+
+    Entry i is ``scene_chunks/chunk_<i>.npz`` and ``chunk_<i>.json`` (the settings that made it
+    and the npz's sha256), both written atomically. An entry is reused when its settings match
+    and its checksum holds; a corrupt one (unreadable JSON, checksum off) is rebuilt with a
+    warning, not fatal."""
     folder = out / "scene_chunks"
     folder.mkdir(parents=True, exist_ok=True)
     key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,
@@ -352,11 +389,30 @@ def _world_chunks(world: World, spec: SceneSpec, out: Path, progress=None) -> li
     for i, c2w in enumerate(frames):
         path = folder / f"chunk_{i:03d}.npz"
         meta_path = folder / f"chunk_{i:03d}.json"
-        if not (path.exists() and meta_path.exists() and json.loads(meta_path.read_text()) == key):
+        if not _cache_entry_valid(path, meta_path, key):
             if progress:
                 progress(f"fitting VoxSplat chunk {i + 1}/{len(frames)}")
             vs = gt_voxsplat(world.static, c2w, spec.voxel_size, gaussians_per_voxel=spec.gaussians_per_voxel)
             vs.save(path)
-            meta_path.write_text(json.dumps(key))
+            with atomic_path(meta_path) as tmp:
+                Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(path)}))
         specs.append(ChunkSpec(path, np.asarray(c2w)))
     return specs
+
+
+def _cache_entry_valid(path: Path, meta_path: Path, key: dict) -> bool:
+    """True if the chunk cache entry holds `key`'s chunk, intact; warns when it is corrupt."""
+    if not (path.is_file() and meta_path.is_file()):
+        return False
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        warnings.warn(f"{meta_path}: chunk cache entry unreadable; rebuilding it", ScubeSimWarning, stacklevel=3)
+        return False
+    if not isinstance(meta, dict) or meta.get("key") != key:
+        return False  # made with other settings (or by an older version): refit, nothing is wrong
+    if meta.get("sha256") != sha256_file(path):
+        warnings.warn(f"{path}: chunk cache entry corrupt (checksum differs from {meta_path.name}); rebuilding it",
+                      ScubeSimWarning, stacklevel=3)
+        return False
+    return True

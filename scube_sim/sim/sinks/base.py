@@ -118,12 +118,14 @@ class SinkRunner:
         if self._thread is not None and self._thread.is_alive():
             self._queue.put(_STOP)
             self._thread.join()
-        close_error = None
+        close_errors = []
         for sink in self.sinks:
             try:
                 sink.close()
             except BaseException as exc:  # noqa: BLE001 - close them all, then report
-                close_error = close_error or exc
-        self._raise_if_failed()
-        if close_error is not None:
-            raise SinkError(f"closing a sink failed: {close_error}") from close_error
+                close_errors.append((sink, exc))
+        also = "".join(f"; closing {type(sink).__name__} failed too: {exc}" for sink, exc in close_errors)
+        if self._error is not None:  # the first failure, and what it cost the other sinks
+            raise SinkError(f"sink {type(self._failed_sink).__name__} failed: {self._error}{also}") from self._error
+        if close_errors:
+            raise SinkError(also[2:].replace(" too", "", 1)) from close_errors[0][1]
