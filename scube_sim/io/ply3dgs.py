@@ -5,6 +5,13 @@ Layout: binary little-endian element ``vertex`` with float properties
 scale is log(std-dev), rot is an unnormalised wxyz quaternion, colour = 0.5 + C0 * f_dc, and
 ``f_rest`` holds the higher SH bands channel-major (all of R, then G, then B). Positions are in the
 file's world frame (scene units; metres for our own files).
+
+Far from the origin float32 positions lose precision (0.25 m steps at 3e6 m). Where world
+coordinates reach `FLOAT32_SAFE_M` (float32 steps coarser than 1 mm), `write_3dgs_ply` writes
+positions relative to a whole-metre origin stored in the header as
+``comment scube_sim_origin X Y Z`` (float64, repr); our reader adds it back, other readers load
+the same standard layout, shifted by it (the writer warns). Reading a file without that comment
+whose positions reach that far warns that the file itself has quantised them.
 """
 
 from __future__ import annotations
@@ -21,6 +28,10 @@ from ..atomic import atomic_path
 from ..errors import InputError, ScubeSimWarning
 from ..transforms import normalize_quat
 from ..voxsplat import Gaussians, VoxSplat
+
+# float32 steps at 16384 m are 1.95 mm: the largest power of two where they stay under ~2 mm
+FLOAT32_SAFE_M = 16384.0
+ORIGIN_COMMENT = "scube_sim_origin"
 
 __all__ = ["SplatPlyInfo", "read_3dgs_ply_info", "read_3dgs_ply", "write_3dgs_ply",
            "default_voxel_size", "read_splat_file"]
@@ -56,7 +67,23 @@ def _load_vertex(path: Path):
         raise InputError(f"{path}: malformed PLY header ({exc})") from None
     if "vertex" not in ply:
         raise InputError(f"{path}: PLY has no 'vertex' element (elements: {[e.name for e in ply.elements]})")
-    return np.array(ply["vertex"].data)  # a copy: no memory map left open on the file
+    return np.array(ply["vertex"].data), _stored_origin(path, ply.comments)  # a copy: no memory map left open
+
+
+def _stored_origin(path: Path, comments) -> np.ndarray | None:
+    """The ``scube_sim_origin`` header comment as (3,) float64, or None."""
+    for c in comments:
+        words = c.split()
+        if words and words[0] == ORIGIN_COMMENT:
+            try:
+                o = np.array([float(w) for w in words[1:]], np.float64)
+            except ValueError:
+                o = np.zeros(0)
+            if o.shape != (3,) or not np.all(np.isfinite(o)):
+                raise InputError(f"{path}: header comment {ORIGIN_COMMENT!r}: expected three finite numbers, got "
+                                 f"{' '.join(words[1:])!r:.80}")
+            return o
+    return None
 
 
 def _info(path: Path, names: tuple[str, ...], n: int) -> SplatPlyInfo:
@@ -116,7 +143,7 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
     property or a truncated file raises ValueError naming the file.
     """
     path = Path(path)
-    v = _load_vertex(path)
+    v, stored = _load_vertex(path)
     _info(path, tuple(v.dtype.names), v.shape[0])
 
     def cols(*names):
@@ -130,10 +157,13 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
         if bad.any():
             raise InputError(f"{path}: property {name!r} is NaN or Inf at {int(bad.sum())} vertices "
                              f"(first: vertex {int(np.argmax(bad))})")
-    world = cols("x", "y", "z")
-    origin = _local_origin(world)
+    local = cols("x", "y", "z")
+    if stored is None:
+        _warn_if_quantised(path, local, v)
+        stored = np.zeros(3)
+    origin = stored + _local_origin(local)
     g = Gaussians(
-        means=world - origin,
+        means=local - _local_origin(local),
         scales=sp.scales(cols("scale_0", "scale_1", "scale_2")),
         quats=normalize_quat(cols("rot_0", "rot_1", "rot_2", "rot_3")),
         opacities=sp.opacities(v["opacity"]),
@@ -143,6 +173,15 @@ def read_3dgs_ply(path: str | Path) -> Gaussians:
     g.check_finite(str(path))
     _clamp_to_extent(g, str(path))
     return g
+
+
+def _warn_if_quantised(path: Path, world: np.ndarray, v) -> None:
+    reach = float(np.abs(world).max()) if world.size else 0.0
+    if reach >= FLOAT32_SAFE_M and v["x"].dtype.itemsize < 8:
+        step = float(np.spacing(np.float32(reach)))
+        warnings.warn(f"{path}: float32 positions reach {reach:.4g} m from the file's origin, where they are "
+                      f"quantised to {step:.3g} m steps: the file cannot hold this scene more precisely "
+                      f"(scube-sim's writer stores an origin in the header instead)", ScubeSimWarning, stacklevel=3)
 
 
 def _clamp_to_extent(g: Gaussians, source: str) -> int:
@@ -164,8 +203,10 @@ def _clamp_to_extent(g: Gaussians, source: str) -> int:
 def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
     """Write Gaussians as an Inria-layout 3DGS PLY (SH degree 0, normals zero).
 
-    Positions are written in world coordinates (means + origin) as float32; opacity as a logit
-    (clipped to [1e-7, 1 - 1e-7] so that 0 and 1 stay finite), scales as logs, quats as unit wxyz.
+    Positions are float32 world coordinates (means + origin) while those stay within
+    `FLOAT32_SAFE_M`; beyond, they are relative to a whole-metre origin kept in the header
+    (``comment scube_sim_origin``, see the module doc; warns). Opacity as a logit (clipped to
+    [1e-7, 1 - 1e-7] so that 0 and 1 stay finite), scales as logs, quats as unit wxyz.
     """
     path = Path(path)
     g = gaussians
@@ -173,6 +214,19 @@ def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
     n = len(g)
     out = np.zeros(n, [(p, "<f4") for p in _WRITE_ORDER])
     world = g.means + g.origin
+    comments = []
+    if n and np.abs(world).max() >= FLOAT32_SAFE_M:
+        shift = np.round(g.origin) + _local_origin(g.means)  # whole metres, near the data
+        local = (g.origin - shift) + g.means  # small numbers first: no float64 cancellation either
+        comments.append(f"{ORIGIN_COMMENT} " + " ".join(repr(float(c)) for c in shift))
+        half = float(np.abs(local).max())
+        lost = (f"; the scene itself spans {2 * half:.4g} m, so float32 still rounds positions to "
+                f"{float(np.spacing(np.float32(half))):.3g} m") if half >= FLOAT32_SAFE_M else ""
+        warnings.warn(f"{path}: positions reach {float(np.abs(world).max()):.4g} m, past what float32 holds to a "
+                      f"millimetre: written relative to the origin ({shift[0]:.0f}, {shift[1]:.0f}, {shift[2]:.0f}) "
+                      f"kept in the header comment {ORIGIN_COMMENT!r}; scube-sim reads them back in place, other "
+                      f"readers see the scene shifted by that origin{lost}", ScubeSimWarning, stacklevel=2)
+        world = local
     for i, p in enumerate("xyz"):
         out[p] = world[:, i]
     op = np.clip(np.asarray(g.opacities, np.float64), 1e-7, 1 - 1e-7)
@@ -184,7 +238,7 @@ def write_3dgs_ply(path: str | Path, gaussians: Gaussians) -> Path:
         out[f"scale_{i}"] = log_s[:, i]
     for i in range(4):
         out[f"rot_{i}"] = q[:, i]
-    ply = PlyData([PlyElement.describe(out, "vertex")], text=False, byte_order="<")
+    ply = PlyData([PlyElement.describe(out, "vertex")], text=False, byte_order="<", comments=comments)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             ply.write(fh)

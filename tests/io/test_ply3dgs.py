@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 
 import numpy as np
 import pytest
 
-from scube_sim.errors import InputError
+from scube_sim.errors import InputError, ScubeSimWarning
 from scube_sim.io.ply3dgs import (
     default_voxel_size, read_3dgs_ply, read_3dgs_ply_info, read_splat_file, write_3dgs_ply,
 )
@@ -123,21 +124,69 @@ def test_roundtrip_read_write_read(splat_dir, tmp_path, name):
     assert all(_raw(out)[p].dtype == np.float32 for p in info.properties)
 
 
-def test_large_coordinates_survive(tmp_path, rng):
-    n = 200
+def _far_gaussians(rng, origin, n=200, spread=20.0) -> Gaussians:
     g = Gaussians(
-        means=rng.normal(0, 20, (n, 3)), scales=rng.uniform(0.01, 0.5, (n, 3)),
+        means=rng.normal(0, spread, (n, 3)), scales=rng.uniform(0.01, 0.5, (n, 3)),
         quats=rng.normal(size=(n, 4)), opacities=rng.uniform(0, 1, n),
-        sh_dc=rng.normal(size=(n, 3)).astype(np.float32), origin=np.array([1e6, -2e6, 30.0]),
+        sh_dc=rng.normal(size=(n, 3)).astype(np.float32), origin=np.asarray(origin, np.float64),
     )
     g.quats /= np.linalg.norm(g.quats, axis=1, keepdims=True)
-    h = read_3dgs_ply(write_3dgs_ply(tmp_path / "big.ply", g))
-    assert np.abs(h.means).max() < 200  # local again, not 1e6
-    # the file stores float32 world coordinates: 1e6 resolves to 1/16 m, 2e6 to 1/8 m
-    assert_same_gaussians(g, h, pos_atol=0.07 * 2)
-    # but what float32 held is preserved exactly: reading twice changes nothing
-    k = read_3dgs_ply(write_3dgs_ply(tmp_path / "big2.ply", h))
-    np.testing.assert_array_equal(k.means + k.origin, h.means + h.origin)
+    return g
+
+
+@pytest.mark.parametrize("origin", [[1e6, -2e6, 30.0], [3.7e6, 6.1e5, -1.2e3], [-9.9e6, 9.9e6, 12.0]])
+def test_far_scenes_keep_their_positions_through_a_ply(tmp_path, rng, origin):
+    """At 1e6-1e7 m float32 world coordinates step by 0.06-1 m (before: ranges off by up to 11 m
+    against the .npz). The writer keeps positions local with the origin in the header: read back,
+    every centre is where it was to float32 precision of the *local* numbers (under 10 um here);
+    plyfile, a standard reader, loads the same standard layout with the comment beside it."""
+    from plyfile import PlyData
+
+    g = _far_gaussians(rng, origin)
+    with pytest.warns(ScubeSimWarning, match=r"past what float32 holds .* header comment 'scube_sim_origin'"):
+        path = write_3dgs_ply(tmp_path / "far.ply", g)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # our own file: nothing to warn about on reading
+        h = read_3dgs_ply(path)
+    assert np.abs(h.means).max() < 200  # local, not 1e6
+    assert_same_gaussians(g, h, pos_atol=1e-5)
+    ply = PlyData.read(str(path))
+    (comment,) = ply.comments
+    shift = np.array([float(w) for w in comment.split()[1:]])
+    assert comment.startswith("scube_sim_origin ") and np.all(shift == np.round(shift))
+    v = ply["vertex"].data
+    assert v["x"].dtype == np.float32 and np.abs(v["x"]).max() < 200
+    np.testing.assert_allclose(np.stack([v["x"], v["y"], v["z"]], 1) + shift, g.means + g.origin, rtol=0, atol=1e-5)
+    # what float32 world coordinates would have lost, for comparison
+    assert np.abs((g.means + g.origin).astype(np.float32).astype(np.float64) - (g.means + g.origin)).max() > 0.01
+
+
+def test_a_third_party_far_file_warns_that_it_is_quantised(tmp_path, rng):
+    from plyfile import PlyData, PlyElement
+
+    g = _far_gaussians(rng, [0, 0, 0])
+    path = write_3dgs_ply(tmp_path / "near.ply", g)
+    v = PlyData.read(str(path))["vertex"].data.copy()
+    v["x"] += np.float32(3e6)  # a float32 file written at 3e6 m, no origin comment
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(tmp_path / "far.ply"))
+    with pytest.warns(ScubeSimWarning, match=r"far\.ply: float32 positions reach 3e\+06 m .* quantised to 0.25 m"):
+        read_3dgs_ply(tmp_path / "far.ply")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        read_3dgs_ply(path)  # near the origin: silent, and written as plain world coordinates
+    assert PlyData.read(str(path)).comments == []
+
+
+def test_a_bad_origin_comment_is_named(tmp_path, rng):
+    g = _far_gaussians(rng, [2e6, 0, 0])
+    with pytest.warns(ScubeSimWarning):
+        path = write_3dgs_ply(tmp_path / "far.ply", g)
+    data = path.read_bytes()
+    start = data.index(b"comment scube_sim_origin")
+    end = data.index(b"\n", start)
+    path.write_bytes(data[:start] + b"comment scube_sim_origin 1 nan" + b" " * (end - start - 30) + data[end:])
+    with pytest.raises(InputError, match=r"far\.ply: header comment 'scube_sim_origin': expected three finite"):
+        read_3dgs_ply(path)
 
 
 def test_opacity_extremes_stay_finite(tmp_path):
