@@ -14,6 +14,7 @@ import cantools
 import numpy as np
 import pytest
 
+from scube_sim.errors import ScubeSimWarning
 from scube_sim.geodesy import (
     ecef_to_enu,
     ecef_to_geodetic,
@@ -467,3 +468,58 @@ def test_dbc_without_the_named_message_or_signal(seg):
     # the SPEED message (0xB4) works as an alternative speed source, in km/h from the DBC unit
     dec = CanVehicleDecoder(dbc, speed=("SPEED", "SPEED"))
     assert 0xB4 in dec.frame_ids
+
+
+def _write_log(path, lines):
+    with gzip.open(path, "wt") as fh:
+        fh.write("".join(lines))
+    return path
+
+
+def _shifted(line: str, dt: float) -> str:
+    ts, rest = line[1:].split(")", 1)
+    return f"({float(ts) + dt:.6f}){rest}"
+
+
+def test_log_timestamp_jumps_are_counted_and_said(seg, tmp_path):
+    """A log whose timestamps jump was silently truncated or reordered. Now: messages stamped
+    back in time are skipped (the trajectory is the clean log's), forward jumps are bridged, a
+    window that ends in a jump stops there, and one warning names the log with the counts and the
+    time span used."""
+    import warnings
+
+    with gzip.open(seg / LOG, "rt") as fh:
+        lines = [ln for ln, _ in zip(fh, range(40_000))]
+    t0 = float(lines[0][1:].split(")")[0])
+    rel = np.array([float(ln[1:].split(")")[0]) - t0 for ln in lines])
+    cut = int(np.searchsorted(rel, 4.0))
+    clean_path = _write_log(tmp_path / "clean.log.gz", lines)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        clean = CanPoseSource.from_log(clean_path, seg / DBC, stop=None)
+    assert not clean.jumps and clean.times[-1] > 6.0
+
+    # 300 messages from 3 s earlier replayed after t = 4 s (a logger's buffer flushed twice)
+    back = lines[:cut] + lines[cut - 600:cut - 300] + lines[cut:]
+    with pytest.warns(ScubeSimWarning, match=r"back\.log\.gz: timestamps jump: 300 messages stamped before an "
+                                             r"earlier one .* skipped; the trajectory uses messages over t = 0"):
+        src = CanPoseSource.from_log(_write_log(tmp_path / "back.log.gz", back), seg / DBC, stop=None)
+    assert src.jumps.backward == 300
+    np.testing.assert_array_equal(src.times, clean.times)
+    np.testing.assert_array_equal(src.poses(), clean.poses())
+
+    # a 2.5 s hole after t = 4 s: bridged, counted, where it is
+    hole = lines[:cut] + [_shifted(ln, 2.5) for ln in lines[cut:]]
+    with pytest.warns(ScubeSimWarning, match=r"1 forward jumps over 1 s \(largest 2\.5 s, at t = 4\.0\d\d s\) "
+                                             r"bridged"):
+        src = CanPoseSource.from_log(_write_log(tmp_path / "hole.log.gz", hole), seg / DBC, stop=None)
+    assert src.jumps.gaps == 1 and src.jumps.max_gap_s == pytest.approx(2.5, abs=0.02)
+    before = src.times < 4.0
+    np.testing.assert_allclose(src.poses()[before], clean.poses()[clean.times < 4.0], atol=0)
+
+    # a jump of an hour: the default 20 s window ends inside it; the trajectory stops at 4 s
+    far = lines[:cut] + [_shifted(ln, 3600.0) for ln in lines[cut:]]
+    with pytest.warns(ScubeSimWarning, match=r"the window ends inside one; the trajectory uses messages over "
+                                             r"t = 0\.\d+ to 3\.9\d+ s of the window \(0 to 20 s\)"):
+        src = CanPoseSource.from_log(_write_log(tmp_path / "far.log.gz", far), seg / DBC)
+    assert src.jumps.ends_in_gap and src.times[-1] < 4.0

@@ -13,14 +13,41 @@ import queue
 import struct
 import threading
 import time
+import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from ...errors import InputError
+from ...errors import InputError, ScubeSimWarning
 from ..vehicle import DeadReckoner
 from .dbc import CanVehicleDecoder
+
+# A log's timestamps may run back a little across channels (loggers stamp per interface); more than
+# this is a jump. Forward: no message for GAP_S on a bus that carries speed at 50-100 Hz is a gap.
+BACKWARD_TOLERANCE_S = 1e-3
+GAP_S = 1.0
+
+
+@dataclass
+class TimeJumps:
+    """Timestamp faults met while reading a log: `backward` messages stamped more than
+    `BACKWARD_TOLERANCE_S` before an earlier message (skipped; the largest step back
+    `max_back_s`), forward `gaps` over `GAP_S` (bridged by the dead reckoning at the last speed
+    and steering; the largest `max_gap_s`, starting at source time `gap_at`), whether the window's
+    end fell inside a gap (`ends_in_gap`), and the span of source time the messages used cover."""
+
+    backward: int = 0
+    max_back_s: float = 0.0
+    gaps: int = 0
+    max_gap_s: float = 0.0
+    gap_at: float = 0.0
+    ends_in_gap: bool = False
+    used: tuple[float, float] | None = None
+
+    def __bool__(self) -> bool:
+        return bool(self.backward or self.gaps or self.ends_in_gap)
 
 
 class _Paced:
@@ -67,6 +94,7 @@ class CanPoseSource:
         self.messages = 0  # messages taken into the reckoner (in window, decoded)
         self.finished = False  # the window's end was reached (log) / stop passed (bus)
         self.path: Path | None = None  # the log file (from_log)
+        self.jumps = TimeJumps()  # timestamp faults of the log (from_log), reported as a warning
         self.realtime = False
         self.speed = 1.0
         self._bus = None
@@ -106,6 +134,7 @@ class CanPoseSource:
                 self._take(msg)
             self.finished = True
             self._check_nonempty()
+            self._warn_jumps()
         else:
             self._queue = queue.Queue()
             self._thread = threading.Thread(target=self._replay, name="scube-can-replay", daemon=True)
@@ -141,7 +170,8 @@ class CanPoseSource:
         log, as candump / ASC / BLF loggers write; reading stops at the window's end)."""
         import can
 
-        n, last_t = 0, None
+        n, last_t, newest = 0, None, None
+        jumps = self.jumps = TimeJumps()
         try:
             reader = can.LogReader(str(path))
         except ValueError as exc:
@@ -160,15 +190,29 @@ class CanPoseSource:
                     raise InputError(f"CAN log {path}: malformed {where}: "
                                      f"{type(exc).__name__}: {exc}") from exc
                 n += 1
-                last_t = msg.timestamp
+                last_t = ts = float(msg.timestamp)
                 if self.log_start is None:
-                    self.log_start = float(msg.timestamp)
+                    self.log_start = ts
                     self.time_offset = self.log_start + self.start
-                rel = msg.timestamp - self.log_start
+                if newest is not None and ts < newest - BACKWARD_TOLERANCE_S:
+                    jumps.backward += 1  # the reckoner integrates forward in time only
+                    jumps.max_back_s = max(jumps.max_back_s, newest - ts)
+                    continue
+                gap = 0.0 if newest is None else ts - newest
+                newest = ts if newest is None else max(newest, ts)
+                rel = ts - self.log_start
+                if gap > GAP_S and rel - gap >= self.start:
+                    jumps.gaps += 1
+                    if gap > jumps.max_gap_s:
+                        jumps.max_gap_s, jumps.gap_at = gap, rel - gap - self.start
+                    if self.stop is not None and rel >= self.stop:
+                        jumps.ends_in_gap = True
                 if self.stop is not None and rel >= self.stop:
                     break
                 if rel < self.start or not self.decoder.accepts(msg):
                     continue
+                t = rel - self.start
+                jumps.used = (t, t) if jumps.used is None else (jumps.used[0], t)
                 yield msg
         finally:
             stop = getattr(reader, "stop", None)
@@ -176,6 +220,24 @@ class CanPoseSource:
                 stop()
         if n == 0:
             raise InputError(f"CAN log {path}: contains no CAN messages")
+
+    def _warn_jumps(self) -> None:
+        """One warning naming the log and counting its timestamp faults (see `TimeJumps`)."""
+        j = self.jumps
+        if not j:
+            return
+        parts = []
+        if j.backward:
+            parts.append(f"{j.backward} messages stamped before an earlier one (up to {j.max_back_s:.3g} s back) "
+                         f"skipped")
+        if j.gaps:
+            parts.append(f"{j.gaps} forward jumps over {GAP_S:g} s (largest {j.max_gap_s:.3g} s, at t = "
+                         f"{j.gap_at:.3f} s) bridged at the last speed and steering"
+                         + ("; the window ends inside one" if j.ends_in_gap else ""))
+        used = "no messages" if j.used is None else f"t = {j.used[0]:.3f} to {j.used[1]:.3f} s"
+        stop = "end" if self.stop is None else f"{self.stop - self.start:g} s"
+        warnings.warn(f"CAN log {self.path}: timestamps jump: {'; '.join(parts)}; the trajectory uses messages over "
+                      f"{used} of the window (0 to {stop})", ScubeSimWarning, stacklevel=3)
 
     def _replay(self) -> None:
         import can
@@ -226,6 +288,7 @@ class CanPoseSource:
                     if self._error is not None:
                         raise self._error
                     self._check_nonempty()
+                    self._warn_jumps()
                     break
                 count += 1
                 used += self._take(msg)
