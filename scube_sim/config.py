@@ -58,6 +58,8 @@ def format_validation_error(exc: ValidationError, source: str) -> str:
         msg = err["msg"]
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
+        elif err["type"] == "value_error":  # our validators' own messages, without pydantic's prefix
+            msg = msg.removeprefix("Value error, ")
         lines.append(f"{source}: {_format_loc(err['loc'])}: {msg}")
     return "\n".join(lines)
 

@@ -202,6 +202,7 @@ def prepare_output(folder: str | Path, manifest: RunManifest, *, overwrite: bool
             raise OutputFolderError(f"{folder}: --resume: not the same run ({'; '.join(diff)}); use --overwrite "
                                     f"to replace it or another folder")
         if old.status == "complete" and output_files(folder, keep) == old.outputs:
+            manifest.status, manifest.error, manifest.outputs = old.status, old.error, old.outputs
             return "complete"
         _clear(folder, keep)
         state = "redo"

@@ -123,7 +123,9 @@ def test_resume_needs_the_same_run_and_redoes_an_incomplete_or_changed_one(tmp_p
     finish_run(out, m, "complete")
     rec = read_manifest(out)
     assert rec.outputs == {"a.bin": {"sha256": hashlib.sha256(b"1234").hexdigest(), "bytes": 4}}
-    assert prepare_output(out, manifest(tmp_path), resume=True) == "complete"  # nothing touched
+    again = manifest(tmp_path)
+    assert prepare_output(out, again, resume=True) == "complete"  # nothing touched
+    assert again.outputs == rec.outputs and again.status == "complete"
     assert (out / "a.bin").read_bytes() == b"1234"
     # another input: not the same run, named
     with pytest.raises(OutputFolderError, match=r"not the same run \(input scenario \(changed\)\)"):
@@ -182,7 +184,7 @@ def test_rerun_into_a_folder_is_refused_and_resume_or_overwrite_give_the_same_by
     assert tree(out) == first
 
     res = replay(scen, "-o", out, "--resume")
-    assert res.exit_code == 0 and "already holds this run, complete" in res.output
+    assert res.exit_code == 0 and f"already holds this run, complete ({len(listed)} output files" in res.output
     assert tree(out) == first
 
     res = replay(scen, "-o", out, "--overwrite")
