@@ -4,6 +4,7 @@ that name the file they were writing (a full disk reports "[Errno 28]" with no p
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 from pathlib import Path
 
@@ -16,6 +17,8 @@ def atomic_path(path: str | Path):
     never sees a half-written file.
     """
     path = Path(path)
+    if path.is_dir():  # else the rename fails naming the temporary file
+        raise IsADirectoryError(errno.EISDIR, "is a folder; expected a file path", str(path))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:

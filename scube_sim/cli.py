@@ -18,6 +18,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="
                   help="LiDAR simulation on VoxSplats (SCube): hard-opacity Gaussian ray tracing with Embree.")
 
 EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
 
 
 class CliError(ScubeSimError):
@@ -43,7 +44,8 @@ def _parse_pose(text: str) -> np.ndarray:
 
 def _run(fn):
     """Run a command body, turning our errors (`ScubeSimError`) and file-system errors into
-    one-line messages and exit code 2; anything else is a bug and shows its traceback."""
+    one-line messages and exit code 2, Ctrl-C into one line and exit code 130; anything else is
+    a bug and shows its traceback."""
     try:
         return fn()
     except ScubeSimError as exc:
@@ -53,6 +55,10 @@ def _run(fn):
         if exc.strerror is None and exc.args:  # raised with a message of ours, e.g. "X: no such scene file"
             _fail(str(exc.args[0]))
         _fail(f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}".lstrip(": "))
+    except KeyboardInterrupt:
+        # every output is whole (atomic files, sinks closed with the frames completed)
+        typer.echo("interrupted: the outputs written so far are complete files", err=True)
+        raise typer.Exit(EXIT_INTERRUPTED) from None
 
 
 @app.command("lidar")

@@ -77,6 +77,8 @@ def validate_model(model_cls, data, source: str, what: str = "settings", error: 
 def load_yaml(path: str | Path, error: type[Exception] = ConfigError) -> object:
     """The parsed YAML of `path`; `error` (ConfigError) names the file, and line and column of a syntax error."""
     path = Path(path)
+    if path.is_dir():
+        raise error(f"{path}: is a folder; expected a YAML file")
     if not path.is_file():
         raise error(f"{path}: no such file")
     try:

@@ -74,3 +74,14 @@ def test_a_negative_seed(tmp_path, scene):
     scen.write_text("name: s\nseed: -2\nscene: {world: {style: suburban}}\nsensors: [{preset: vlp16}]\n")
     line = one_line(runner.invoke(app, ["replay", str(scen), "-o", str(tmp_path / "r")]))
     assert "s.yaml: seed: " in line and "greater than or equal to 0" in line
+
+
+def test_a_folder_where_a_file_is_expected(tmp_path, scene):
+    """A folder given as the scenario said 'no such file'; a folder given as -o failed naming the
+    temporary file beside it."""
+    line = one_line(runner.invoke(app, ["replay", str(tmp_path), "-o", str(tmp_path / "r")]))
+    assert line == f"error: {tmp_path}: is a folder; expected a YAML file"
+    (tmp_path / "dir.npz").mkdir()
+    line = one_line(runner.invoke(app, ["export", str(scene), "--to", "npz", "-o", str(tmp_path / "dir.npz")]))
+    assert line == f"error: {tmp_path / 'dir.npz'}: is a folder; expected a file path"
+    assert [p.name for p in (tmp_path / "dir.npz").iterdir()] == []

@@ -286,3 +286,38 @@ def test_a_corrupt_chunk_cache_entry_is_rebuilt_not_fatal(tmp_path):
         other = scenario_mod.SceneSpec(world=world.config, voxel_size=2.0, gaussians_per_voxel=1)
         scenario_mod._world_chunks(world, other, tmp_path)
     assert np.isclose(VoxSplat.load(first).voxel_size, 2.0)
+
+
+def test_ctrl_c_leaves_whole_files_a_stage_and_an_interrupted_manifest(tmp_path):
+    """A real process, a real SIGINT: exit 130 with one line, the manifest says interrupted,
+    frames.jsonl lists only sweeps whose files are all there, the USD stage is written."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scen = tmp_path / "long.yaml"
+    scen.write_text(TINY.replace("duration_s: 0.4", "duration_s: 60"))
+    out = tmp_path / "r"
+    env = dict(os.environ, PYTHONPATH=str(Path(__file__).resolve().parents[2]))
+    proc = subprocess.Popen([sys.executable, "-m", "scube_sim.cli", "replay", str(scen), "-o", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    frames = out / "frames" / "frames.jsonl"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (frames.exists() and len(frames.read_text().splitlines()) >= 3):
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "interrupted: the outputs written so far are complete files"
+    rec = read_manifest(out)
+    assert rec.status == "interrupted" and rec.error == "KeyboardInterrupt"
+    listed = [json.loads(x) for x in frames.read_text().splitlines()]
+    assert len(listed) >= 3
+    for line in listed:
+        for f in line["files"]:
+            assert (out / "frames" / f).is_file()
+    assert (out / "run.usda").is_file() and "run.usda" in rec.outputs
+    assert not [p for p in out.rglob("*") if ".tmp-" in p.name]
