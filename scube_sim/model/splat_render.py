@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import torch
 from torch.utils.checkpoint import checkpoint
 
-from ..camera.model import Intrinsics
+from .camera import distort, distort_jacobian, fold_limit
 
-__all__ = ["Projection", "rasterization", "project_gaussians", "quat_scale_to_covar", "distort", "distort_jacobian"]
+__all__ = ["Projection", "rasterization", "project_gaussians", "quat_scale_to_covar"]
 
 ALPHA_MAX = 0.999
 ALPHA_MIN = 1.0 / 255.0
@@ -55,65 +55,6 @@ def quat_scale_to_covar(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tens
     ], -1).reshape(q.shape[:-1] + (3, 3))
     m = rot * scales[..., None, :]
     return m @ m.transpose(-1, -2)
-
-
-# ---------------------------------------------------------------------------- camera model (torch)
-def distort(x: torch.Tensor, y: torch.Tensor, model: str, coeffs):
-    """Ideal normalised image coordinates -> distorted ones; `camera.model.Intrinsics.distort`
-    in torch (pinhole: unchanged; opencv: [k1, k2, p1, p2, k3]; fisheye: [k1, k2, k3, k4])."""
-    if model == "pinhole":
-        return x, y
-    if model == "opencv":
-        k1, k2, p1, p2, k3 = coeffs
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        return (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
-    k1, k2, k3, k4 = coeffs
-    r2 = x * x + y * y
-    small = r2 < 1e-16
-    rs = torch.sqrt(torch.where(small, torch.ones_like(r2), r2))  # no sqrt(0) in the backward: no NaN
-    theta = torch.atan(rs)
-    t2 = theta * theta
-    scale = torch.where(small, torch.ones_like(r2), theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) / rs)
-    return x * scale, y * scale
-
-
-def distort_jacobian(x: torch.Tensor, y: torch.Tensor, model: str, coeffs) -> torch.Tensor:
-    """(..., 2, 2) d(xd, yd) / d(x, y) of `distort`, analytic (differentiable itself)."""
-    one, zero = torch.ones_like(x), torch.zeros_like(x)
-    if model == "pinhole":
-        return torch.stack([one, zero, zero, one], -1).reshape(x.shape + (2, 2))
-    if model == "opencv":
-        k1, k2, p1, p2, k3 = coeffs
-        r2 = x * x + y * y
-        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        drad = 2 * (k1 + r2 * (2 * k2 + 3 * k3 * r2))  # d(radial)/dx = drad * x
-        j11 = radial + x * x * drad + 2 * p1 * y + 6 * p2 * x
-        j12 = x * y * drad + 2 * p1 * x + 2 * p2 * y
-        j22 = radial + y * y * drad + 6 * p1 * y + 2 * p2 * x
-        return torch.stack([j11, j12, j12, j22], -1).reshape(x.shape + (2, 2))
-    k1, k2, k3, k4 = coeffs
-    r2 = x * x + y * y
-    small = r2 < 1e-12
-    rs = torch.sqrt(torch.where(small, torch.ones_like(r2), r2))
-    theta = torch.atan(rs)
-    t2 = theta * theta
-    theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
-    dtheta_d = (1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))) / (1 + rs * rs)
-    s = theta_d / rs
-    ds_over_r = (dtheta_d * rs - theta_d) / rs**3  # s'(r) / r
-    s = torch.where(small, one, s)
-    ds_over_r = torch.where(small, zero, ds_over_r)
-    return torch.stack([s + x * x * ds_over_r, x * y * ds_over_r, x * y * ds_over_r, s + y * y * ds_over_r],
-                       -1).reshape(x.shape + (2, 2))
-
-
-def _fold_limit(model: str, coeffs) -> float:
-    if model == "pinhole":
-        return math.inf
-    c = [float(v) for v in coeffs]
-    return Intrinsics(1, 1, 1.0, 1.0, 0.0, 0.0, model, c).fold_limit
 
 
 # ---------------------------------------------------------------------------- projection
@@ -170,7 +111,7 @@ def project_gaussians(means, quats, scales, viewmats, Ks, width: int, height: in
         xd, yd = distort(x, y, camera_model, coeffs)
         dj = distort_jacobian(xj, yj, camera_model, coeffs)
         for c in range(len(k)):
-            limit = _fold_limit(camera_model, dc[c].tolist())
+            limit = fold_limit(camera_model, dc[c].tolist())
             if math.isfinite(limit):
                 r = torch.sqrt(x[c] ** 2 + y[c] ** 2)
                 keep[c] &= (r if camera_model == "opencv" else torch.atan(r)) <= limit
