@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from .activations import quats as unit_quats
+from .activations import rotations
 from .camera import distort, distort_jacobian, fold_limit
 
 __all__ = ["Projection", "rasterization", "project_gaussians", "quat_scale_to_covar"]
@@ -45,15 +47,8 @@ RENDER_MODES = ("RGB", "D", "ED", "RGB+D", "RGB+ED")
 
 
 def quat_scale_to_covar(quats: torch.Tensor, scales: torch.Tensor) -> torch.Tensor:
-    """(N, 4) wxyz quaternions (any norm; zero -> identity) and (N, 3) std-devs -> (N, 3, 3)."""
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    w, x, y, z = q.unbind(-1)
-    rot = torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ], -1).reshape(q.shape[:-1] + (3, 3))
-    m = rot * scales[..., None, :]
+    """(N, 4) wxyz quaternions (any norm; near zero -> identity) and (N, 3) std-devs -> (N, 3, 3)."""
+    m = rotations(unit_quats(quats)) * scales[..., None, :]
     return m @ m.transpose(-1, -2)
 
 
@@ -96,7 +91,7 @@ def project_gaussians(means, quats, scales, viewmats, Ks, width: int, height: in
     tan_fx, tan_fy = 0.5 * width / fx, 0.5 * height / fy
     xj = torch.maximum(torch.minimum(x, (width - cx) / fx + 0.3 * tan_fx), -(cx / fx + 0.3 * tan_fx))
     yj = torch.maximum(torch.minimum(y, (height - cy) / fy + 0.3 * tan_fy), -(cy / fy + 0.3 * tan_fy))
-    keep = in_depth
+    keep = in_depth.clone()  # in_depth is saved by torch.where for the backward
     if camera_model == "pinhole":
         xd, yd = x, y
         dj = None

@@ -1,0 +1,314 @@
+"""Stage `appearance` (paper section 3.2, appendix B): M Gaussians in every voxel of a grid and a
+sky panorama, from the posed input images; trained on ground-truth voxels.
+
+Per sample (chunk frame: x forward, y left, z up, metres):
+
+1. An image CNN (3 -> 16 -> 32 -> 32, kernel 3, strides 1, 1, 2, residual on the last two) gives
+   each input camera a feature map at half its resolution.
+2. Each feature pixel's ray deposits its feature in the first voxel it enters (`voxel_rays`,
+   cast through the grid; the rays are fixed per sample, so the dataset casts them); a voxel
+   takes the mean of its rays, plus a flag for "seen" and a positional encoding of its centre.
+3. A sparse U-Net (widths 32, 64, 128 by default: base 32, multipliers 1, 2, 4) maps that to
+   M x 14 raw values per voxel, activated by the shared definition (`activations.activate`).
+4. The same features, where the sky mask says sky, fill the sky panorama (`sky`); a novel view
+   samples it along its rays and decodes it to RGB. Image = Gaussians (`splat_render`) + the
+   transmittance left after them x sky.
+
+Loss per view: 0.9 L1(image) + 1.0 L1(alpha, non-sky mask) + 0.1 (1 - SSIM); LPIPS is left out
+(its weights cannot be downloaded here). Metrics: PSNR and SSIM of the rendered views, and PSNR
+on the sky pixels alone.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+from torch import nn
+from torch.utils.data import Dataset
+
+from ..config import StrictModel
+from ..worlds.groundtruth import CHUNK_CORNER
+from .activations import activate
+from .data import DataConfig, WorldsTorchDataset, item_generator
+from .image_metrics import psnr, ssim
+from .sky import SkyDecoder, build_panorama, camera_ray_directions, sample_panorama
+from .sparse import SparseTensor, SparseUNet, voxel_keys
+from .splat_render import rasterization
+from .stages import Stage, register_stage
+from .voxel_rays import VoxelRayCaster, deposit_mean
+
+NUM_RAW = 14
+LOSS_WEIGHTS = {"l1": 0.9, "alpha": 1.0, "ssim": 0.1}
+
+
+class AppearanceModelConfig(StrictModel):
+    """The network: Gaussians per voxel M, image feature channels, U-Net widths (depth = count),
+    residual blocks, norm, positional-encoding frequencies, the training panorama's size (paper:
+    768 x 1536; sized down for CPU) and where the raw values start (opacity, scale in voxels)."""
+
+    gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
+    image_channels: int = Field(default=32, ge=4)
+    widths: tuple[int, ...] = Field(default=(32, 64, 128), min_length=1)
+    blocks: int = Field(default=1, ge=1)
+    norm: str = Field(default="group", pattern="^(batch|group|none)$")
+    pe_frequencies: int = Field(default=6, ge=0, le=16)
+    panorama: tuple[int, int] = (64, 128)
+    offset_range: float = Field(default=1.0, gt=0)
+    init_opacity: float = Field(default=0.5, gt=0, lt=1)
+    init_scale_voxels: float = Field(default=0.5, gt=0)
+
+
+class AppearanceDataConfig(StrictModel):
+    """Which ground-truth grid (level fine | coarse, optionally coarsened by `coarsen`: fine x 2
+    is 0.2 m in the worlds), the part of the chunk kept (x_min, y_min, z_min, x_max, y_max, z_max,
+    chunk frame metres; None: all), the image scale of the stored images, and the views rendered
+    for the loss: the input instant's cameras (the worlds' later instants are the evaluation's),
+    all of them or `train_views` drawn per item (seeded by seed, epoch and index: rendering is
+    most of a step's time on a CPU)."""
+
+    level: str = Field(default="coarse", pattern="^(fine|coarse)$")
+    coarsen: int = Field(default=1, ge=1, le=8)
+    region: tuple[float, float, float, float, float, float] | None = None
+    image_scale: float = Field(default=0.5, gt=0, le=1)
+    eval_frames: bool = False
+    train_views: int | None = Field(default=None, ge=1)  # views rendered per training item (None: all)
+
+
+# ---------------------------------------------------------------------------- data
+class AppearanceDataset(Dataset):
+    """Worlds samples with a ground-truth grid and each input camera's first-hit voxels.
+
+    Item: the `WorldsTorchDataset` item (images at `image_scale`, cameras, sky masks, ...) plus
+    ``ijk`` (V, 3) int64 voxels (chunk frame, origin CHUNK_CORNER), ``voxel_size``, and ``hits``
+    (N, h, w) int64, the row of ``ijk`` each half-resolution feature pixel's ray enters first (-1:
+    none), and ``loss_views`` the cameras the loss renders. Pinhole and OpenCV cameras."""
+
+    def __init__(self, root: Path, split: str, cfg: AppearanceDataConfig, seed: int = 0):
+        self.cfg = cfg
+        self.seed = seed
+        self.train = split == "train"
+        self.base = WorldsTorchDataset(root, split=split, train=split == "train",
+                                       config=DataConfig(image_scale=cfg.image_scale, eval_frames=cfg.eval_frames,
+                                                         seed=seed))
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.base.set_epoch(epoch)
+
+    def __getitem__(self, index: int) -> dict:
+        item = self.base[index]
+        ijk = item[f"{self.cfg.level}_ijk"]
+        vs = float(item[f"{self.cfg.level}_voxel_size"])
+        if self.cfg.coarsen > 1:
+            ijk = torch.unique(ijk // self.cfg.coarsen, dim=0)
+            vs *= self.cfg.coarsen
+        if self.cfg.region is not None:
+            centres = torch.as_tensor(CHUNK_CORNER) + (ijk.double() + 0.5) * vs
+            lo, hi = torch.tensor(self.cfg.region[:3]), torch.tensor(self.cfg.region[3:])
+            ijk = ijk[((centres >= lo) & (centres < hi)).all(1)]
+        item["ijk"], item["voxel_size"] = ijk, vs
+        caster = VoxelRayCaster(ijk, vs, CHUNK_CORNER)
+        n, _, h, w = item["images"].shape
+        hits = []
+        for i in range(n):
+            hh, ww = _half(int(item["image_size"][i, 0])), _half(int(item["image_size"][i, 1]))
+            dirs = camera_ray_directions(_half_k(item["intrinsics"][i]), item["distortion"][i],
+                                         item["cam_to_chunk"][i], hh, ww).reshape(-1, 3).double()
+            origin = item["cam_to_chunk"][i][:3, 3].double().expand_as(dirs)
+            idx, _ = caster.first_hit(origin, dirs)
+            full = torch.full((_half(h), _half(w)), -1, dtype=torch.int64)
+            full[:hh, :ww] = idx.reshape(hh, ww)
+            hits.append(full)
+        item["hits"] = torch.stack(hits)
+        views = list(range(n))
+        if self.train and self.cfg.train_views is not None and self.cfg.train_views < n:
+            gen = item_generator(self.seed + 1, self.base.epoch, index % len(self))  # not the augmentation's stream
+            views = sorted(torch.randperm(n, generator=gen)[: self.cfg.train_views].tolist())
+        item["loss_views"] = views
+        return item
+
+
+def _half(n: int) -> int:
+    return (n + 1) // 2  # a stride-2, padding-1, kernel-3 convolution's output size
+
+
+def _half_k(K: torch.Tensor) -> torch.Tensor:
+    """K of the half-resolution feature map (its pixel i covers image pixels 2i, 2i + 1)."""
+    k = K.double().clone()
+    k[:2] /= 2.0
+    return k
+
+
+# ---------------------------------------------------------------------------- network
+class _ResBlock2d(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int):
+        super().__init__()
+        self.conv = nn.Conv2d(cin, cout, 3, stride, 1)
+        self.skip = nn.Identity() if cin == cout and stride == 1 else nn.Conv2d(cin, cout, 1, stride)
+
+    def forward(self, x):
+        return F.relu(self.conv(x) + self.skip(x))
+
+
+class ImageEncoder(nn.Module):
+    """(N, 3, H, W) -> (N, C, ceil(H/2), ceil(W/2)): conv 3 -> 16 -> 32 -> C, strides 1, 1, 2,
+    residual on the last two (appendix B)."""
+
+    def __init__(self, channels: int = 32):
+        super().__init__()
+        self.net = nn.Sequential(nn.Conv2d(3, 16, 3, 1, 1), nn.ReLU(inplace=True), _ResBlock2d(16, 32, 1),
+                                 _ResBlock2d(32, channels, 2))
+
+    def forward(self, images):
+        return self.net(images)
+
+
+def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
+    """(V, 3) chunk-frame centres, metres -> (V, 6 F): sin and cos of pi 2^f x / 51.2 m."""
+    if frequencies == 0:
+        return x.new_zeros((x.shape[0], 0))
+    u = (x / 51.2)[:, None, :] * (math.pi * 2.0 ** torch.arange(frequencies, dtype=x.dtype))[None, :, None]
+    return torch.cat([torch.sin(u), torch.cos(u)], 1).reshape(x.shape[0], -1)
+
+
+class AppearanceNet(nn.Module):
+    def __init__(self, cfg: AppearanceModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        m = cfg.gaussians_per_voxel
+        self.encoder = ImageEncoder(cfg.image_channels)
+        self.unet = SparseUNet(cfg.image_channels + 1 + 6 * cfg.pe_frequencies, m * NUM_RAW, widths=cfg.widths,
+                               blocks=cfg.blocks, norm=cfg.norm)
+        self.sky = SkyDecoder(cfg.image_channels, 16)
+        # where the raw values start: opacity init_opacity, scale init_scale_voxels (x voxel size)
+        self.register_buffer("_opacity_bias", torch.tensor(math.log(cfg.init_opacity / (1 - cfg.init_opacity))))
+
+    def forward(self, item: dict) -> dict:
+        """One sample (an `AppearanceDataset` item) -> the Gaussians (flat: means (G, 3), quats,
+        scales, opacities, colors; chunk frame) and the sky panorama (C, Hp, Wp)."""
+        images = item["images"]
+        feats = self.encoder(images)  # (N, C, h, w)
+        n, c, h, w = feats.shape
+        hits = item["hits"][:, :h, :w]
+        ijk, vs = item["ijk"], float(item["voxel_size"])
+        v = ijk.shape[0]
+        vox, count = deposit_mean(feats.permute(0, 2, 3, 1).reshape(-1, c), hits.reshape(-1), v)
+        centres = torch.as_tensor(CHUNK_CORNER, dtype=feats.dtype) + (ijk.to(feats.dtype) + 0.5) * vs
+        seen = (count > 0).to(feats.dtype)[:, None]
+        x = torch.cat([vox, seen, positional_encoding(centres, self.cfg.pe_frequencies)], 1)
+        coords = torch.cat([torch.zeros(v, 1, dtype=torch.int64), ijk], 1)
+        st = SparseTensor.from_coords(coords, x, batch_size=1)
+        raw = st.feats.new_zeros((v, self.cfg.gaussians_per_voxel * NUM_RAW))
+        if v:
+            out = self.unet(st)
+            # back from the grid's site order to the item's voxel order
+            pos = torch.searchsorted(voxel_keys(out.coords[:, 1:]), voxel_keys(ijk))
+            raw = out.feats[pos]
+        raw = raw.reshape(v, self.cfg.gaussians_per_voxel, NUM_RAW)
+        bias = torch.zeros(NUM_RAW, dtype=raw.dtype)
+        bias[3] = self._opacity_bias
+        bias[4:7] = math.log(self.cfg.init_scale_voxels * vs)
+        g = activate(raw + bias, centres, vs, self.cfg.offset_range)
+        sky_small = F.interpolate((item["sky"] & item["valid"])[:, None].to(feats.dtype), size=(h, w),
+                                  mode="area")[:, 0]  # the sky fraction of each feature pixel
+        k_half = torch.stack([_half_k(k) for k in item["intrinsics"]])
+        pano, weight = build_panorama(feats, sky_small, item["cam_to_chunk"].double(), k_half, item["distortion"],
+                                      *self.cfg.panorama)
+        return {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
+                "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
+                "colors": g["colors"].reshape(-1, 3), "pano": pano, "pano_weight": weight}
+
+    def render(self, out: dict, K: torch.Tensor, cam_to_chunk: torch.Tensor, height: int, width: int,
+               distortion=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One view: (image (3, H, W) in [0, 1], alpha (H, W) of the Gaussians, sky (3, H, W))."""
+        dtype = out["means"].dtype
+        viewmat = torch.linalg.inv(cam_to_chunk.double()).to(dtype)[None]
+        dist = distortion if distortion is not None and bool(torch.as_tensor(distortion).abs().sum() > 0) else None
+        img, alpha, _ = rasterization(out["means"], out["quats"], out["scales"], out["opacities"], out["colors"],
+                                      viewmat, K.to(dtype)[None], width, height,
+                                      camera_model="opencv" if dist is not None else "pinhole",
+                                      dist_coeffs=None if dist is None else torch.as_tensor(dist)[None].double())
+        dirs = camera_ray_directions(K, distortion, cam_to_chunk, height, width)
+        sky = self.sky(sample_panorama(out["pano"], dirs.to(out["pano"].dtype))[None])[0]
+        a = alpha[0, ..., 0]
+        return img[0].permute(2, 0, 1) + (1 - a)[None] * sky, a, sky
+
+
+# ---------------------------------------------------------------------------- stage
+def view_losses(model: AppearanceNet, out: dict, frame: dict, cams=None) -> tuple[torch.Tensor, dict]:
+    """The loss over the views of one frame (the item's own cameras, or an eval frame's)."""
+    total = 0.0
+    logs = {"l1": 0.0, "alpha": 0.0, "ssim": 0.0}
+    cams = range(frame["images"].shape[0]) if cams is None else cams
+    for i in cams:
+        hh, ww = (int(s) for s in frame["image_size"][i])
+        img, alpha, _ = model.render(out, frame["intrinsics"][i], frame["cam_to_chunk"][i], hh, ww,
+                                     frame["distortion"][i])
+        gt = frame["images"][i, :, :hh, :ww]
+        nonsky = (~frame["sky"][i, :hh, :ww]).to(img.dtype)
+        l1 = (img - gt).abs().mean()
+        la = (alpha - nonsky).abs().mean()
+        ls = 1 - ssim(img[None], gt[None])
+        total = total + LOSS_WEIGHTS["l1"] * l1 + LOSS_WEIGHTS["alpha"] * la + LOSS_WEIGHTS["ssim"] * ls
+        logs["l1"] += float(l1.detach()) / len(cams)
+        logs["alpha"] += float(la.detach()) / len(cams)
+        logs["ssim"] += float(1 - ls.detach()) / len(cams)
+    return total / len(cams), logs
+
+
+class AppearanceStage(Stage):
+    name = "appearance"
+    model_config = AppearanceModelConfig
+    data_config = AppearanceDataConfig
+    primary_metric = "psnr"
+    higher_is_better = True
+
+    def build_model(self, model_cfg: AppearanceModelConfig) -> nn.Module:
+        return AppearanceNet(model_cfg)
+
+    def dataset(self, data_dir: Path, data_cfg: AppearanceDataConfig, split: str, seed: int) -> Dataset:
+        return AppearanceDataset(Path(data_dir), split, data_cfg, seed)
+
+    def collate(self, samples: list) -> list:
+        return list(samples)  # one sample at a time through the network: grids and rigs differ
+
+    def loss(self, model: nn.Module, batch: list) -> tuple[torch.Tensor, dict[str, float]]:
+        total, logs = 0.0, {}
+        for item in batch:
+            loss, lg = view_losses(model, model(item), item, item.get("loss_views"))
+            total = total + loss
+            for k, v in lg.items():
+                logs[k] = logs.get(k, 0.0) + v / len(batch)
+        return total / len(batch), logs
+
+    def evaluate(self, model: nn.Module, batches: Iterable[list]) -> dict[str, float]:
+        sums: dict[str, list[float]] = {}
+        for batch in batches:
+            for item in batch:
+                out = model(item)
+                frames = [("t0", item)] + [(f"t{f['offset']}", f) for f in item.get("eval_frames", [])]
+                for name, frame in frames:
+                    for i in range(frame["images"].shape[0]):
+                        hh, ww = (int(s) for s in frame["image_size"][i])
+                        img, _, _ = model.render(out, frame["intrinsics"][i], frame["cam_to_chunk"][i], hh, ww,
+                                                 frame["distortion"][i])
+                        gt = frame["images"][i, :, :hh, :ww]
+                        sky = frame["sky"][i, :hh, :ww]
+                        sums.setdefault(f"psnr_{name}", []).append(psnr(img[None], gt[None]))
+                        sums.setdefault(f"ssim_{name}", []).append(float(ssim(img[None], gt[None])))
+                        if bool(sky.any()):
+                            sums.setdefault(f"psnr_sky_{name}", []).append(psnr(img[None], gt[None], sky[None]))
+        metrics = {k: float(np.mean(v)) for k, v in sums.items()}
+        metrics["psnr"] = metrics.get("psnr_t0", 0.0)
+        return metrics
+
+
+register_stage(AppearanceStage())

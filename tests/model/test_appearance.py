@@ -1,0 +1,110 @@
+"""The appearance stage on a tiny worlds dataset: items with first-hit voxels, a network that
+overfits one sample, the trainer and `eval` through the CLI; SSIM and PSNR against their
+closed forms."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+import yaml
+from typer.testing import CliRunner
+
+from scube_sim.cli import app
+from scube_sim.model.appearance import AppearanceNet, view_losses
+from scube_sim.model.image_metrics import psnr, ssim
+from scube_sim.model.stages import get_stage
+from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
+
+TINY = DatasetConfig(image_scale=0.05, visibility_scale=0.05, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0, 5],
+                     lidar="vlp16", styles=["suburban"])
+MODEL = {"gaussians_per_voxel": 1, "image_channels": 8, "widths": [8, 16], "pe_frequencies": 2, "panorama": [8, 16]}
+DATA = {"level": "coarse", "image_scale": 1.0, "region": [-10.24, -25.6, -3.23, 30.0, 25.6, 20.0]}
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("appearance")
+    for split in ("train", "val"):
+        generate_dataset(out, split, 1, TINY, progress=False)
+    return out
+
+
+def test_ssim_and_psnr_closed_forms():
+    x = torch.rand(1, 3, 20, 24, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    assert float(ssim(x, x)) == pytest.approx(1.0, abs=1e-12) and math.isinf(psnr(x, x))
+    a, b = torch.full((1, 1, 16, 16), 0.2, dtype=torch.float64), torch.full((1, 1, 16, 16), 0.7, dtype=torch.float64)
+    c1 = 0.01 ** 2
+    assert float(ssim(a, b)) == pytest.approx((2 * 0.2 * 0.7 + c1) / (0.2 ** 2 + 0.7 ** 2 + c1), rel=1e-9)
+    assert psnr(a, b) == pytest.approx(10 * math.log10(1 / 0.25))
+    mask = torch.zeros(1, 16, 16, dtype=torch.bool)
+    mask[:, :8] = True
+    b2 = b.clone()
+    b2[..., 8:, :] = a[..., 8:, :]  # equal outside the mask's rows: PSNR sees only the masked half
+    assert psnr(a, b2, mask) == pytest.approx(10 * math.log10(1 / 0.25))
+    with pytest.raises(ValueError, match="smaller than the 11-pixel window"):
+        ssim(a[..., :8, :8], b[..., :8, :8])
+
+
+def test_items_carry_first_hit_voxels(data):
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**{**DATA, "region": None}), "val", 0)[0]  # the whole chunk
+    n, _, h, w = item["images"].shape
+    hits = item["hits"]
+    assert hits.shape == (n, (h + 1) // 2, (w + 1) // 2)
+    assert int(hits.min()) >= -1 and int(hits.max()) < len(item["ijk"])
+    sky = torch.nn.functional.interpolate(item["sky"][:, None].float(), size=hits.shape[1:], mode="area")[:, 0]
+    near = item["depth"][:, ::2, ::2] < 40.0  # well inside the chunk
+    valid = item["valid"][:, ::2, ::2]
+    assert float((hits[(sky < 0.01) & valid & near] >= 0).float().mean()) > 0.95  # ground and walls hit a voxel
+    assert float((hits[(sky > 0.99) & valid] >= 0).float().mean()) < 0.2  # the sky mostly does not
+    assert bool((hits[~valid] == -1).all())  # padding casts no ray
+
+
+def test_the_network_overfits_one_sample(data):
+    torch.manual_seed(0)
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**DATA), "val", 0)[0]
+    net = AppearanceNet(stage.model_config(**MODEL))
+    opt = torch.optim.Adam(net.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(12):
+        out = net(item)
+        loss, _ = view_losses(net, out, item, cams=[0])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert all(math.isfinite(v) for v in losses)
+    assert min(losses[-3:]) < 0.8 * losses[0], losses
+    assert out["means"].shape[0] == len(item["ijk"]) and out["pano"].shape == (8, 8, 16)
+
+
+def test_train_and_eval_through_the_cli(data, tmp_path):
+    cfg = tmp_path / "app.yaml"
+    cfg.write_text(yaml.safe_dump({"stage": "appearance", "train": {"seed": 0, "steps": 2, "lr": 1e-3, "threads": 1},
+                                   "model": MODEL, "data": DATA}))
+    res = CliRunner().invoke(app, ["train", "appearance", "--data", str(data), "--config", str(cfg),
+                                   "-o", str(tmp_path / "run")])
+    assert res.exit_code == 0, res.output
+    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+                                   str(tmp_path / "run" / "last.pt"), "--split", "val", "-o", str(tmp_path / "m.json")])
+    assert res.exit_code == 0, res.output
+    metrics = json.loads((tmp_path / "m.json").read_text())["metrics"]
+    assert 0 < metrics["psnr"] < 60 and 0 < metrics["ssim_t0"] <= 1
+
+
+def test_training_items_draw_their_loss_views_by_seed_epoch_and_index(data):
+    stage = get_stage("appearance")
+    ds = stage.dataset(data, stage.data_config(**{**DATA, "train_views": 2}), "train", 0)
+    a, b = ds[0]["loss_views"], ds[0]["loss_views"]
+    assert a == b and len(a) == 2 and a == sorted(a)
+    draws = set()
+    for epoch in range(6):
+        ds.set_epoch(epoch)
+        draws.add(tuple(ds[0]["loss_views"]))
+    assert len(draws) > 1
+    val = stage.dataset(data, stage.data_config(**{**DATA, "train_views": 2}), "val", 0)
+    assert val[0]["loss_views"] == list(range(val[0]["images"].shape[0]))  # evaluation renders every view
