@@ -176,7 +176,7 @@ def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
     if frequencies == 0:
         return x.new_zeros((x.shape[0], 0))
     u = (x / 51.2)[:, None, :] * (math.pi * 2.0 ** torch.arange(frequencies, dtype=x.dtype))[None, :, None]
-    return torch.cat([torch.sin(u), torch.cos(u)], 1).reshape(x.shape[0], -1)
+    return torch.cat([torch.sin(u), torch.cos(u)], 1).reshape(x.shape[0], 6 * frequencies)
 
 
 class AppearanceNet(nn.Module):

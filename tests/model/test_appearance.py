@@ -108,3 +108,19 @@ def test_training_items_draw_their_loss_views_by_seed_epoch_and_index(data):
     assert len(draws) > 1
     val = stage.dataset(data, stage.data_config(**{**DATA, "train_views": 2}), "val", 0)
     assert val[0]["loss_views"] == list(range(val[0]["images"].shape[0]))  # evaluation renders every view
+
+
+def test_an_empty_grid_renders_the_sky_alone(data):
+    """No voxel at all: no Gaussian, alpha 0, and the image is the decoded sky."""
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**DATA), "val", 0)[0]
+    item["ijk"] = item["ijk"][:0]
+    item["hits"] = torch.full_like(item["hits"], -1)
+    net = AppearanceNet(stage.model_config(**MODEL))
+    with torch.no_grad():
+        out = net(item)
+        hh, ww = (int(s) for s in item["image_size"][0])
+        img, alpha, sky = net.render(out, item["intrinsics"][0], item["cam_to_chunk"][0], hh, ww, item["distortion"][0])
+    assert out["means"].shape == (0, 3) and float(alpha.abs().max()) == 0.0
+    torch.testing.assert_close(img, sky)
+    assert torch.isfinite(img).all()
