@@ -35,6 +35,7 @@ from torch.utils.data import Dataset
 from ..config import StrictModel
 from ..worlds.groundtruth import CHUNK_CORNER
 from .activations import activate
+from .augment import AugmentConfig, photometric
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .image_metrics import psnr, ssim
 from .sky import SkyDecoder, build_panorama, camera_ray_directions, sample_panorama
@@ -44,6 +45,7 @@ from .stages import Stage, register_stage
 from .voxel_rays import VoxelRayCaster, deposit_mean
 
 NUM_RAW = 14
+NO_AUGMENT = AugmentConfig(**{k: {"p": 0.0} for k in ("color_jitter", "exposure", "blur", "noise", "jpeg")})
 LOSS_WEIGHTS = {"l1": 0.9, "alpha": 1.0, "ssim": 0.1}
 
 
@@ -70,7 +72,8 @@ class AppearanceDataConfig(StrictModel):
     chunk frame metres; None: all), the image scale of the stored images, and the views rendered
     for the loss: the input instant's cameras (the worlds' later instants are the evaluation's),
     all of them or `train_views` drawn per item (seeded by seed, epoch and index: rendering is
-    most of a step's time on a CPU)."""
+    most of a step's time on a CPU). `augment`: the photometric augmentation of the network's
+    *input* images in training (the rendered views are compared with the clean images)."""
 
     level: str = Field(default="coarse", pattern="^(fine|coarse)$")
     coarsen: int = Field(default=1, ge=1, le=8)
@@ -78,6 +81,7 @@ class AppearanceDataConfig(StrictModel):
     image_scale: float = Field(default=0.5, gt=0, le=1)
     eval_frames: bool = False
     train_views: int | None = Field(default=None, ge=1)  # views rendered per training item (None: all)
+    augment: AugmentConfig = Field(default_factory=AugmentConfig)  # of the network's input images only
 
 
 # ---------------------------------------------------------------------------- data
@@ -87,15 +91,18 @@ class AppearanceDataset(Dataset):
     Item: the `WorldsTorchDataset` item (images at `image_scale`, cameras, sky masks, ...) plus
     ``ijk`` (V, 3) int64 voxels (chunk frame, origin CHUNK_CORNER), ``voxel_size``, and ``hits``
     (N, h, w) int64, the row of ``ijk`` each half-resolution feature pixel's ray enters first (-1:
-    none), and ``loss_views`` the cameras the loss renders. Pinhole and OpenCV cameras."""
+    none), ``loss_views`` the cameras the loss renders, and in training ``input_images``, the
+    network's augmented inputs (``images`` stay clean: the loss's targets). Pinhole and OpenCV
+    cameras."""
 
     def __init__(self, root: Path, split: str, cfg: AppearanceDataConfig, seed: int = 0):
         self.cfg = cfg
         self.seed = seed
         self.train = split == "train"
+        # clean images from the base (they are the loss's targets); inputs are augmented here
         self.base = WorldsTorchDataset(root, split=split, train=split == "train",
                                        config=DataConfig(image_scale=cfg.image_scale, eval_frames=cfg.eval_frames,
-                                                         seed=seed))
+                                                         seed=seed, augment=NO_AUGMENT))
 
     def __len__(self) -> int:
         return len(self.base)
@@ -133,6 +140,9 @@ class AppearanceDataset(Dataset):
             gen = item_generator(self.seed + 1, self.base.epoch, index % len(self))  # not the augmentation's stream
             views = sorted(torch.randperm(n, generator=gen)[: self.cfg.train_views].tolist())
         item["loss_views"] = views
+        if self.train:
+            gen = item_generator(self.seed + 2, self.base.epoch, index % len(self))
+            item["input_images"] = torch.stack([photometric(im, gen, self.cfg.augment) for im in item["images"]])
         return item
 
 
@@ -194,8 +204,7 @@ class AppearanceNet(nn.Module):
     def forward(self, item: dict) -> dict:
         """One sample (an `AppearanceDataset` item) -> the Gaussians (flat: means (G, 3), quats,
         scales, opacities, colors; chunk frame) and the sky panorama (C, Hp, Wp)."""
-        images = item["images"]
-        feats = self.encoder(images)  # (N, C, h, w)
+        feats = self.encoder(item.get("input_images", item["images"]))  # (N, C, h, w)
         n, c, h, w = feats.shape
         hits = item["hits"][:, :h, :w]
         ijk, vs = item["ijk"], float(item["voxel_size"])

@@ -124,3 +124,16 @@ def test_an_empty_grid_renders_the_sky_alone(data):
     assert out["means"].shape == (0, 3) and float(alpha.abs().max()) == 0.0
     torch.testing.assert_close(img, sky)
     assert torch.isfinite(img).all()
+
+
+def test_training_targets_are_the_clean_images_and_only_the_inputs_are_augmented(data):
+    from scube_sim.model.data import DataConfig, WorldsTorchDataset
+
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**DATA), "train", 0)[0]
+    clean = WorldsTorchDataset(data, split="train", config=DataConfig(image_scale=1.0), train=False)[0]
+    torch.testing.assert_close(item["images"], clean["images"][item["camera_index"]])
+    assert item["input_images"].shape == item["images"].shape
+    assert float((item["input_images"] - item["images"]).abs().max()) > 0.01
+    again = stage.dataset(data, stage.data_config(**DATA), "train", 0)[0]
+    torch.testing.assert_close(again["input_images"], item["input_images"])  # seeded: the same draw
