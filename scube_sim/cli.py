@@ -414,8 +414,12 @@ def worlds_generate_cmd(
     rig: Optional[str] = typer.Option(None, "--rig", help="camera rig (default waymo-5), or rigs separated by "
                                       "commas that the samples cycle through; only for a new folder"),
     image_scale: Optional[float] = typer.Option(None, "--image-scale", help="of the rig's resolution (default 0.25)"),
+    frame_offsets: Optional[str] = typer.Option(None, "--frame-offsets",
+                                                help="stored instants in frames after T, comma-separated, "
+                                                "starting at 0 (default 0,5,10); only for a new folder"),
 ) -> None:
-    """Write dataset samples: images at T, T+5, T+10, depth, semantics, poses, boxes, GT voxels and LiDAR."""
+    """Write dataset samples: images at T, T+5, T+10 (or --frame-offsets), depth, semantics, poses, boxes, GT
+    voxels and LiDAR."""
 
     def body():
         from .worlds.dataset import DatasetConfig, generate_dataset
@@ -423,8 +427,14 @@ def worlds_generate_cmd(
         if count < 0 or start < 0 or jobs < 1:
             raise CliError("--count and --start must be >= 0 and --jobs >= 1")
         cfg = None
-        if rig is not None or image_scale is not None or not (output / "dataset.json").exists():
+        new = rig is not None or image_scale is not None or frame_offsets is not None
+        if new or not (output / "dataset.json").exists():
             kw = {}
+            if frame_offsets is not None:
+                try:
+                    kw["frame_offsets"] = [int(k) for k in frame_offsets.split(",") if k.strip()]
+                except ValueError:
+                    raise CliError(f"--frame-offsets: expected integers separated by commas, got {frame_offsets!r}")
             if rig is not None:
                 kw["rigs"] = [r.strip() for r in rig.split(",") if r.strip()]
             if image_scale is not None:

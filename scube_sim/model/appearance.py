@@ -28,11 +28,12 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, field_validator
 from torch import nn
 from torch.utils.data import Dataset
 
 from ..config import StrictModel
+from ..errors import InputError
 from ..worlds.groundtruth import CHUNK_CORNER
 from .activations import activate
 from .augment import AugmentConfig, photometric
@@ -47,6 +48,7 @@ from .voxel_rays import VoxelRayCaster, deposit_mean
 NUM_RAW = 14
 NO_AUGMENT = AugmentConfig(**{k: {"p": 0.0} for k in ("color_jitter", "exposure", "blur", "noise", "jpeg")})
 LOSS_WEIGHTS = {"l1": 0.9, "alpha": 1.0, "ssim": 0.1}
+EVAL_OFFSETS = (5, 10)  # the paper's novel-view instants T+5, T+10: never in the loss
 
 
 class AppearanceModelConfig(StrictModel):
@@ -70,18 +72,33 @@ class AppearanceDataConfig(StrictModel):
     """Which ground-truth grid (level fine | coarse, optionally coarsened by `coarsen`: fine x 2
     is 0.2 m in the worlds), the part of the chunk kept (x_min, y_min, z_min, x_max, y_max, z_max,
     chunk frame metres; None: all), the image scale of the stored images, and the views rendered
-    for the loss: the input instant's cameras (the worlds' later instants are the evaluation's),
-    all of them or `train_views` drawn per item (seeded by seed, epoch and index: rendering is
-    most of a step's time on a CPU). `augment`: the photometric augmentation of the network's
-    *input* images in training (the rendered views are compared with the clean images)."""
+    for the loss: the cameras at the stored instants `loss_offsets` (frames after T; 0 is the
+    input instant; never the evaluation's T+5 and T+10, so a dataset for it is generated with
+    e.g. ``--frame-offsets 0,2,7``), all of them or `train_views` drawn per item (seeded by seed,
+    epoch and index: rendering is most of a step's time on a CPU). Moving actors are masked out
+    of the loss at the instants after T (the grid holds them where they were at T).
+    `augment`: the photometric augmentation of the network's *input* images in training (the
+    rendered views are compared with the clean images). `eval_cameras`: the cameras evaluated,
+    ``front`` (the three forward-facing ones, the paper's protocol) or ``all``."""
 
     level: str = Field(default="coarse", pattern="^(fine|coarse)$")
     coarsen: int = Field(default=1, ge=1, le=8)
     region: tuple[float, float, float, float, float, float] | None = None
     image_scale: float = Field(default=0.5, gt=0, le=1)
     eval_frames: bool = False
+    loss_offsets: list[int] = Field(default_factory=lambda: [0], min_length=1)
     train_views: int | None = Field(default=None, ge=1)  # views rendered per training item (None: all)
     augment: AugmentConfig = Field(default_factory=AugmentConfig)  # of the network's input images only
+    eval_cameras: str = Field(default="front", pattern="^(front|all)$")
+
+    @field_validator("loss_offsets")
+    @classmethod
+    def _not_the_evaluation(cls, v: list[int]) -> list[int]:
+        bad = sorted(set(v) & set(EVAL_OFFSETS))
+        if bad or any(k < 0 for k in v) or len(set(v)) != len(v):
+            raise ValueError(f"expected distinct frame offsets >= 0 other than the evaluation's "
+                             f"{list(EVAL_OFFSETS)}, got {v}")
+        return sorted(v)
 
 
 # ---------------------------------------------------------------------------- data
@@ -91,7 +108,8 @@ class AppearanceDataset(Dataset):
     Item: the `WorldsTorchDataset` item (images at `image_scale`, cameras, sky masks, ...) plus
     ``ijk`` (V, 3) int64 voxels (chunk frame, origin CHUNK_CORNER), ``voxel_size``, and ``hits``
     (N, h, w) int64, the row of ``ijk`` each half-resolution feature pixel's ray enters first (-1:
-    none), ``loss_views`` the cameras the loss renders, and in training ``input_images``, the
+    none), ``loss_views`` the (frame offset, camera index) pairs the loss renders, ``eval_cameras``
+    the config's choice, and in training ``input_images``, the
     network's augmented inputs (``images`` stay clean: the loss's targets). Pinhole and OpenCV
     cameras."""
 
@@ -100,8 +118,10 @@ class AppearanceDataset(Dataset):
         self.seed = seed
         self.train = split == "train"
         # clean images from the base (they are the loss's targets); inputs are augmented here
+        later = self.train and any(k != 0 for k in cfg.loss_offsets)
         self.base = WorldsTorchDataset(root, split=split, train=split == "train",
-                                       config=DataConfig(image_scale=cfg.image_scale, eval_frames=cfg.eval_frames,
+                                       config=DataConfig(image_scale=cfg.image_scale,
+                                                         eval_frames=cfg.eval_frames or later,
                                                          seed=seed, augment=NO_AUGMENT))
 
     def __len__(self) -> int:
@@ -135,15 +155,43 @@ class AppearanceDataset(Dataset):
             full[:hh, :ww] = idx.reshape(hh, ww)
             hits.append(full)
         item["hits"] = torch.stack(hits)
-        views = list(range(n))
-        if self.train and self.cfg.train_views is not None and self.cfg.train_views < n:
+        offsets = self.cfg.loss_offsets if self.train else [0]
+        views = [(k, i) for k in offsets for i in range(frame_at(item, k)["images"].shape[0])]
+        if self.train and self.cfg.train_views is not None and self.cfg.train_views < len(views):
             gen = item_generator(self.seed + 1, self.base.epoch, index % len(self))  # not the augmentation's stream
-            views = sorted(torch.randperm(n, generator=gen)[: self.cfg.train_views].tolist())
+            views = [views[j] for j in sorted(torch.randperm(len(views), generator=gen)[: self.cfg.train_views].tolist())]
         item["loss_views"] = views
+        item["eval_cameras"] = self.cfg.eval_cameras
         if self.train:
             gen = item_generator(self.seed + 2, self.base.epoch, index % len(self))
             item["input_images"] = torch.stack([photometric(im, gen, self.cfg.augment) for im in item["images"]])
         return item
+
+
+def frame_at(item: dict, offset: int) -> dict:
+    """The item's cameras at frame offset `offset` (0: the item itself, else its ``eval_frames``
+    entry); an error naming the sample and the stored offsets when it has none there."""
+    if offset == 0:
+        return item
+    for f in item.get("eval_frames", []):
+        if f["offset"] == offset:
+            return f
+    have = [0] + [f["offset"] for f in item.get("eval_frames", [])]
+    raise InputError(f"sample {item.get('sample')}: no frame at offset {offset} (stored: {have}); generate the "
+                     f"training split with `scube-sim worlds generate --frame-offsets ...` that include it")
+
+
+def static_mask(frame: dict, i: int, moving: torch.Tensor) -> torch.Tensor:
+    """(H, W) bool of camera i of `frame`: inside the image and not on a moving actor."""
+    hh, ww = (int(s) for s in frame["image_size"][i])
+    inst = frame["instance"][i, :hh, :ww]
+    return frame["valid"][i, :hh, :ww] & ~torch.isin(inst, moving)
+
+
+def is_front_camera(name: str) -> bool:
+    """The forward-facing cameras of the shipped rigs: waymo-5 FRONT, FRONT_LEFT, FRONT_RIGHT;
+    nuscenes-6 CAM_FRONT, CAM_FRONT_LEFT, CAM_FRONT_RIGHT."""
+    return "FRONT" in name.upper()
 
 
 def _half(n: int) -> int:
@@ -252,25 +300,55 @@ class AppearanceNet(nn.Module):
 
 
 # ---------------------------------------------------------------------------- stage
-def view_losses(model: AppearanceNet, out: dict, frame: dict, cams=None) -> tuple[torch.Tensor, dict]:
-    """The loss over the views of one frame (the item's own cameras, or an eval frame's)."""
+def view_losses(model: AppearanceNet, out: dict, item: dict, views=None) -> tuple[torch.Tensor, dict]:
+    """The loss over views (frame offset, camera index) of an item (default: its cameras at T).
+    After T the moving actors' pixels are left out (the grid holds them where they were at T)."""
     total = 0.0
     logs = {"l1": 0.0, "alpha": 0.0, "ssim": 0.0}
-    cams = range(frame["images"].shape[0]) if cams is None else cams
-    for i in cams:
+    views = [(0, i) for i in range(item["images"].shape[0])] if views is None else views
+    moving = item.get("moving_instances", torch.zeros(0, dtype=torch.int64))
+    for k, i in views:
+        frame = frame_at(item, k)
         hh, ww = (int(s) for s in frame["image_size"][i])
         img, alpha, _ = model.render(out, frame["intrinsics"][i], frame["cam_to_chunk"][i], hh, ww,
                                      frame["distortion"][i])
         gt = frame["images"][i, :, :hh, :ww]
         nonsky = (~frame["sky"][i, :hh, :ww]).to(img.dtype)
-        l1 = (img - gt).abs().mean()
-        la = (alpha - nonsky).abs().mean()
-        ls = 1 - ssim(img[None], gt[None])
+        keep = (static_mask(frame, i, moving) if k != 0 else frame["valid"][i, :hh, :ww]).to(img.dtype)
+        n_keep = keep.sum().clamp_min(1.0)
+        l1 = ((img - gt).abs() * keep).sum() / (3 * n_keep)
+        la = ((alpha - nonsky).abs() * keep).sum() / n_keep
+        ls = 1 - ssim(img[None], gt[None], keep[None])
         total = total + LOSS_WEIGHTS["l1"] * l1 + LOSS_WEIGHTS["alpha"] * la + LOSS_WEIGHTS["ssim"] * ls
-        logs["l1"] += float(l1.detach()) / len(cams)
-        logs["alpha"] += float(la.detach()) / len(cams)
-        logs["ssim"] += float(1 - ls.detach()) / len(cams)
-    return total / len(cams), logs
+        logs["l1"] += float(l1.detach()) / len(views)
+        logs["alpha"] += float(la.detach()) / len(views)
+        logs["ssim"] += float(1 - ls.detach()) / len(views)
+    return total / len(views), logs
+
+
+def evaluate_item(model: AppearanceNet, item: dict, cameras: str = "front", out: dict | None = None) -> dict:
+    """Per-view metrics of one item at T and at each of its ``eval_frames``: ``{name: [values]}``
+    with names psnr_t<k>, ssim_t<k> (moving actors and padding masked out) and psnr_sky_t<k>
+    (sky pixels alone, where the view has any); k the frame offset. `cameras`: front | all."""
+    out = model(item) if out is None else out
+    moving = item.get("moving_instances", torch.zeros(0, dtype=torch.int64))
+    res: dict[str, list[float]] = {}
+    for frame in [item] + list(item.get("eval_frames", [])):
+        k = int(frame.get("offset", 0)) if frame is not item else 0
+        for i, name in enumerate(frame["camera_names"]):
+            if cameras == "front" and not is_front_camera(name):
+                continue
+            hh, ww = (int(s) for s in frame["image_size"][i])
+            img, _, _ = model.render(out, frame["intrinsics"][i], frame["cam_to_chunk"][i], hh, ww,
+                                     frame["distortion"][i])
+            gt = frame["images"][i, :, :hh, :ww]
+            keep = static_mask(frame, i, moving)
+            sky = frame["sky"][i, :hh, :ww] & keep
+            res.setdefault(f"psnr_t{k}", []).append(psnr(img[None], gt[None], keep[None]))
+            res.setdefault(f"ssim_t{k}", []).append(float(ssim(img[None], gt[None], keep[None])))
+            if bool(sky.any()):
+                res.setdefault(f"psnr_sky_t{k}", []).append(psnr(img[None], gt[None], sky[None]))
+    return res
 
 
 class AppearanceStage(Stage):
@@ -302,20 +380,10 @@ class AppearanceStage(Stage):
         sums: dict[str, list[float]] = {}
         for batch in batches:
             for item in batch:
-                out = model(item)
-                frames = [("t0", item)] + [(f"t{f['offset']}", f) for f in item.get("eval_frames", [])]
-                for name, frame in frames:
-                    for i in range(frame["images"].shape[0]):
-                        hh, ww = (int(s) for s in frame["image_size"][i])
-                        img, _, _ = model.render(out, frame["intrinsics"][i], frame["cam_to_chunk"][i], hh, ww,
-                                                 frame["distortion"][i])
-                        gt = frame["images"][i, :, :hh, :ww]
-                        sky = frame["sky"][i, :hh, :ww]
-                        sums.setdefault(f"psnr_{name}", []).append(psnr(img[None], gt[None]))
-                        sums.setdefault(f"ssim_{name}", []).append(float(ssim(img[None], gt[None])))
-                        if bool(sky.any()):
-                            sums.setdefault(f"psnr_sky_{name}", []).append(psnr(img[None], gt[None], sky[None]))
+                for k, v in evaluate_item(model, item, item.get("eval_cameras", "front")).items():
+                    sums.setdefault(k, []).extend(v)
         metrics = {k: float(np.mean(v)) for k, v in sums.items()}
+        metrics["views_t0"] = float(len(sums.get("psnr_t0", [])))
         metrics["psnr"] = metrics.get("psnr_t0", 0.0)
         return metrics
 

@@ -36,7 +36,10 @@ cameras are OpenCV (x right, y down, z forward); pixel (u, v) spans [u, u + 1) x
 - ``chunk_to_world`` (4, 4) float64; ``sample`` str (``<split>/<index:06d>``);
 - ``eval_frames`` (only with ``DataConfig.eval_frames``): one dict per later instant (T+5, T+10
   frames) with the per-camera keys above (every camera, the same resize, never augmented) plus
-  ``offset`` int (frames after T) and ``time`` float (seconds after T).
+  ``offset`` int (frames after T) and ``time`` float (seconds after T);
+- ``moving_instances`` (K,) int64: the instance ids of the boxes that move, those whose centre
+  shifts more than MOVING_SHIFT_M between the loaded instants (with ``eval_frames``) or whose
+  known speed exceeds MOVING_SPEED_MPS (the evaluation masks them out of novel views).
 
 Training mode (``train=True``) keeps the cameras `CameraSelection` picks and augments each image
 photometrically (`augment.photometric`; images only). Its randomness comes from a generator seeded
@@ -66,6 +69,8 @@ CAMERA_KEYS = ("images", "intrinsics", "distortion", "image_size", "valid", "cam
 # Padding values of the per-pixel maps outside a camera's image.
 PAD = {"images": 0.0, "depth": 0.0, "semantic": -1, "sky": False, "instance": -1, "valid": False}
 HELD_OUT_SPLIT = "test"
+MOVING_SHIFT_M = 0.05
+MOVING_SPEED_MPS = 0.1
 
 
 class DataConfig(StrictModel):
@@ -207,6 +212,24 @@ def _voxels(prefix: str, g) -> dict:
             f"{prefix}_voxel_size": float(g.voxel_size)}
 
 
+def moving_instances(timeline) -> torch.Tensor:
+    """(K,) int64 sorted instance ids of the boxes that move over the instants of `timeline` (a
+    list of frames with ``boxes``, world frame): centre shift > MOVING_SHIFT_M between any two, or
+    known speed > MOVING_SPEED_MPS."""
+    first: dict[int, np.ndarray] = {}
+    moving: set[int] = set()
+    for f in timeline:
+        for b in f.boxes:
+            if b.instance <= 0:
+                continue
+            if np.all(np.isfinite(b.velocity)) and float(np.linalg.norm(b.velocity)) > MOVING_SPEED_MPS:
+                moving.add(int(b.instance))
+            c0 = first.setdefault(int(b.instance), b.center)
+            if float(np.linalg.norm(b.center - c0)) > MOVING_SHIFT_M:
+                moving.add(int(b.instance))
+    return torch.tensor(sorted(moving), dtype=torch.int64)
+
+
 def item_generator(seed: int, epoch: int, index: int) -> torch.Generator:
     """The torch.Generator of item `index` in `epoch`: seeded by (seed, epoch, index) through
     numpy's SeedSequence, so neighbouring seeds, epochs and indices give unrelated streams."""
@@ -269,6 +292,7 @@ class WorldsTorchDataset(Dataset):
         item.update(_voxels("coarse", gt.coarse))
         item["chunk_to_world"] = torch.from_numpy(np.asarray(gt.chunk_to_world, np.float64).copy())
         item["sample"] = s.name
+        item["moving_instances"] = moving_instances(s.timeline)
         if cfg.eval_frames:
             item["eval_frames"] = []
             for f in s.timeline[1:]:
@@ -281,7 +305,7 @@ class WorldsTorchDataset(Dataset):
 
 
 def collate(items: list[dict]) -> dict:
-    """A batch of B items: per-camera keys (and ``sample``, ``eval_frames``) as lists of
+    """A batch of B items: per-camera keys (and ``sample``, ``moving_instances``, ``eval_frames``) as lists of
     length B (camera counts and image sizes differ between rigs); ``camera_counts`` (B,) int64;
     ``chunk_to_world`` (B, 4, 4) float64;
     the voxels concatenated in the sparse tensors' layout: ``<level>_coords`` (sum V, 4) int64
@@ -289,7 +313,7 @@ def collate(items: list[dict]) -> dict:
     ``<level>_counts`` (B,) int64 voxels per item, ``<level>_voxel_size`` (B,) float64."""
     if not items:
         raise InputError("collate: expected at least one item")
-    batch: dict = {k: [it[k] for it in items] for k in (*CAMERA_KEYS, "sample")}
+    batch: dict = {k: [it[k] for it in items] for k in (*CAMERA_KEYS, "sample", "moving_instances")}
     batch["camera_counts"] = torch.tensor([len(it["camera_names"]) for it in items], dtype=torch.int64)
     batch["chunk_to_world"] = torch.stack([it["chunk_to_world"] for it in items])
     for level in ("fine", "coarse"):

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from pydantic import Field
+from pydantic import Field, field_validator
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..atomic import atomic_path
@@ -79,6 +79,14 @@ class DatasetConfig(StrictModel):
     visibility_scale: float = Field(default=0.5, gt=0, le=1)
     lidar: str = "waymo-top"
     styles: list[str] = Field(default_factory=lambda: list(STYLES))
+
+    @field_validator("frame_offsets")
+    @classmethod
+    def _offsets_from_t(cls, v: list[int]) -> list[int]:
+        # frame 0 is the converter's input instant; readers take the first stored frame as T
+        if v[0] != 0 or any(b <= a for a, b in zip(v, v[1:])):
+            raise ValueError(f"expected strictly increasing frame offsets starting at 0, got {v}")
+        return v
 
     @property
     def rig(self) -> str:

@@ -13,7 +13,8 @@ import yaml
 from typer.testing import CliRunner
 
 from scube_sim.cli import app
-from scube_sim.model.appearance import AppearanceNet, view_losses
+from scube_sim.errors import InputError
+from scube_sim.model.appearance import AppearanceNet, evaluate_item, view_losses
 from scube_sim.model.image_metrics import psnr, ssim
 from scube_sim.model.stages import get_stage
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
@@ -72,7 +73,7 @@ def test_the_network_overfits_one_sample(data):
     losses = []
     for _ in range(12):
         out = net(item)
-        loss, _ = view_losses(net, out, item, cams=[0])
+        loss, _ = view_losses(net, out, item, views=[(0, 0)])
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -107,7 +108,7 @@ def test_training_items_draw_their_loss_views_by_seed_epoch_and_index(data):
         draws.add(tuple(ds[0]["loss_views"]))
     assert len(draws) > 1
     val = stage.dataset(data, stage.data_config(**{**DATA, "train_views": 2}), "val", 0)
-    assert val[0]["loss_views"] == list(range(val[0]["images"].shape[0]))  # evaluation renders every view
+    assert val[0]["loss_views"] == [(0, i) for i in range(val[0]["images"].shape[0])]  # every view at T
 
 
 def test_an_empty_grid_renders_the_sky_alone(data):
@@ -137,3 +138,49 @@ def test_training_targets_are_the_clean_images_and_only_the_inputs_are_augmented
     assert float((item["input_images"] - item["images"]).abs().max()) > 0.01
     again = stage.dataset(data, stage.data_config(**DATA), "train", 0)[0]
     torch.testing.assert_close(again["input_images"], item["input_images"])  # seeded: the same draw
+
+
+@pytest.fixture(scope="module")
+def data_t2(tmp_path_factory):
+    out = tmp_path_factory.mktemp("appearance_t2")
+    generate_dataset(out, "train", 1, TINY.model_copy(update={"frame_offsets": [0, 2]}), progress=False)
+    return out
+
+
+def test_the_loss_renders_the_training_instants_and_never_the_evaluations(data, data_t2):
+    stage = get_stage("appearance")
+    item = stage.dataset(data_t2, stage.data_config(**{**DATA, "loss_offsets": [2, 0]}), "train", 0)[0]
+    n = item["images"].shape[0]
+    assert item["loss_views"] == [(0, i) for i in range(n)] + [(2, i) for i in range(n)]
+    net = AppearanceNet(stage.model_config(**MODEL))
+    loss, _ = view_losses(net, net(item), item, [(2, 0)])
+    assert torch.isfinite(loss)
+    with pytest.raises(ValueError, match="evaluation"):
+        stage.data_config(**{**DATA, "loss_offsets": [0, 5]})
+    with pytest.raises(InputError, match=r"no frame at offset 2 \(stored: \[0, 5\]\)"):
+        stage.dataset(data, stage.data_config(**{**DATA, "loss_offsets": [0, 2]}), "train", 0)[0]
+
+
+def test_evaluation_masks_moving_actors_and_takes_the_front_cameras(data):
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**{**DATA, "eval_frames": True}), "val", 0)[0]
+    # the moving actors, read from the sample's own boxes: those whose centre moves from T to T+5
+    meta = json.loads((data / "val" / "000000" / "meta.json").read_text())
+    at = [{b["instance"]: b["center"] for b in f["boxes"]} for f in meta["frames"]]
+    moved = sorted(i for i, c in at[0].items() if i in at[1] and math.dist(c, at[1][i]) > 0.05)
+    assert moved and item["moving_instances"].tolist() == moved
+    net = AppearanceNet(stage.model_config(**MODEL)).eval()
+    with torch.no_grad():
+        out = net(item)
+        front = evaluate_item(net, item, "front", out)
+        every = evaluate_item(net, item, "all", out)
+        assert len(front["psnr_t0"]) == len(front["psnr_t5"]) == 3  # waymo-5: FRONT, FRONT_LEFT, FRONT_RIGHT
+        assert len(every["psnr_t0"]) == item["images"].shape[0] == 5
+        # scribbling over the moving actors' pixels changes nothing; over a static pixel it does
+        ev = item["eval_frames"][0]
+        on_actor = torch.isin(ev["instance"], item["moving_instances"])
+        assert bool(on_actor.any())
+        ev["images"] = torch.where(on_actor[:, None], 1 - ev["images"], ev["images"])
+        assert evaluate_item(net, item, "all", out)["psnr_t5"] == every["psnr_t5"]
+        ev["images"][:, :, 0, 0] = 1 - ev["images"][:, :, 0, 0]
+        assert evaluate_item(net, item, "all", out)["psnr_t5"] != every["psnr_t5"]
