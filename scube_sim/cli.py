@@ -514,22 +514,37 @@ def eval_cmd(
     checkpoint: Path = typer.Option(..., "--checkpoint", help="a run's last.pt or best.pt"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
+    data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
+                                          "config to change from the checkpoint's (repeatable; VALUE is YAML), "
+                                          "e.g. eval_frames=true"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
 ) -> None:
     """Evaluate a checkpoint on one split of a dataset folder."""
 
     def body():
         import json
 
+        import yaml
+
         from .atomic import atomic_path
         from .model.stages import get_stage
         from .model.trainer import evaluate
 
+        overrides = {}
+        for opt in data_option:
+            key, sep, value = opt.partition("=")
+            if not sep or not key.strip():
+                raise CliError(f"--data-option {opt!r}: expected KEY=VALUE")
+            try:
+                overrides[key.strip()] = yaml.safe_load(value)
+            except yaml.YAMLError as exc:
+                raise CliError(f"--data-option {opt!r}: VALUE is not YAML ({exc})") from None
         st = get_stage(stage)
-        metrics = evaluate(st, checkpoint, data, split=split)
+        metrics = evaluate(st, checkpoint, data, split=split, data_overrides=overrides, progress=progress)
         if output is not None:
             with atomic_path(output) as tmp:
                 tmp.write_text(json.dumps({"stage": st.name, "checkpoint": str(checkpoint), "split": split,
-                                           "metrics": metrics}, indent=2) + "\n", encoding="utf-8")
+                                           "data_options": overrides, "metrics": metrics}, indent=2) + "\n", encoding="utf-8")
         order = "higher" if st.higher_is_better else "lower"
         for k, v in metrics.items():
             typer.echo(f"{k}: {v:.6g}" + (f"  (primary, {order} is better)" if k == st.primary_metric else ""))

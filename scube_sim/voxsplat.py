@@ -62,7 +62,9 @@ KNOWN_CHANNELS = {
     "confidence": ChannelSpec("voxel", "float32", (), "the converter's confidence in the voxel, in [0, 1]"),
     "reflectance": ChannelSpec("gaussian", "float32", (), "near-infrared (~905 nm) reflectance, in [0, 1]"),
     "sky_panorama": ChannelSpec("scene", "float32", None,
-                                "(H, W, 3) equirectangular sky RGB in [0, 1], world frame, z up"),
+                                "(H, W, 3) equirectangular sky RGB in [0, 1] in the scene's axes (z up): pixel (r, c) "
+                                "looks along azimuth 2 pi (c + 0.5) / W - pi from +x towards +y at elevation "
+                                "pi / 2 - pi (r + 0.5) / H (row 0 the zenith; `model.sky`)"),
 }
 
 

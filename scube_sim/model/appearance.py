@@ -39,7 +39,8 @@ from .activations import activate
 from .augment import AugmentConfig, photometric
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .image_metrics import psnr, ssim
-from .sky import SkyDecoder, build_panorama, camera_ray_directions, sample_panorama
+from ..voxsplat import VoxSplat
+from .sky import SkyDecoder, build_panorama, camera_ray_directions, panorama_directions, sample_panorama
 from .sparse import SparseTensor, SparseUNet, voxel_keys
 from .splat_render import rasterization
 from .stages import Stage, register_stage
@@ -273,7 +274,8 @@ class AppearanceNet(nn.Module):
         bias = torch.zeros(NUM_RAW, dtype=raw.dtype)
         bias[3] = self._opacity_bias
         bias[4:7] = math.log(self.cfg.init_scale_voxels * vs)
-        g = activate(raw + bias, centres, vs, self.cfg.offset_range)
+        raw = raw + bias
+        g = activate(raw, centres, vs, self.cfg.offset_range)
         sky_small = F.interpolate((item["sky"] & item["valid"])[:, None].to(feats.dtype), size=(h, w),
                                   mode="area")[:, 0]  # the sky fraction of each feature pixel
         k_half = torch.stack([_half_k(k) for k in item["intrinsics"]])
@@ -281,7 +283,26 @@ class AppearanceNet(nn.Module):
                                       *self.cfg.panorama)
         return {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
                 "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
-                "colors": g["colors"].reshape(-1, 3), "pano": pano, "pano_weight": weight}
+                "colors": g["colors"].reshape(-1, 3), "pano": pano, "pano_weight": weight, "raw": raw}
+
+    def sky_rgb(self, out: dict, height: int, width: int) -> torch.Tensor:
+        """(height, width, 3) the decoded sky on the equirectangular grid of `sky` (chunk axes)."""
+        feats = sample_panorama(out["pano"], panorama_directions(height, width, out["pano"].dtype))
+        return self.sky(feats[None])[0].permute(1, 2, 0)
+
+    def to_voxsplat(self, out: dict, item: dict, sky_size: tuple[int, int] = (128, 256)) -> VoxSplat:
+        """The prediction for `item` as a VoxSplat in the chunk frame (origin CHUNK_CORNER, the
+        item's grid; metadata ``frame: chunk``, ``chunk_to_world``, ``sample``) with its sky as the
+        ``sky_panorama`` channel at `sky_size` (rows, columns). Same activations, so the
+        Gaussians are the ones `render` draws."""
+        vs = VoxSplat(ijk=item["ijk"].numpy(), params=out["raw"].detach().float().numpy(),
+                      voxel_size=float(item["voxel_size"]), origin=np.asarray(CHUNK_CORNER, np.float64),
+                      offset_range=self.cfg.offset_range,
+                      metadata={"frame": "chunk", "sample": str(item.get("sample", "")),
+                                "chunk_to_world": np.asarray(item["chunk_to_world"], np.float64).tolist(),
+                                "source": "scube_sim.model.appearance"})
+        vs.set_channel("sky_panorama", self.sky_rgb(out, *sky_size).detach().float().numpy())
+        return vs
 
     def render(self, out: dict, K: torch.Tensor, cam_to_chunk: torch.Tensor, height: int, width: int,
                distortion=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

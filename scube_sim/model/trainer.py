@@ -484,19 +484,43 @@ def _model_from_checkpoint(stage: Stage, run: RunConfig, ck: dict, path: Path) -
     return model.eval()
 
 
+def load_model(stage: Stage | str, checkpoint: str | Path) -> tuple[nn.Module, RunConfig]:
+    """The model of a checkpoint (a run's last.pt / best.pt, or `export_weights`'s file), in eval
+    mode, and the run config it was trained with."""
+    stage = get_stage(stage) if isinstance(stage, str) else stage
+    checkpoint = Path(checkpoint)
+    ck = load_checkpoint(checkpoint)
+    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
+        raise CheckpointError(f"{checkpoint}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
+    run = config_from_dict(ck["config"], f"{checkpoint} (config)")
+    return _model_from_checkpoint(stage, run, ck, checkpoint), run
+
+
+def export_weights(checkpoint: str | Path, out: str | Path) -> Path:
+    """A run's checkpoint without what only resuming needs (optimiser moments, RNG states, data
+    position): stage, config, model weights, step, epoch and best record. `evaluate`,
+    `load_model` and `eval` read it like any checkpoint; `train --resume` cannot."""
+    ck = load_checkpoint(checkpoint)
+    keep = {k: ck[k] for k in ("stage", "config", "model", "step", "epoch", "best") if k in ck}
+    keep = {k: v for k, v in keep.items() if k not in ("format", "version")}
+    keep["exported_from"] = str(Path(checkpoint).name)
+    return save_checkpoint(out, keep)
+
+
 # --- evaluation --------------------------------------------------------------------------------
 
 
 def evaluate_model(stage: Stage, model: nn.Module, dataset: Dataset, batch_size: int,
-                   num_workers: int = 0) -> dict[str, float]:
-    """The stage's metrics over the whole `dataset`, in order, in eval mode without gradients."""
+                   num_workers: int = 0, progress: bool = False) -> dict[str, float]:
+    """The stage's metrics over the whole `dataset`, in order, in eval mode without gradients
+    (`progress`: a bar over the batches)."""
     loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=stage.collate,
                         num_workers=num_workers, generator=torch.Generator().manual_seed(0))
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad():
-            metrics = stage.evaluate(model, loader)
+        with torch.no_grad(), _batch_bar(progress, len(loader), f"eval {stage.name}") as tick:
+            metrics = stage.evaluate(model, (tick(b) for b in loader))
     finally:
         model.train(was_training)
     if stage.primary_metric not in metrics:
@@ -505,25 +529,51 @@ def evaluate_model(stage: Stage, model: nn.Module, dataset: Dataset, batch_size:
     return {str(k): float(v) for k, v in metrics.items()}
 
 
-def evaluate(stage: Stage | str, checkpoint: str | Path, data_dir: str | Path, split: str = "test") -> dict[str, float]:
-    """The stage's metrics of a checkpoint's weights on one split of a data folder."""
+@contextlib.contextmanager
+def _batch_bar(enabled: bool, total: int, what: str):
+    """A rich progress bar over `total` batches; yields tick(batch) -> batch."""
+    if not enabled:
+        yield lambda b: b
+        return
+    cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TimeRemainingColumn())
+    with Progress(*cols, transient=False) as bar:
+        task = bar.add_task(what, total=total)
+
+        def tick(b):
+            bar.advance(task)
+            return b
+
+        yield tick
+
+
+def evaluate(stage: Stage | str, checkpoint: str | Path, data_dir: str | Path, split: str = "test",
+             data_overrides: dict | None = None, progress: bool = False) -> dict[str, float]:
+    """The stage's metrics of a checkpoint's weights on one split of a data folder.
+    data_overrides: fields of the stage's data config to change from the checkpoint's (e.g.
+    ``{"eval_frames": True}``; validated like the config)."""
     stage = get_stage(stage) if isinstance(stage, str) else stage
     checkpoint, data_dir = Path(checkpoint), Path(data_dir)
-    ck = load_checkpoint(checkpoint)
-    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
-        raise CheckpointError(f"{checkpoint}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
+    model, run = load_model(stage, checkpoint)
     if split not in stage.splits:
         raise InputError(f"split: {split!r} is not a split of stage {stage.name!r} ({', '.join(stage.splits)})")
     if not data_dir.is_dir():
         raise InputError(f"{data_dir}: no such data folder")
-    run = config_from_dict(ck["config"], f"{checkpoint} (config)")
     _, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
+    if data_overrides:
+        unknown = sorted(set(data_overrides) - set(type(data_cfg).model_fields))
+        if unknown:
+            raise InputError(f"data option {', '.join(unknown)}: not a field of stage {stage.name!r}'s data config "
+                             f"(fields: {', '.join(type(data_cfg).model_fields)})")
+        try:
+            data_cfg = type(data_cfg)(**{**data_cfg.model_dump(), **data_overrides})
+        except ValueError as exc:
+            raise InputError(f"data options {data_overrides}: {exc}") from None
     with _torch_settings(run.train, 1):
-        model = _model_from_checkpoint(stage, run, ck, checkpoint)
         dataset = stage.dataset(data_dir, data_cfg, split, run.train.seed)
         if len(dataset) == 0:
             raise InputError(f"{data_dir}: the {split} split has no samples")
-        return evaluate_model(stage, model, dataset, run.train.batch_size, run.train.num_workers)
+        return evaluate_model(stage, model, dataset, run.train.batch_size, run.train.num_workers, progress)
 
 
 # --- the loss curve ----------------------------------------------------------------------------

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -95,6 +96,22 @@ def test_train_and_eval_through_the_cli(data, tmp_path):
     assert res.exit_code == 0, res.output
     metrics = json.loads((tmp_path / "m.json").read_text())["metrics"]
     assert 0 < metrics["psnr"] < 60 and 0 < metrics["ssim_t0"] <= 1
+    assert "psnr_t5" not in metrics  # the checkpoint's data config: the input instant only
+    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+                                   str(tmp_path / "run" / "last.pt"), "--split", "val", "--no-progress",
+                                   "--data-option", "eval_frames=true", "-o", str(tmp_path / "m5.json")])
+    assert res.exit_code == 0, res.output
+    m5 = json.loads((tmp_path / "m5.json").read_text())
+    assert m5["data_options"] == {"eval_frames": True} and m5["metrics"]["psnr_t0"] == metrics["psnr_t0"]
+    assert m5["metrics"]["views_t0"] == 3 and 0 < m5["metrics"]["psnr_t5"] < 60
+    # the weights alone (what a shipped checkpoint holds) evaluate the same, from a smaller file
+    from scube_sim.model.trainer import evaluate, export_weights
+    small = export_weights(tmp_path / "run" / "last.pt", tmp_path / "weights.pt")
+    assert small.stat().st_size < 0.6 * (tmp_path / "run" / "last.pt").stat().st_size
+    assert evaluate("appearance", small, data, split="val") == metrics
+    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+                                   str(tmp_path / "run" / "last.pt"), "--split", "val", "--data-option", "eval_frame=1"])
+    assert res.exit_code != 0 and "eval_frame" in res.output and "not a field" in res.output
 
 
 def test_training_items_draw_their_loss_views_by_seed_epoch_and_index(data):
@@ -184,3 +201,30 @@ def test_evaluation_masks_moving_actors_and_takes_the_front_cameras(data):
         assert evaluate_item(net, item, "all", out)["psnr_t5"] == every["psnr_t5"]
         ev["images"][:, :, 0, 0] = 1 - ev["images"][:, :, 0, 0]
         assert evaluate_item(net, item, "all", out)["psnr_t5"] != every["psnr_t5"]
+
+
+def test_the_prediction_exports_as_a_voxsplat_that_renders_the_same(data, tmp_path):
+    from scube_sim.camera.rig import load_rig
+    from scube_sim.model.views import render_rig
+    from scube_sim.voxsplat import VoxSplat
+
+    stage = get_stage("appearance")
+    item = stage.dataset(data, stage.data_config(**DATA), "val", 0)[0]
+    net = AppearanceNet(stage.model_config(**MODEL)).eval()
+    with torch.no_grad():
+        out = net(item)
+        path = net.to_voxsplat(out, item, sky_size=(64, 128)).save(tmp_path / "pred.npz")
+        back = VoxSplat.load(path)
+        assert back.channel("sky_panorama").shape == (64, 128, 3) and back.metadata["frame"] == "chunk"
+        g = back.gaussians()
+        np.testing.assert_allclose(g.means + back.origin, out["means"].numpy(), atol=1e-4)
+        # the network's own render of the FRONT camera and the file's through the rig: the same image
+        rig = load_rig("waymo-5")
+        cam = rig.cameras[0]
+        intr = cam.intrinsics().scaled(0.05)
+        assert intr.model == "opencv" and len(intr.dist) == 5
+        want, _, _ = net.render(out, torch.from_numpy(intr.K), torch.from_numpy(cam.cam_to_ego()), intr.height,
+                                intr.width, torch.tensor(intr.dist))
+        got = render_rig(back, rig, np.eye(4), scale=0.05)[cam.name]
+        # the sky: decoded on the panorama grid and resampled, vs decoded per pixel (a 3x3 conv)
+        assert np.abs(got - want.permute(1, 2, 0).clamp(0, 1).numpy()).mean() < 0.03

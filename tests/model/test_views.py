@@ -10,7 +10,7 @@ from scube_sim.camera.rig import load_rig
 from scube_sim.cli import app
 from scube_sim.io.ply3dgs import write_3dgs_ply
 from scube_sim.model.views import render_rig
-from scube_sim.voxsplat import SH_C0, Gaussians
+from scube_sim.voxsplat import SH_C0, Gaussians, VoxSplat
 
 
 def red_wall(origin=(0.0, 0.0, 0.0)) -> Gaussians:
@@ -49,3 +49,35 @@ def test_render_command_writes_a_mosaic(tmp_path):
         assert im.size[0] > 300
     res = CliRunner().invoke(app, ["render", str(path), "--rig", "nuscenes-6", "--scale", "2", "-o", str(out)])
     assert res.exit_code == 2 and "--scale: expected a factor in (0, 1]" in res.output
+
+
+def gradient_sky(h: int = 64, w: int = 128) -> np.ndarray:
+    """(h, w, 3) sky whose colour is a smooth function of the direction: red = (1 + cos azimuth)/2,
+    green = elevation / (pi/2) clipped to [0, 1], blue 0.8 (the VoxSplat channel's pixel grid)."""
+    az = (np.arange(w) + 0.5) / w * 2 * np.pi - np.pi
+    el = np.pi / 2 - (np.arange(h) + 0.5) / h * np.pi
+    e, a = np.meshgrid(el, az, indexing="ij")
+    return np.stack([(1 + np.cos(a)) / 2, np.clip(e / (np.pi / 2), 0, 1), np.full_like(a, 0.8)], -1).astype(np.float32)
+
+
+def test_a_voxsplat_sky_shows_through_where_the_gaussians_leave_it():
+    rig = load_rig("waymo-5")
+    # one opaque voxel of 8 Gaussians straight ahead at 12 m, and the sky channel
+    raw = np.zeros((1, 8, 14), np.float32)
+    raw[..., 3] = 8.0  # opacity ~1
+    raw[..., 4:7] = np.log(0.3)
+    raw[..., 7] = 1.0
+    vs = VoxSplat(ijk=[[30, 0, 4]], params=raw, voxel_size=0.4, origin=(0.0, -0.2, 0.0))
+    vs.set_channel("sky_panorama", gradient_sky())
+    views = render_rig(vs, rig, np.eye(4), scale=0.04)
+    for cam in rig.cameras:
+        intr = cam.intrinsics().scaled(0.04)
+        rays = np.asarray(intr.pixel_rays()) @ cam.cam_to_ego()[:3, :3].T  # ego = scene axes
+        az, el = np.arctan2(rays[..., 1], rays[..., 0]), np.arcsin(np.clip(rays[..., 2], -1, 1))
+        want = np.stack([(1 + np.cos(az)) / 2, np.clip(el / (np.pi / 2), 0, 1), np.full_like(az, 0.8)], -1)
+        img = views[cam.name]
+        free = np.abs(img - want).max(-1) < 0.03
+        assert free.mean() > 0.9, cam.name  # the sky everywhere but on the voxel (bilinear: ~1/128 turn)
+    front = views["FRONT"]
+    h, w, _ = front.shape
+    assert np.abs(front[h // 2, w // 2] - 0.5).max() < 0.02  # the grey voxel covers the sky
