@@ -422,6 +422,7 @@ def worlds_generate_cmd(
     voxels and LiDAR."""
 
     def body():
+        from .config import validate_model
         from .worlds.dataset import DatasetConfig, generate_dataset
 
         if count < 0 or start < 0 or jobs < 1:
@@ -439,7 +440,7 @@ def worlds_generate_cmd(
                 kw["rigs"] = [r.strip() for r in rig.split(",") if r.strip()]
             if image_scale is not None:
                 kw["image_scale"] = image_scale
-            cfg = DatasetConfig(**kw)
+            cfg = validate_model(DatasetConfig, kw, "worlds generate options", error=CliError)
         res = generate_dataset(output, split, count, cfg, start=start, jobs=jobs)
         typer.echo(f"{split}: wrote {res['written']}, skipped {res['skipped']} complete; "
                    f"{res['seconds_per_sample']:.2f} s per sample (wall, {jobs} job(s)) -> {output}")
@@ -511,7 +512,8 @@ def train_cmd(
 def eval_cmd(
     stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to"),
     data: Path = typer.Option(..., "--data", help="dataset folder"),
-    checkpoint: Path = typer.Option(..., "--checkpoint", help="a run's last.pt or best.pt"),
+    checkpoint: str = typer.Option(..., "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
+                                   "checkpoint's name (appearance-cpu)"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "

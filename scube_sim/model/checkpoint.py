@@ -17,6 +17,7 @@ import torch
 from ..atomic import atomic_path
 from ..errors import InputError
 
+SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"  # <name>/model.pt, with its README
 FORMAT = "scube-sim-train"
 VERSION = 1
 
@@ -57,6 +58,26 @@ def save_checkpoint(path: str | Path, state: dict) -> Path:
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
     return path
+
+
+def shipped_checkpoints() -> dict[str, Path]:
+    """The checkpoints that ship with the package: name -> model.pt (`SHIPPED_DIR/<name>/`)."""
+    if not SHIPPED_DIR.is_dir():
+        return {}
+    return {d.name: d / "model.pt" for d in sorted(SHIPPED_DIR.iterdir()) if (d / "model.pt").is_file()}
+
+
+def resolve_checkpoint(name_or_path: str | Path) -> Path:
+    """A checkpoint file: an existing path, or the name of a shipped checkpoint (e.g.
+    ``appearance-cpu``); otherwise an error naming both the path and the shipped names."""
+    p = Path(name_or_path)
+    if p.is_file():
+        return p
+    shipped = shipped_checkpoints()
+    if str(name_or_path) in shipped:
+        return shipped[str(name_or_path)]
+    raise CheckpointError(f"{p}: no such checkpoint file, nor a shipped checkpoint "
+                          f"(shipped: {', '.join(shipped) or 'none'})")
 
 
 def load_checkpoint(path: str | Path) -> dict:

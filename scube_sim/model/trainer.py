@@ -43,7 +43,8 @@ from torch.utils.data import DataLoader, Dataset
 from ..atomic import atomic_path
 from ..config import ConfigError, normalize_name
 from ..errors import InputError, ScubeSimError
-from .checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, seed_everything, set_rng_state
+from .checkpoint import (CheckpointError, load_checkpoint, resolve_checkpoint, rng_state, save_checkpoint,
+                         seed_everything, set_rng_state)
 from .config import RunConfig, TrainConfig, config_from_dict, resolved_config, stage_configs
 from .stages import Stage, StageError, get_stage
 
@@ -485,10 +486,11 @@ def _model_from_checkpoint(stage: Stage, run: RunConfig, ck: dict, path: Path) -
 
 
 def load_model(stage: Stage | str, checkpoint: str | Path) -> tuple[nn.Module, RunConfig]:
-    """The model of a checkpoint (a run's last.pt / best.pt, or `export_weights`'s file), in eval
-    mode, and the run config it was trained with."""
+    """The model of a checkpoint (a run's last.pt / best.pt, `export_weights`'s file, or a shipped
+    checkpoint's name: `checkpoint.resolve_checkpoint`), in eval mode, and the run config it was
+    trained with."""
     stage = get_stage(stage) if isinstance(stage, str) else stage
-    checkpoint = Path(checkpoint)
+    checkpoint = resolve_checkpoint(checkpoint)
     ck = load_checkpoint(checkpoint)
     if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
         raise CheckpointError(f"{checkpoint}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
@@ -553,7 +555,7 @@ def evaluate(stage: Stage | str, checkpoint: str | Path, data_dir: str | Path, s
     data_overrides: fields of the stage's data config to change from the checkpoint's (e.g.
     ``{"eval_frames": True}``; validated like the config)."""
     stage = get_stage(stage) if isinstance(stage, str) else stage
-    checkpoint, data_dir = Path(checkpoint), Path(data_dir)
+    checkpoint, data_dir = resolve_checkpoint(checkpoint), Path(data_dir)
     model, run = load_model(stage, checkpoint)
     if split not in stage.splits:
         raise InputError(f"split: {split!r} is not a split of stage {stage.name!r} ({', '.join(stage.splits)})")
