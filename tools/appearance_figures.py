@@ -7,7 +7,7 @@
   beside the world's mesh rendered from the same camera (the ground truth).
 
 Run: ``python tools/appearance_figures.py --checkpoint CK --data DIR [--split test] [--index 0]
--o docs [--prefix appearance]``.
+-o docs [--prefix appearance] [--voxsplat pred.npz]`` (the prediction, for ``scube-sim render``).
 """
 
 from __future__ import annotations
@@ -62,6 +62,7 @@ def main(argv=None) -> None:
     ap.add_argument("--index", type=int, default=0)
     ap.add_argument("-o", "--output", default="docs")
     ap.add_argument("--prefix", default="appearance")
+    ap.add_argument("--voxsplat", help="also save the prediction here (a chunk-frame VoxSplat .npz with its sky)")
     args = ap.parse_args(argv)
     out_dir = Path(args.output)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -74,6 +75,8 @@ def main(argv=None) -> None:
     name = item["sample"]
     with torch.no_grad():
         pred = model(item)
+        if args.voxsplat:
+            model.to_voxsplat(pred, item).save(args.voxsplat)
 
         # inputs
         n = item["images"].shape[0]

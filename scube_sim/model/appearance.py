@@ -34,12 +34,12 @@ from torch.utils.data import Dataset
 
 from ..config import StrictModel
 from ..errors import InputError
+from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .activations import activate
 from .augment import AugmentConfig, photometric
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .image_metrics import psnr, ssim
-from ..voxsplat import VoxSplat
 from .sky import SkyDecoder, build_panorama, camera_ray_directions, panorama_directions, sample_panorama
 from .sparse import SparseTensor, SparseUNet, voxel_keys
 from .splat_render import rasterization
