@@ -330,9 +330,7 @@ class _Loop:
             self._write_metrics()  # after a resume: drop records newer than the checkpoint
             with atomic_path(job.out_dir / CONFIG) as tmp:
                 tmp.write_text(yaml.safe_dump(job.resolved, sort_keys=False), encoding="utf-8")
-        columns = [TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                   TimeRemainingColumn()]
-        with Progress(*columns, disable=not self.progress) as bar:
+        with Progress(*_bar_columns(), disable=not self.progress) as bar:
             task = bar.add_task(f"{self.stage.name}", total=job.total_steps, completed=s.step)
             while s.step < job.total_steps:
                 sampler = ShardSampler(job.train_samples, self.tc.batch_size, self.tc.seed, s.epoch, s.batch,
@@ -504,7 +502,6 @@ def export_weights(checkpoint: str | Path, out: str | Path) -> Path:
     `load_model` and `eval` read it like any checkpoint; `train --resume` cannot."""
     ck = load_checkpoint(checkpoint)
     keep = {k: ck[k] for k in ("stage", "config", "model", "step", "epoch", "best") if k in ck}
-    keep = {k: v for k, v in keep.items() if k not in ("format", "version")}
     keep["exported_from"] = str(Path(checkpoint).name)
     return save_checkpoint(out, keep)
 
@@ -531,15 +528,19 @@ def evaluate_model(stage: Stage, model: nn.Module, dataset: Dataset, batch_size:
     return {str(k): float(v) for k, v in metrics.items()}
 
 
+def _bar_columns() -> tuple:
+    """The progress bar's columns, for training and evaluation alike."""
+    return (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+            TimeRemainingColumn())
+
+
 @contextlib.contextmanager
 def _batch_bar(enabled: bool, total: int, what: str):
     """A rich progress bar over `total` batches; yields tick(batch) -> batch."""
     if not enabled:
         yield lambda b: b
         return
-    cols = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn())
-    with Progress(*cols, transient=False) as bar:
+    with Progress(*_bar_columns()) as bar:
         task = bar.add_task(what, total=total)
 
         def tick(b):
