@@ -9,7 +9,8 @@ PIP_FLAGS ?= --disable-pip-version-check -q
 
 .PHONY: demo test bench venv clean
 
-$(STAMP): pyproject.toml
+# The compiled tracer core builds on install: a change to its source reinstalls.
+$(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp
 	@bash tools/ensure-system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install $(PIP_FLAGS) --upgrade pip

@@ -1,9 +1,20 @@
-"""Tracer benchmark: a full HDL-64E and OS1-128 (2048 columns) sweep on VoxSplats of ~1e5, ~3e5 and
-~1e6 Gaussians (the street scene fitted at 0.6, 0.4 and 0.2 m voxels, M = 4), both backends, both
-hard depth definitions and every proxy kind; build time and peak memory; and, in the same process,
-raw Embree first-hit on the triangle mesh of the same surfaces (the practical limit).
+"""Tracer benchmark: the compiled core against raw Embree first hit on the source mesh and
+against the NumPy reference walk, all in one process on the same rays.
 
-Run: `make bench` (all benchmarks) or `python -m bench.bench_tracer [--quick]`.
+- Scenes: the street scene fitted at 0.4, 0.2 and 0.1 m voxels (M = 4: about 0.3, 1.0 and 3.7 M
+  Gaussians) and the demo world at 0.2 m.
+- Sensors: a full HDL-64E sweep (133 k rays) and an OS1-128 at 2048 columns (262 k rays).
+- Compiled core: build time and peak memory; both hard depth modes at 1 and 2 threads; the whole
+  `Lidar.scan` (HDL-64E, with every effect of the preset); x_mesh = sweep time / raw Embree first
+  hit on the street mesh (the same rays; open3d multi-threaded for 2 threads, embreex for 1).
+- Exactness: rays whose hit differs (> 1 um) from an exhaustive listing of every proxy crossing
+  (open3d list_intersections over the reference's octahedra, each crossing tested exactly), for
+  both cores.
+- Reference walk (open3d, octahedra) on the 0.3 M and 1 M scenes: its build and sweeps, for the
+  before / after ratio.
+- Soft mode on the shipped third-party splats (VLP-16 and HDL-64E rays), both cores.
+
+Run: `make bench` (all benchmarks) or `python -m bench.bench_tracer [--quick]` (no 3.7 M scene).
 """
 
 from __future__ import annotations
@@ -16,16 +27,16 @@ from rich.progress import Progress
 
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
-from scube_sim.raytrace import reference
+from scube_sim.raytrace import compiled, reference
 from scube_sim.raytrace.backends import BACKENDS
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.worlds.street import street_scene
 
-from .common import RESULTS, peak_mb, reset_peak, rss_mb, street_voxsplat, timed, write_results
+from .common import CACHE, RESULTS, peak_mb, reset_peak, rss_mb, street_voxsplat, timed, write_results
 
 SENSORS = {"HDL-64E": ("hdl64e", None), "OS1-128x2048": ("os1-128", 2048)}
-PROXIES = ("octahedron", "icosahedron", "voxel_box")
 MODES = ("entry", "max_response")
+THREADS = (1, 2)
 
 
 def sensor_rays(name: str, pose: np.ndarray):
@@ -49,8 +60,8 @@ def compare(h, ref):
 
 
 def listed_nearest(tr: Tracer, o, d, rmax) -> np.ndarray:
-    """The nearest entry hit per ray from an exhaustive listing of every proxy crossing (open3d
-    list_intersections): the walk's answer must equal it."""
+    """The nearest entry hit per ray (world-frame rays) from an exhaustive listing of every proxy
+    crossing of a reference tracer built on open3d (list_intersections), each tested exactly."""
     ol = o - tr.origin
     n = len(o)
     t_lo, t_hi = tr._clip_to_bounds(ol, d, np.zeros(n), np.full(n, rmax))
@@ -63,13 +74,42 @@ def listed_nearest(tr: Tracer, o, d, rmax) -> np.ndarray:
         ri, g = reference.expand(pg, act[r], prim // pg.faces_per_proxy)
         ts, d2, half = reference.exact(pg, ri, g, ol, d, tr.stats)
         ok = d2 <= tr.k**2
-        np.minimum.at(best, ri[ok], np.maximum(ts - half, 0.0)[ok])
+        np.minimum.at(best, ri, np.maximum(ts - half, 0.0)[ok])
     return np.where(best <= rmax, best, np.inf)
 
 
+def rays_off(h, want) -> int:
+    return int(((h.hit != np.isfinite(want)) | (h.hit & (np.abs(h.t - want) > 1e-6))).sum())
+
+
+def demo_voxsplat():
+    """The demo's VoxSplat (the default world at 0.2 m), cached like the street scenes."""
+    from scube_sim.demo import DEFAULT_WORLD, REGION
+    from scube_sim.reconstruct import gt_voxsplat
+    from scube_sim.voxsplat import VoxSplat
+    from scube_sim.worlds.generator import generate_world
+
+    CACHE.mkdir(exist_ok=True)
+    path = CACHE / "demo_0.2.npz"
+    if path.exists():
+        return VoxSplat.load(path)
+    w = generate_world(DEFAULT_WORLD)
+    vs = gt_voxsplat(w.mesh_at(0.0), w.ego_pose_at(0.0), 0.2, region=REGION)
+    vs.save(path)
+    return vs
+
+
+def build(vs, **kw):
+    base = rss_mb()
+    can_peak = reset_peak()
+    t = time.perf_counter()
+    tr = Tracer(vs, **kw)
+    sec = time.perf_counter() - t
+    return tr, sec, (peak_mb() - base) if can_peak else float("nan")
+
+
 def run(quick: bool = False) -> list[dict]:
-    voxel_sizes = (0.6, 0.2) if quick else (0.6, 0.4, 0.2)
-    proxies = ("octahedron", "voxel_box") if quick else PROXIES
+    voxel_sizes = (0.4, 0.2) if quick else (0.4, 0.2, 0.1)
     mesh = street_scene()
     pose = np.eye(4)
     pose[:3, 3] = [0.0, -2.0, 1.8]
@@ -80,71 +120,78 @@ def run(quick: bool = False) -> list[dict]:
     for backend in BACKENDS:
         tr = Tracer(mesh, backend=backend)
         for s, (o, d, rmax) in rays.items():
-            sec, h = timed(lambda: tr.trace_world(o, d, 0.0, rmax))
+            o32, d32, far = o.astype(np.float32), d.astype(np.float32), np.full(len(o), rmax, np.float32)
+            sec, _ = timed(lambda: tr._backend.first_hit(o32, d32, far))
             mesh_time[backend, s] = sec
-            mesh_ref[s] = h
-            rows.append({"scene": f"mesh ({mesh.num_faces} tris)", "gaussians": 0, "backend": backend,
-                         "proxy": "-", "mode": "mesh", "sensor": s, "rays": len(o), "sweep_s": sec,
-                         "Mrays_s": len(o) / sec / 1e6, "x_mesh": 1.0})
-    total = len(voxel_sizes) * len(BACKENDS) * len(proxies)
+            mesh_ref[s] = tr.trace_world(o, d, 0.0, rmax)
+            rows.append({"scene": f"street mesh ({mesh.num_faces} tris)", "gaussians": 0, "core": f"raw {backend}",
+                         "mode": "mesh first hit", "threads": 2 if backend == "open3d" else 1, "sensor": s,
+                         "rays": len(o), "sweep_s": sec, "Mrays_s": len(o) / sec / 1e6, "x_mesh": 1.0})
+    scenes = [(f"street {v:g} m", v) for v in voxel_sizes] + [("demo world 0.2 m", None)]
     with Progress() as progress:
-        task = progress.add_task("tracer benchmark", total=total)
-        for vsz in voxel_sizes:
-            vs = street_voxsplat(vsz)
+        task = progress.add_task("tracer benchmark", total=len(scenes))
+        for name, vsz in scenes:
+            vs = street_voxsplat(vsz) if vsz is not None else demo_voxsplat()
             n = vs.num_gaussians
-            for backend in BACKENDS:
-                for proxy in proxies:
-                    progress.update(task, description=f"{n / 1e6:.2f} M Gaussians, {backend}, {proxy}")
-                    base = rss_mb()
-                    can_peak = reset_peak()
-                    t = time.perf_counter()
-                    tr = Tracer(vs, backend=backend, proxy=proxy)
-                    build = time.perf_counter() - t
-                    peak = (peak_mb() - base) if can_peak else float("nan")
-                    for mode in MODES:
-                        tr.mode = mode
-                        for s, (o, d, rmax) in rays.items():
-                            sec, h = timed(lambda: tr.trace_world(o, d, 0.0, rmax))
-                            tr.stats.__init__()
-                            tr.trace_world(o, d, 0.0, rmax)
-                            row = {"scene": f"street {vsz:g} m", "gaussians": n, "backend": backend, "proxy": proxy,
-                                   "mode": mode, "sensor": s, "rays": len(o), "build_s": build,
-                                   "build_s_per_M": build / (n / 1e6), "peak_MB_per_M": peak / (n / 1e6),
-                                   "sweep_s": sec, "Mrays_s": len(o) / sec / 1e6,
-                                   "x_mesh": sec / mesh_time[backend, s],
-                                   "casts_per_ray": tr.stats.rays_cast / len(o),
-                                   "triangles": tr.num_primitives}
+            progress.update(task, description=f"{name}: {n / 1e6:.2f} M Gaussians")
+            street = vsz is not None
+            tr, build_s, peak = build(vs, core="compiled")
+            base = {"scene": name, "gaussians": n, "core": "compiled", "build_s": build_s,
+                    "build_s_per_M": build_s / (n / 1e6), "peak_MB_per_M": peak / (n / 1e6)}
+            sweeps = {}
+            for threads in THREADS:
+                tr.threads = threads
+                for mode in MODES:
+                    tr.mode = mode
+                    for s, (o, d, rmax) in rays.items():
+                        if not street and s != "HDL-64E":
+                            continue
+                        sec, h = timed(lambda: tr.trace_world(o, d, 0.0, rmax))
+                        sweeps[threads, mode, s] = h
+                        raw = mesh_time["open3d" if threads > 1 else "embreex", s]
+                        row = {**base, "mode": mode, "threads": threads, "sensor": s, "rays": len(o), "sweep_s": sec,
+                               "Mrays_s": len(o) / sec / 1e6, "x_mesh": sec / raw if street else float("nan")}
+                        if street:
                             row.update(compare(h, mesh_ref[s]))
-                            if backend == "open3d" and mode == "entry" and s == "HDL-64E":
-                                want = listed_nearest(tr, o, d, rmax)
-                                off = (h.hit != np.isfinite(want)) | (h.hit & (np.abs(h.t - want) > 1e-6))
-                                row["rays_off_exhaustive"] = int(off.sum())
-                            rows.append(row)
-                    # The order knob on the default proxy: skip the confirming re-casts.
-                    if proxy == "octahedron":
-                        for mode in MODES:
-                            o, d, rmax = rays["HDL-64E"]
-                            tr.mode, tr.exact_order = mode, True
-                            exact = tr.trace_world(o, d, 0.0, rmax)
-                            tr.exact_order = False
-                            sec, h = timed(lambda: tr.trace_world(o, d, 0.0, rmax))
-                            tr.exact_order = True
-                            row = {"scene": f"street {vsz:g} m", "gaussians": n, "backend": backend,
-                                   "proxy": proxy + " (exact_order=False)", "mode": mode, "sensor": "HDL-64E",
-                                   "rays": len(o), "build_s": build, "sweep_s": sec, "Mrays_s": len(o) / sec / 1e6,
-                                   "x_mesh": sec / mesh_time[backend, "HDL-64E"]}
-                            row.update(compare(h, mesh_ref["HDL-64E"]))
-                            vs_exact = compare(h, exact)
-                            row["p90_vs_exact_cm"] = vs_exact["p90_err_cm"]
-                            rows.append(row)
-                    del tr
-                    progress.advance(task)
+                        if threads == 2 and mode == "entry" and s == "HDL-64E":
+                            lidar = Lidar(load_lidar_config("hdl64e"))
+                            scan_pose = pose if street else lidar.sensor_pose(np.eye(4))
+                            row["scan_s"], _ = timed(lambda: lidar.scan(tr, scan_pose, seed=0))
+                        rows.append(row)
+            same = all(sweeps[1, m, s].t.tobytes() == sweeps[2, m, s].t.tobytes() for m in MODES for s in rays
+                       if (1, m, s) in sweeps)
+            rows[-1]["threads_bitwise_equal"] = same
+            del tr
+            if vsz in (0.4, 0.2) or not street:
+                # The reference walk (open3d, octahedra): the old path, and the exhaustive listing.
+                ref, rbuild, rpeak = build(vs, core="reference", backend="open3d")
+                o, d, rmax = rays["HDL-64E"]
+                if not street:
+                    o, d = sensor_rays("HDL-64E", Lidar(load_lidar_config("hdl64e")).sensor_pose(np.eye(4)))[:2]
+                want = listed_nearest(ref, o, d, rmax)
+                for mode in MODES:
+                    ref.mode = mode
+                    sec, h = timed(lambda: ref.trace_world(o, d, 0.0, rmax), repeat=1)
+                    comp = sweeps[2, mode, "HDL-64E"]
+                    row = {"scene": name, "gaussians": n, "core": "reference (open3d)", "mode": mode, "threads": 2,
+                           "sensor": "HDL-64E", "rays": len(o), "build_s": rbuild, "build_s_per_M": rbuild / (n / 1e6),
+                           "peak_MB_per_M": rpeak / (n / 1e6), "sweep_s": sec, "Mrays_s": len(o) / sec / 1e6,
+                           "x_mesh": sec / mesh_time["open3d", "HDL-64E"] if street else float("nan")}
+                    if mode == "entry":
+                        row["rays_off_exhaustive"] = rays_off(h, want)
+                        for r in rows:
+                            if (r["scene"], r["core"], r["mode"], r["threads"], r.get("sensor")) == (
+                                    name, "compiled", "entry", 2, "HDL-64E"):
+                                r["rays_off_exhaustive"] = rays_off(comp, want)
+                    rows.append(row)
+                del ref
+            progress.advance(task)
     return rows
 
 
 def soft_rows() -> list[dict]:
-    """Soft mode on the two third-party splat files (a VLP-16 at the scene's centre), both backends:
-    open3d lists every crossing in one traversal, embreex walks face by face."""
+    """Soft mode on the two third-party splat files (a VLP-16 and an HDL-64E beside the scene),
+    the compiled core (k-buffer 16) and the reference (open3d lists every crossing at once)."""
     import os
     from pathlib import Path
 
@@ -159,17 +206,24 @@ def soft_rows() -> list[dict]:
         g = read_3dgs_ply(path)
         centre = np.median(g.means, axis=0)
         extent = float(np.percentile(np.linalg.norm(g.means - centre, axis=1), 90))
-        pat = Lidar(load_lidar_config("vlp16")).pattern
-        o = np.broadcast_to(centre - np.array([2.0 * extent, 0, 0]), pat.directions.shape) + g.origin
-        d = pat.directions
-        for backend in BACKENDS:
-            t = time.perf_counter()
-            tr = Tracer(g, backend=backend, mode="soft")
-            build = time.perf_counter() - t
-            sec, h = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent), repeat=1)
-            rows.append({"scene": fname, "gaussians": len(g), "backend": backend, "proxy": "octahedron", "mode": "soft",
-                         "sensor": "VLP-16", "rays": len(d), "build_s": build, "sweep_s": sec,
-                         "Mrays_s": len(d) / sec / 1e6, "hits": int(h.hit.sum())})
+        for sensor in ("vlp16", "hdl64e"):
+            pat = Lidar(load_lidar_config(sensor)).pattern
+            o = np.broadcast_to(centre - np.array([2.0 * extent, 0, 0]), pat.directions.shape) + g.origin
+            d = pat.directions
+            hits = {}
+            for core in ("compiled", "reference"):
+                t = time.perf_counter()
+                tr = Tracer(g, mode="soft", core=core, backend="open3d")
+                build_s = time.perf_counter() - t
+                sec, h = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent), repeat=1 if core == "reference" else 3)
+                hits[core] = h
+                rows.append({"scene": fname, "gaussians": len(g), "core": core, "mode": "soft", "threads": 2,
+                             "sensor": sensor, "rays": len(d), "build_s": build_s, "sweep_s": sec,
+                             "Mrays_s": len(d) / sec / 1e6, "hits": int(h.hit.sum())})
+            a, b = hits["compiled"], hits["reference"]
+            both = a.hit & b.hit
+            rows[-2]["soft_max_depth_diff_vs_reference_m"] = float(np.abs(a.t[both] - b.t[both]).max()) if both.any() else 0.0
+            rows[-2]["hit_agreement"] = float(np.mean(a.hit == b.hit))
     return rows
 
 
@@ -179,19 +233,20 @@ def plot(rows, path):
     plt = _plt()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), dpi=110)
     for ax, mode in zip(axes, MODES):
-        for backend, ls in zip(BACKENDS, ("-", "--")):
-            for proxy in PROXIES:
-                pts = sorted((r["gaussians"], r["sweep_s"]) for r in rows if r["mode"] == mode and r["backend"] == backend
-                             and r["proxy"] == proxy and r["sensor"] == "HDL-64E")
-                if pts:
-                    x, y = zip(*pts)
-                    ax.plot(x, y, ls, marker="o", label=f"{backend} {proxy}")
-            mesh = [r["sweep_s"] for r in rows if r["mode"] == "mesh" and r["backend"] == backend and r["sensor"] == "HDL-64E"]
-            ax.axhline(mesh[0], color="k", ls=ls, lw=0.8, label=f"{backend} raw mesh first-hit")
-        ax.axhline(0.1, color="r", lw=1, label="10 Hz")
+        for core, threads, ls in (("compiled", 2, "-"), ("compiled", 1, ":"), ("reference (open3d)", 2, "--")):
+            pts = sorted((r["gaussians"], r["sweep_s"]) for r in rows
+                         if r["mode"] == mode and r["core"] == core and r.get("threads") == threads
+                         and r.get("sensor") == "HDL-64E" and r["scene"].startswith("street"))
+            if pts:
+                x, y = zip(*pts)
+                ax.plot(x, y, ls, marker="o", label=f"{core}, {threads} thread{'s' if threads > 1 else ''}")
+        for backend, ls in (("open3d", "-"), ("embreex", ":")):
+            mesh = [r["sweep_s"] for r in rows if r["core"] == f"raw {backend}" and r["sensor"] == "HDL-64E"]
+            ax.axhline(mesh[0], color="k", ls=ls, lw=0.8, label=f"raw {backend} first hit on the mesh")
+        ax.axhline(0.05, color="r", lw=1, label="0.05 s (trace budget at 10 Hz)")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel("Gaussians")
+        ax.set_xlabel("Gaussians (street scene)")
         ax.set_ylabel("HDL-64E sweep [s] (133 k rays)")
         ax.set_title(f"depth: {mode}")
         ax.grid(alpha=0.3, which="both")
@@ -203,19 +258,22 @@ def plot(rows, path):
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--quick", action="store_true", help="two scene sizes, two proxies")
+    ap.add_argument("--quick", action="store_true", help="no 3.7 M Gaussian scene")
     args = ap.parse_args()
+    if not compiled.available():
+        raise SystemExit(f"bench_tracer: the compiled core is not built ({compiled.load_error()})")
     rows = run(args.quick) + soft_rows()
-    header = ["scene", "gaussians", "backend", "proxy", "mode", "sensor", "rays", "build_s", "peak_MB_per_M",
-              "sweep_s", "Mrays_s", "x_mesh", "casts_per_ray", "median_err_cm", "p90_err_cm", "hit_agreement",
-              "p90_vs_exact_cm", "rays_off_exhaustive"]
-    notes = ("sweep_s: median of 3 `Tracer.trace_world` calls on all rays of one sweep (tracing only; the LiDAR "
-             "effects add little). x_mesh: sweep time / raw Embree first-hit on the street mesh with the same "
-             "backend and rays, measured in this run. Errors: |range| against that mesh where both hit "
-             "(the representation's own error). peak_MB_per_M: peak RSS growth during the build per million Gaussians. "
-             "rays_off_exhaustive: rays whose hit differs (> 1 um) from an exhaustive listing of every proxy crossing "
-             "(open3d list_intersections), i.e. errors of the proxy walk itself; p90_vs_exact_cm: the exact_order=False "
-             "knob against exact order.")
+    header = ["scene", "gaussians", "core", "mode", "threads", "sensor", "rays", "build_s_per_M", "peak_MB_per_M",
+              "sweep_s", "Mrays_s", "x_mesh", "scan_s", "rays_off_exhaustive", "threads_bitwise_equal",
+              "median_err_cm", "p90_err_cm", "hit_agreement", "soft_max_depth_diff_vs_reference_m"]
+    notes = ("sweep_s: median of 3 `Tracer.trace_world` calls on all rays of one sweep (1 for the reference). "
+             "scan_s: the whole `Lidar.scan` of the HDL-64E preset (tracing, intensity, drop, noise, points). "
+             "x_mesh: sweep time / raw Embree first hit on the street mesh, same rays, this run (open3d, "
+             "multi-threaded, for 2 threads; embreex, 1 thread, for 1). peak_MB_per_M: peak RSS growth during "
+             "the build per million Gaussians. rays_off_exhaustive: rays whose hit differs (> 1 um) from an "
+             "exhaustive listing of every proxy crossing, each tested exactly. threads_bitwise_equal: 1- and "
+             "2-thread ranges of every sweep byte-identical. Errors: |range| against the mesh where both hit "
+             f"(the representation's own error). Embree {compiled.embree_version()}.")
     md = write_results("tracer", rows, header, notes)
     plot(rows, RESULTS / "tracer.png")
     print(md.read_text())

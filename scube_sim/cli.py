@@ -68,7 +68,9 @@ def lidar_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="point cloud to write: .pcd, .ply, .bin (KITTI) or .npz"),
     pose: str = typer.Option("0,0,0,0,0,0", "--pose", help="sensor pose in the scene frame: x,y,z,roll,pitch,yaw (m, deg)"),
     mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (entry for VoxSplats, soft for 3DGS .ply)"),
-    backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex (default: the faster one)"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex: the Embree engine of the reference core (default: the faster one)"),
+    core: Optional[str] = typer.Option(None, "--core", help="compiled | reference (default: compiled where built; env SCUBE_SIM_CORE)"),
+    threads: int = typer.Option(0, "--threads", help="the compiled core's threads (0: all cores)"),
     k: float = typer.Option(3.0, "--k", help="hard surface: the k-sigma ellipsoid"),
     seed: int = typer.Option(0, "--seed", help="random seed (noise, drops)"),
     png: Optional[Path] = typer.Option(None, "--png", help="also write a bird's-eye view PNG"),
@@ -90,7 +92,9 @@ def lidar_cmd(
         t0 = time.perf_counter()
         sc = load_scene(scene)
         m = mode if mode != "auto" else ("entry" if isinstance(sc, VoxSplat) else "soft")
-        tracer = Tracer(sc, backend=backend or DEFAULT_BACKEND, mode=m, k=k)
+        if core not in (None, "compiled", "reference"):
+            raise CliError(f"--core: expected compiled or reference, got {core!r}")
+        tracer = Tracer(sc, backend=backend or DEFAULT_BACKEND, mode=m, k=k, core=core, threads=threads)
         t1 = time.perf_counter()
         sweep = Lidar(cfg).scan(tracer, sensor_pose, seed=seed)
         t2 = time.perf_counter()
@@ -100,7 +104,7 @@ def lidar_cmd(
 
             bev_png(png, sweep.xyz(), labels=sweep.points["label"], title=f"{cfg.name} on {scene.name}")
         typer.echo(f"{cfg.name}: {len(sweep)} points from {sweep.num_rays} rays -> {output} "
-                   f"(load+build {t1 - t0:.2f} s, sweep {t2 - t1:.3f} s, mode {m}, backend {tracer.backend_name})")
+                   f"(load+build {t1 - t0:.2f} s, sweep {t2 - t1:.3f} s, mode {m}, core {tracer.core_name})")
         if len(sweep) < 0.01 * sweep.num_rays:
             typer.echo("note: under 1 % of the rays returned; is the sensor inside a surface or outside the "
                        "scene? (--pose is the sensor pose in the scene frame)", err=True)

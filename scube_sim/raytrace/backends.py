@@ -12,6 +12,9 @@ import numpy as np
 from ..errors import InputError, ScubeSimError
 
 BACKENDS = ("open3d", "embreex")
+# Measured by `make bench` (bench/bench_tracer.py): open3d's multi-threaded Embree sweeps faster on
+# this 2-core machine for every scene size and proxy of the reference walk; see README.
+DEFAULT_BACKEND = "open3d"
 
 
 class BackendUnavailable(ScubeSimError, RuntimeError):

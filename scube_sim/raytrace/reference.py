@@ -1,11 +1,14 @@
 """The reference traversal of hard- and soft-opacity Gaussians: a NumPy face walk over Embree
 triangle proxies with exact float64 tests (`TraceCore`; a compiled core implements the same
-`trace_hard` / `trace_soft` and is tested against this one).
+`TraceCore` and is tested against this one, ray for ray).
 
 A ray finds proxy faces in order of distance, one Embree first-hit cast per step; each face
 names a Gaussian (or a voxel's Gaussians), which is tested exactly (gaussian_math). The ray is
 re-cast from just past each face until the next face lies beyond the best exact hit: the result
-is the exact nearest hit, whatever the overlap of the proxies. Soft mode composites every
+is the exact nearest hit, whatever the overlap of the proxies, for rays that start outside every
+proxy. A hard ray starting inside one (t_min > 0 inside a Gaussian) meets that proxy only at its
+exit face, and the walk may stop at a farther hit before reaching it: 67 of 4 000 random rays in
+`tests/raytrace/test_core.py`'s scene. The compiled core has no such blind spot. Soft mode composites every
 contribution front to back until the transmittance falls below its threshold.
 
 Frames: everything here is in the scene's local frame (world = local + origin), float64, with
@@ -18,10 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import InputError
 from ..voxsplat import Gaussians
 from . import gaussian_math as gm
-from .contracts import TracerBackend
-from .hits import TraceStats
+from .backends import BACKENDS, DEFAULT_BACKEND, make_backend
+from .contracts import SceneGaussians, TraceOptions, TracerBackend
+from .hits import Hits, TraceStats
 
 STEP_ULPS = 1.0  # first re-cast step past a face, in float32 ulps of the face position (grows on a re-hit)
 
@@ -34,7 +39,8 @@ class PreparedGaussians:
     frame matrices; opacity (G,); backend: the Embree BVH of the proxies, whose primitive p
     belongs to proxy p // faces_per_proxy. Per-Gaussian proxies: frame_scale (G,) and the
     template's planes (planes_n (F, 3), planes_h (F,)). Voxel boxes: box_center, box_half (B, 3)
-    and box_members (B, M) Gaussian ids (-1 padded)."""
+    and box_members (B, M) Gaussian ids (-1 padded). lo, hi (3,): the proxies' bounds;
+    num_faces: triangles in the BVH; attributes: the scene the proxies were built from."""
 
     gaussians: Gaussians
     mu: np.ndarray
@@ -46,38 +52,110 @@ class PreparedGaussians:
     faces_per_proxy: int
     planes_n: np.ndarray
     planes_h: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    num_faces: int
+    attributes: SceneGaussians
     frame_scale: np.ndarray | None = None
     box_center: np.ndarray | None = None
     box_half: np.ndarray | None = None
     box_members: np.ndarray | None = None
 
 
-@dataclass(frozen=True)
-class TraceOptions:
-    """How one trace call walks (read from the `Tracer` at each call, so its settings may change
-    between calls): mode 'entry' | 'max_response' | 'soft'; exact_order False stops a hard ray
-    at its first exact hit; max_iterations caps the casts per ray; soft_min_transmittance ends a
-    soft ray; soft_alpha_min drops fainter soft contributions."""
-
-    mode: str = "entry"
-    exact_order: bool = True
-    max_iterations: int = 1000
-    soft_min_transmittance: float = 1e-3
-    soft_alpha_min: float = 1.0 / 255.0
-
-
 class ReferenceCore:
-    """The NumPy face walk as a `TraceCore`."""
+    """The NumPy face walk as a `TraceCore`: proxies (`proxy`: 'octahedron' | 'icosahedron' per
+    Gaussian, or 'voxel_box' per voxel) in an Embree triangle BVH (`backend`: 'open3d' |
+    'embreex'), walked face by face with exact float64 tests."""
 
     name = "reference"
 
-    @staticmethod
-    def trace_hard(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
-        return trace_hard(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def __init__(self, backend: str = DEFAULT_BACKEND, proxy: str = "octahedron"):
+        if backend not in BACKENDS:
+            raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+        if proxy not in gm.PROXY_KINDS:
+            raise InputError(f"proxy: expected one of {gm.PROXY_KINDS}, got {proxy!r}")
+        self.backend, self.proxy = backend, proxy
 
-    @staticmethod
-    def trace_soft(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
-        return trace_soft(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+    def prepare(self, scene: SceneGaussians) -> PreparedGaussians:
+        g, pad = scene.gaussians, scene.pad
+        lo, hi = scene.aabb_lo, scene.aabb_hi
+        if self.proxy == "voxel_box":
+            vs = scene.voxsplat
+            if vs is None:
+                raise InputError("proxy 'voxel_box' needs a VoxSplat scene (Gaussians on a voxel grid)")
+            # One box per voxel: the union of its Gaussians' k-sigma bounding boxes.
+            vox, inv = np.unique(scene.voxel, return_inverse=True)
+            inv = inv.reshape(-1)
+            blo = np.full((vox.shape[0], 3), np.inf)
+            bhi = np.full((vox.shape[0], 3), -np.inf)
+            for ax in range(3):
+                np.minimum.at(blo[:, ax], inv, lo[:, ax])
+                np.maximum.at(bhi[:, ax], inv, hi[:, ax])
+            counts = np.bincount(inv, minlength=vox.shape[0])
+            m = int(counts.max()) if counts.size else 1
+            order = np.argsort(inv, kind="stable")
+            starts = np.r_[0, np.cumsum(counts)[:-1]]
+            slot = np.arange(order.shape[0]) - starts[inv[order]]
+            box_members = np.full((vox.shape[0], m), -1, np.int64)
+            box_members[inv[order], slot] = order
+            # Boxes of neighbouring voxels share face planes (a flat ground gives every box the
+            # same top), and Embree reports one of several faces met at the same distance. So
+            # overlapping boxes get different dilations: a class per voxel index modulo c, where
+            # c = 2 * reach + 1 and reach is how many cells a box reaches beyond its own.
+            ijk = vs.ijk[vox].astype(np.int64)
+            cell_lo = ijk * vs.voxel_size
+            reach = max(np.max((cell_lo - blo) / vs.voxel_size), np.max((bhi - cell_lo) / vs.voxel_size - 1), 0.0)
+            c = 2 * int(np.ceil(reach)) + 1
+            cls = (ijk[:, 0] % c) * c * c + (ijk[:, 1] % c) * c + (ijk[:, 2] % c)
+            dil = pad * (1.0 + 2.0 * cls)
+            v, f, fpp = gm.box_proxies(blo, bhi, dil)
+            box_center = 0.5 * (blo + bhi)
+            box_half = 0.5 * (bhi - blo) + dil[:, None]
+            frame_scale = None
+        else:
+            v, f, fpp, frame_scale = gm.gaussian_proxies(self.proxy, scene.mu, scene.rot, g.scales, scene.k, pad)
+            box_center = box_half = box_members = None
+        planes_n, planes_h = gm.template_planes(self.proxy)
+        return PreparedGaussians(
+            gaussians=g, mu=scene.mu, a=scene.a, opacity=scene.opacity, k=scene.k, proxy=self.proxy,
+            backend=make_backend(self.backend, v, f), faces_per_proxy=fpp, planes_n=planes_n, planes_h=planes_h,
+            lo=v.min(0).astype(np.float64) if len(v) else np.zeros(3),
+            hi=v.max(0).astype(np.float64) if len(v) else np.zeros(3), num_faces=int(f.shape[0]),
+            attributes=scene, frame_scale=frame_scale, box_center=box_center, box_half=box_half,
+            box_members=box_members)
+
+    def trace(self, prepared: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi,
+              stats: TraceStats) -> Hits:
+        if opts.mode == "soft":
+            depth, g, acc = trace_soft(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+            hit = acc >= opts.soft_hit_alpha
+            return gaussian_hits(prepared.attributes, "soft", o, d, np.where(hit, depth, np.inf),
+                                 np.where(hit, g, -1), alpha=acc.astype(np.float32))
+        best_t, best_g = trace_hard(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+        return gaussian_hits(prepared.attributes, opts.mode, o, d, best_t, best_g)
+
+
+def gaussian_hits(scene: SceneGaussians, mode: str, o, d, best_t, best_g, alpha=None) -> Hits:
+    """Per-ray (t, Gaussian) answers -> `Hits`: points, normals facing the ray (the ellipsoid's
+    in `entry` mode, the flat axis otherwise), the Gaussian's voxel, label and colour."""
+    n = o.shape[0]
+    out = Hits.empty(n)
+    idx = np.nonzero(best_g >= 0)[0]
+    g = best_g[idx]
+    t = best_t[idx]
+    out.hit[idx] = True
+    out.t[idx] = t
+    p = o[idx] + t[:, None] * d[idx]
+    out.points[idx] = p
+    nrm = gm.ellipsoid_normals(p, scene.mu[g], scene.a[g]) if mode == "entry" else scene.flat_axis[g]
+    facing = np.einsum("ij,ij->i", nrm, d[idx]) > 0
+    out.normals[idx] = np.where(facing[:, None], -nrm, nrm)
+    out.gaussian[idx] = g
+    out.voxel[idx] = scene.voxel[g]
+    out.label[idx] = scene.labels[g]
+    out.color[idx] = scene.colors[g]
+    out.alpha[idx] = 1.0 if alpha is None else alpha[idx]
+    return out
 
 
 # --- pieces shared by the walks ------------------------------------------------------------

@@ -1,10 +1,10 @@
 """`Tracer`: ray tracing of VoxSplats (hard or soft opacity) and triangle meshes with Embree.
 
-Gaussians become closed bounding proxies (per-Gaussian octahedra or icosahedra, or one box per
-voxel) in an Embree BVH, built once; a `TraceCore` walks them with exact float64 tests
-(`reference.py`: the NumPy face walk, exact nearest hit whatever the overlap of the proxies, so
-proxies only change the speed). This class builds the proxies, clips rays to the scene bounds
-and turns the core's (t, Gaussian) answers into `Hits`.
+Gaussians are handed, once per static scene, to a `TraceCore` that builds its BVH and answers
+ray batches with exact float64 tests: the compiled core (`compiled.py`, Embree user geometry, one
+traversal per ray, the default wherever it is built) or the NumPy reference walk over triangle
+proxies (`reference.py`). This class validates rays, clips them to the scene bounds and hands
+them to the core; meshes are traced here with Embree's own triangles.
 
 Depth definitions (hard opacity: alpha := 1 for Gaussians at or above `opacity_floor`):
 - ``entry``: where the ray enters the k-sigma ellipsoid (a solid surface).
@@ -27,16 +27,14 @@ import numpy as np
 from ..errors import InputError
 from ..mesh import TriangleMesh
 from ..voxsplat import Gaussians, VoxSplat
+from . import compiled
 from . import gaussian_math as gm
-from .backends import BACKENDS, make_backend
-from .contracts import TraceCore
+from .backends import BACKENDS, DEFAULT_BACKEND, make_backend
+from .contracts import SceneGaussians, TraceCore, TraceOptions
 from .hits import Hits, TraceStats
-from .reference import PreparedGaussians, ReferenceCore, TraceOptions
+from .reference import ReferenceCore
 
 MODES = ("entry", "max_response", "soft")
-# Measured by `make bench` (bench/bench_tracer.py): open3d's multi-threaded Embree sweeps faster on
-# this 2-core machine for every scene size and proxy; see README "Tracer benchmark".
-DEFAULT_BACKEND = "open3d"
 MIN_SCALE = 1e-9  # metres
 
 
@@ -44,14 +42,18 @@ class Tracer:
     """Build once per static scene, then `trace` any number of ray batches (a `TraceableScene`).
 
     scene: a VoxSplat, a `Gaussians` set (e.g. from a 3DGS PLY) or a TriangleMesh.
-    backend: 'open3d' or 'embreex'. mode: 'entry' | 'max_response' | 'soft' (ignored for meshes).
+    mode: 'entry' | 'max_response' | 'soft' (ignored for meshes).
     k: ellipsoid size in standard deviations. opacity_floor: hard modes drop Gaussians below it.
-    proxy: 'octahedron' | 'icosahedron' (per Gaussian) or 'voxel_box' (one box per voxel).
-    exact_order: True (default) returns the nearest exact hit; False stops each ray at the
-    first exact hit found in proxy order, skipping the confirming re-casts (faster; its range error
-    on overlapping Gaussians is measured by `make bench`).
+    core: 'compiled' | 'reference' | a `TraceCore`; default: `compiled.default_core_name()` (the
+    compiled core where it is built; the environment variable SCUBE_SIM_CORE overrides).
+    threads: the compiled core's threads (0: all cores); soft_k_buffer: its soft contributions
+    gathered per traversal (3DGRT's k-buffer).
+    backend: 'open3d' or 'embreex', the Embree engine for meshes and for the reference core's
+    proxies. proxy: the reference core's 'octahedron' | 'icosahedron' (per Gaussian) or
+    'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
+    the nearest exact hit; False stops each ray at the first exact hit found in proxy order
+    (faster; its range error on overlapping Gaussians is measured by `make bench`).
     labels: (N,) per-Gaussian labels for a bare `Gaussians` scene.
-    core: the Gaussian traversal (`TraceCore`); default the NumPy reference (`reference.py`).
     """
 
     accepts_times = False  # a static scene: per-ray fire times change nothing
@@ -71,7 +73,9 @@ class Tracer:
         max_iterations: int = 1000,
         exact_order: bool = True,
         labels: np.ndarray | None = None,
-        core: TraceCore | None = None,
+        core: str | TraceCore | None = None,
+        threads: int = 0,
+        soft_k_buffer: int = 16,
     ):
         if backend not in BACKENDS:
             raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
@@ -83,6 +87,10 @@ class Tracer:
             raise InputError(f"proxy: expected one of {gm.PROXY_KINDS}, got {proxy!r}")
         if proxy == "voxel_box" and not isinstance(scene, VoxSplat):
             raise InputError("proxy 'voxel_box' needs a VoxSplat scene (Gaussians on a voxel grid)")
+        if int(threads) < 0:
+            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
+        if int(soft_k_buffer) < 1:
+            raise InputError(f"soft_k_buffer: expected at least 1, got {soft_k_buffer}")
         self.backend_name, self.mode, self.k, self.proxy = backend, mode, float(k), proxy
         self.opacity_floor = float(opacity_floor)
         self.soft_min_transmittance = float(soft_min_transmittance)
@@ -90,13 +98,31 @@ class Tracer:
         self.soft_hit_alpha = float(soft_hit_alpha)
         self.max_iterations = int(max_iterations)
         self.exact_order = bool(exact_order)
+        self.threads = int(threads)
+        self.soft_k_buffer = int(soft_k_buffer)
         self.stats = TraceStats()
-        self.core = core if core is not None else ReferenceCore()
         self.is_mesh = isinstance(scene, TriangleMesh)
         if self.is_mesh:
+            self.core = None
             self._build_mesh(scene)
         else:
+            self.core = self._make_core(core)
             self._build_gaussians(scene, labels)
+
+    def _make_core(self, core) -> TraceCore:
+        if core is None:
+            core = compiled.default_core_name()
+        if core == "compiled":
+            return compiled.CompiledCore()
+        if core == "reference":
+            return ReferenceCore(self.backend_name, self.proxy)
+        if isinstance(core, str):
+            raise InputError(f"core: expected 'compiled', 'reference' or a TraceCore, got {core!r}")
+        return core
+
+    @property
+    def core_name(self) -> str:
+        return "mesh" if self.core is None else self.core.name
 
     # --- build -------------------------------------------------------------------------------
     def _build_mesh(self, mesh: TriangleMesh) -> None:
@@ -132,61 +158,23 @@ class Tracer:
         g.scales = np.maximum(np.abs(g.scales), MIN_SCALE)
         self.gaussians = g
         self.labels = g_labels[keep]
-        self.colors = g.colors
         rot = g.rotations()
-        self._mu = g.means
-        self._a = gm.unit_frame_matrices(rot, g.scales)
-        # Surfel normal for max-response hits: the axis of least spread.
-        self._flat_axis = rot[np.arange(len(g)), :, np.argmin(g.scales, axis=1)] if len(g) else np.zeros((0, 3))
-        self._voxel = g.voxel if g.voxel is not None else np.full(len(g), -1, np.int64)
-        lo, hi = gm.gaussian_aabbs(self._mu, rot, g.scales, self.k) if len(g) else (np.zeros((0, 3)),) * 2
-        # The float32 tolerance follows the scene's extent; proxies are padded by it, and the
-        # search bounds are those of the padded proxies themselves (which reach beyond the
-        # ellipsoids), so a clipped ray never starts inside a proxy it cannot then leave.
-        self._set_tolerances(np.abs(np.concatenate([lo, hi])).max() if len(g) else 0.0)
-        pad = self._pad
-        if self.proxy == "voxel_box":
-            # One box per voxel: the union of its Gaussians' k-sigma bounding boxes.
-            vox, inv = np.unique(self._voxel, return_inverse=True)
-            inv = inv.reshape(-1)
-            blo = np.full((vox.shape[0], 3), np.inf)
-            bhi = np.full((vox.shape[0], 3), -np.inf)
-            for ax in range(3):
-                np.minimum.at(blo[:, ax], inv, lo[:, ax])
-                np.maximum.at(bhi[:, ax], inv, hi[:, ax])
-            counts = np.bincount(inv, minlength=vox.shape[0])
-            m = int(counts.max()) if counts.size else 1
-            order = np.argsort(inv, kind="stable")
-            starts = np.r_[0, np.cumsum(counts)[:-1]]
-            slot = np.arange(order.shape[0]) - starts[inv[order]]
-            box_members = np.full((vox.shape[0], m), -1, np.int64)
-            box_members[inv[order], slot] = order
-            # Boxes of neighbouring voxels share face planes (a flat ground gives every box the
-            # same top), and Embree reports one of several faces met at the same distance. So
-            # overlapping boxes get different dilations: a class per voxel index modulo c, where
-            # c = 2 * reach + 1 and reach is how many cells a box reaches beyond its own.
-            ijk = scene.ijk[vox].astype(np.int64)
-            cell_lo = ijk * scene.voxel_size
-            reach = max(np.max((cell_lo - blo) / scene.voxel_size), np.max((bhi - cell_lo) / scene.voxel_size - 1), 0.0)
-            c = 2 * int(np.ceil(reach)) + 1
-            cls = (ijk[:, 0] % c) * c * c + (ijk[:, 1] % c) * c + (ijk[:, 2] % c)
-            dil = pad * (1.0 + 2.0 * cls)
-            v, f, fpp = gm.box_proxies(blo, bhi, dil)
-            box_center = 0.5 * (blo + bhi)
-            box_half = 0.5 * (bhi - blo) + dil[:, None]
-            frame_scale = None
-        else:
-            v, f, fpp, frame_scale = gm.gaussian_proxies(self.proxy, self._mu, rot, g.scales, self.k, pad)
-            box_center = box_half = box_members = None
-        planes_n, planes_h = gm.template_planes(self.proxy)
-        self._set_bounds(v.min(0).astype(np.float64) if len(v) else np.zeros(3),
-                         v.max(0).astype(np.float64) if len(v) else np.zeros(3))
-        self.num_primitives = int(f.shape[0])
-        self._backend = make_backend(self.backend_name, v, f)
-        self.prepared = PreparedGaussians(
-            gaussians=g, mu=self._mu, a=self._a, opacity=g.opacities, k=self.k, proxy=self.proxy,
-            backend=self._backend, faces_per_proxy=fpp, planes_n=planes_n, planes_h=planes_h,
-            frame_scale=frame_scale, box_center=box_center, box_half=box_half, box_members=box_members)
+        n = len(g)
+        lo, hi = gm.gaussian_aabbs(g.means, rot, g.scales, self.k) if n else (np.zeros((0, 3)),) * 2
+        # The float32 tolerance follows the scene's extent; proxies and boxes are padded by it,
+        # and the search bounds are those of the padded proxies themselves (which reach beyond
+        # the ellipsoids), so a clipped ray never starts inside a proxy it cannot then leave.
+        self._set_tolerances(np.abs(np.concatenate([lo, hi])).max() if n else 0.0)
+        self.scene_gaussians = SceneGaussians(
+            gaussians=g, rot=rot, mu=g.means, a=gm.unit_frame_matrices(rot, g.scales), opacity=g.opacities,
+            k=self.k, labels=self.labels, colors=g.colors,
+            voxel=g.voxel if g.voxel is not None else np.full(n, -1, np.int64),
+            # Surfel normal for max-response hits: the axis of least spread.
+            flat_axis=rot[np.arange(n), :, np.argmin(g.scales, axis=1)] if n else np.zeros((0, 3)),
+            aabb_lo=lo, aabb_hi=hi, pad=self._pad, voxsplat=scene if isinstance(scene, VoxSplat) else None)
+        self.prepared = self.core.prepare(self.scene_gaussians)
+        self._set_bounds(self.prepared.lo, self.prepared.hi)
+        self.num_primitives = int(getattr(self.prepared, "num_faces", n))
 
     def _set_tolerances(self, extent: float) -> None:
         """float32 tolerances for a scene reaching `extent` metres from the local origin.
@@ -246,16 +234,10 @@ class Tracer:
             return self._trace_mesh(o, d, tmin, tmax)
         # Candidates are searched only inside the scene bounds; exact tests use the full ray.
         t_lo, t_hi = self._clip_to_bounds(o, d, tmin, tmax)
-        # The walk's settings are read now: a tracer's mode or exact_order may change between calls.
+        # The settings are read now: a tracer's mode or exact_order may change between calls.
         opts = TraceOptions(self.mode, self.exact_order, self.max_iterations, self.soft_min_transmittance,
-                            self.soft_alpha_min)
-        if self.mode == "soft":
-            depth, g, acc = self.core.trace_soft(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
-            hit = acc >= self.soft_hit_alpha
-            return self._gaussian_hits(o, d, np.where(hit, depth, np.inf), np.where(hit, g, -1),
-                                       alpha=acc.astype(np.float32))
-        best_t, best_g = self.core.trace_hard(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
-        return self._gaussian_hits(o, d, best_t, best_g)
+                            self.soft_alpha_min, self.soft_hit_alpha, self.soft_k_buffer, self.threads)
+        return self.core.trace(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
 
     # --- meshes ------------------------------------------------------------------------------
     def _trace_mesh(self, o, d, tmin, tmax) -> Hits:
@@ -286,28 +268,4 @@ class Tracer:
         out.instance[idx] = self.mesh.instances[f]
         out.color[idx] = self.mesh.colors[f] if self.mesh.colors is not None else 0.5
         out.alpha[idx] = 1.0
-        return out
-
-    def _gaussian_hits(self, o, d, best_t, best_g, alpha=None) -> Hits:
-        n = o.shape[0]
-        out = Hits.empty(n)
-        idx = np.nonzero(best_g >= 0)[0]
-        g = best_g[idx]
-        t = best_t[idx]
-        out.hit[idx] = True
-        out.t[idx] = t
-        p = o[idx] + t[:, None] * d[idx]
-        out.points[idx] = p
-        if self.mode == "entry":
-            nrm = gm.ellipsoid_normals(p, self._mu[g], self._a[g])
-        else:
-            nrm = self._flat_axis[g]
-        facing = np.einsum("ij,ij->i", nrm, d[idx]) > 0
-        nrm = np.where(facing[:, None], -nrm, nrm)
-        out.normals[idx] = nrm
-        out.gaussian[idx] = g
-        out.voxel[idx] = self._voxel[g]
-        out.label[idx] = self.labels[g]
-        out.color[idx] = self.colors[g]
-        out.alpha[idx] = 1.0 if alpha is None else alpha[idx]
         return out

@@ -1,4 +1,5 @@
-"""Tracer against closed forms and brute force, on both Embree backends."""
+"""Tracer against closed forms and brute force, on every engine (engines.py) and, for meshes,
+both Embree backends."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from scube_sim.raytrace.backends import BACKENDS
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.voxsplat import Gaussians, VoxSplat
 
+from .engines import ENGINES, engine_kw
 from .oracles import brute_force_hard, ellipsoid_quadratic, quat_from_axis_angle, rodrigues, sampled_soft_composite
 
 K = 3.0
@@ -27,12 +29,12 @@ unit3 = st.tuples(*[st.floats(-1, 1)] * 3).filter(lambda v: np.linalg.norm(v) > 
 log_scale = st.floats(-4, 2)  # 1e-4 .. 1e2 m
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("mode", ["entry", "max_response"])
 @given(axis=unit3, angle=st.floats(0, np.pi), logs=st.tuples(log_scale, log_scale, log_scale),
        mu=st.tuples(*[st.floats(-5, 5)] * 3), seed=st.integers(0, 2**31))
 @settings(max_examples=40)
-def test_single_gaussian_matches_closed_form(backend, mode, axis, angle, logs, mu, seed):
+def test_single_gaussian_matches_closed_form(engine, mode, axis, angle, logs, mu, seed):
     scales = 10.0 ** np.array(logs)
     rng = np.random.default_rng(seed)
     rot = rodrigues(axis, angle)
@@ -51,7 +53,7 @@ def test_single_gaussian_matches_closed_form(backend, mode, axis, angle, logs, m
     d /= np.linalg.norm(d, axis=1, keepdims=True)
 
     disc, t_near, _, t_peak = ellipsoid_quadratic(o, d, mu, rot, scales, K)
-    h = Tracer(g, backend=backend, mode=mode, k=K, opacity_floor=0.0).trace(o, d)
+    h = Tracer(g, **engine_kw(engine), mode=mode, k=K, opacity_floor=0.0).trace(o, d)
 
     # Rays within 1e-6 (relative) of tangency are ambiguous in any finite precision: skip them.
     clear = np.abs(disc) > 1e-6 * K * K
@@ -82,20 +84,20 @@ def random_rays(rng, n, radius=9.0):
     return o, d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("mode", ["entry", "max_response"])
 @pytest.mark.parametrize("proxy", ["octahedron", "icosahedron"])
-def test_overlapping_gaussians_nearest_hit_equals_brute_force(backend, mode, proxy, rng):
+def test_overlapping_gaussians_nearest_hit_equals_brute_force(engine, mode, proxy, rng):
     g, rots = random_scene(rng)
     o, d = random_rays(rng, 3000)
     want = brute_force_hard(o, d, g.means, rots, g.scales, K, mode)
-    h = Tracer(g, backend=backend, mode=mode, proxy=proxy, opacity_floor=0.0).trace(o, d)
+    h = Tracer(g, **engine_kw(engine), mode=mode, proxy=proxy, opacity_floor=0.0).trace(o, d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_voxel_box_proxies_give_the_same_hits(backend, rng):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_voxel_box_proxies_give_the_same_hits(engine, rng):
     g, rots = random_scene(rng, n=200, spread=2.0, smin=0.01, smax=0.15)
     vs = VoxSplat.from_gaussians(g, voxel_size=0.4)
     gg = vs.gaussians()
@@ -103,20 +105,20 @@ def test_voxel_box_proxies_give_the_same_hits(backend, rng):
     o, d = random_rays(rng, 3000, radius=6.0)
     want = brute_force_hard(o, d, gg.means, rots2, gg.scales, K, "entry")
     for proxy in ("voxel_box", "octahedron"):
-        h = Tracer(vs, backend=backend, proxy=proxy, opacity_floor=0.0).trace(o, d)
+        h = Tracer(vs, **engine_kw(engine), proxy=proxy, opacity_floor=0.0).trace(o, d)
         assert np.array_equal(h.hit, np.isfinite(want)), proxy
         np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-6, atol=1e-6)
         # labels and voxels follow the Gaussian that was hit
         assert np.all(h.voxel[h.hit] == gg.voxel[h.gaussian[h.hit]])
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_soft_mode_matches_sampled_compositing(backend, rng):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_soft_mode_matches_sampled_compositing(engine, rng):
     # Faint, large, overlapping Gaussians as in splat files trained without a scaffold.
     g, rots = random_scene(rng, n=25, spread=2.0, smin=0.2, smax=0.8)
     g.opacities = rng.uniform(0.02, 0.5, len(g))
     o, d = random_rays(rng, 40, radius=6.0)
-    tr = Tracer(g, backend=backend, mode="soft", soft_hit_alpha=0.0, soft_min_transmittance=1e-3)
+    tr = Tracer(g, **engine_kw(engine), mode="soft", soft_hit_alpha=0.0, soft_min_transmittance=1e-3)
     h = tr.trace(o, d, 0.0, 12.0)
     depth, acc = sampled_soft_composite(o, d, g.means, rots, g.scales, g.opacities, K, t_max=12.0)
     has = acc > 0
@@ -126,10 +128,10 @@ def test_soft_mode_matches_sampled_compositing(backend, rng):
     np.testing.assert_allclose(h.alpha[has], acc[has], atol=2e-4)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_soft_single_gaussian_through_centre(backend):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_soft_single_gaussian_through_centre(engine):
     g = one_gaussian([5, 0, 0], [0, 0, 1], 0.3, [0.5, 0.2, 0.3], opacity=0.4)
-    h = Tracer(g, backend=backend, mode="soft", soft_hit_alpha=0.3).trace(np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
+    h = Tracer(g, **engine_kw(engine), mode="soft", soft_hit_alpha=0.3).trace(np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
     assert h.hit[0]
     assert h.t[0] == pytest.approx(5.0, abs=1e-9)
     assert h.alpha[0] == pytest.approx(0.4, abs=1e-6)
@@ -160,12 +162,12 @@ def test_mesh_first_hit_is_exact(backend, rng):
 # --- degenerate inputs ----------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_zero_quaternion_and_zero_scale_are_defined(backend):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_zero_quaternion_and_zero_scale_are_defined(engine):
     g = Gaussians(means=np.array([[5.0, 0, 0], [0, 5.0, 0]]), scales=np.array([[0.3, 0.3, 0.0], [0.2, -0.2, 0.2]]),
                   quats=np.array([[0.0, 0, 0, 0], [0.0, 0, 0, 0]]), opacities=np.array([1.0, 1.0]),
                   sh_dc=np.zeros((2, 3), np.float32))
-    tr = Tracer(g, backend=backend)
+    tr = Tracer(g, **engine_kw(engine))
     h = tr.trace(np.zeros((2, 3)), np.array([[1.0, 0, 0], [0, 1.0, 0]]))
     # zero quaternion = identity; zero scale = a flat disc facing x... here the disc lies in the
     # xy-plane (third axis flat), so a ray along x travels in its plane and enters at 5 - 0.9.
@@ -173,10 +175,10 @@ def test_zero_quaternion_and_zero_scale_are_defined(backend):
     np.testing.assert_allclose(h.t, [5 - 0.9, 5 - 0.6], atol=1e-6)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_ray_parallel_to_disc(backend):
+@pytest.mark.parametrize("engine", ENGINES)
+def test_ray_parallel_to_disc(engine):
     g = one_gaussian([0, 0, 0], [0, 0, 1], 0.0, [1.0, 1.0, 1e-9])
-    tr = Tracer(g, backend=backend, opacity_floor=0.0)
+    tr = Tracer(g, **engine_kw(engine), opacity_floor=0.0)
     o = np.array([[-10.0, 0, 0], [-10.0, 0, 1e-6], [-10.0, 0, 0]])
     d = np.array([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0.2, 0]])
     h = tr.trace(o, d)
@@ -203,9 +205,11 @@ def test_bad_inputs_raise_clear_errors():
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_empty_scene_misses_everything(backend):
     empty = Gaussians(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 3), np.float32))
-    for mode in ("entry", "soft"):
-        h = Tracer(empty, backend=backend, mode=mode).trace(np.zeros((4, 3)), np.eye(4, 3) + [0, 0, 1])
-        assert not h.hit.any()
+    for engine in ENGINES:
+        kw = {**engine_kw(engine), "backend": backend}
+        for mode in ("entry", "soft"):
+            h = Tracer(empty, **kw, mode=mode).trace(np.zeros((4, 3)), np.eye(4, 3) + [0, 0, 1])
+            assert not h.hit.any()
     mesh = TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
     assert not Tracer(mesh, backend=backend).trace(np.zeros((2, 3)), [[1, 0, 0], [0, 1, 0]]).hit.any()
 
@@ -223,14 +227,15 @@ def test_degenerate_gaussians_never_give_nan_points(data):
     rng = np.random.default_rng(data.draw(st.integers(0, 1000)))
     o, d = random_rays(rng, 200, radius=8.0)
     for mode in ("entry", "max_response", "soft"):
-        h = Tracer(g, backend="embreex", mode=mode).trace(o, d)
-        assert np.all(np.isfinite(h.t[h.hit])) and np.all(np.isfinite(h.points[h.hit]))
-        assert np.all(np.isfinite(h.normals))
+        for engine in ("compiled", "reference-embreex"):
+            h = Tracer(g, **engine_kw(engine), mode=mode).trace(o, d)
+            assert np.all(np.isfinite(h.t[h.hit])) and np.all(np.isfinite(h.points[h.hit]))
+            assert np.all(np.isfinite(h.normals))
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("proxy", ["octahedron", "icosahedron", "voxel_box"])
-def test_lattice_of_identical_gaussians(backend, proxy, rng):
+def test_lattice_of_identical_gaussians(engine, proxy, rng):
     # Gaussians fitted on a plane share orientation and size: their proxies' faces would lie in
     # common planes, where Embree reports one face of several. The nearest hit must not change.
     xs, ys = np.meshgrid(np.arange(-1.0, 1.01, 0.1), np.arange(-1.0, 1.01, 0.1))
@@ -245,6 +250,6 @@ def test_lattice_of_identical_gaussians(backend, proxy, rng):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rots = gg.rotations()
     want = brute_force_hard(o, d, gg.means, rots, gg.scales, K, "entry")
-    h = Tracer(scene, backend=backend, proxy=proxy, opacity_floor=0.0).trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
+    h = Tracer(scene, **engine_kw(engine), proxy=proxy, opacity_floor=0.0).trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)

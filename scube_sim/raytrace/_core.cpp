@@ -1,0 +1,530 @@
+// The compiled trace core: one Embree traversal per ray over user-geometry Gaussians, with the
+// exact float64 ray-ellipsoid test inside the intersect callback (see gaussian_math.py for the
+// algebra, reference.py for the NumPy walk this core is tested against).
+//
+// Each Gaussian is one Embree user primitive whose bounds are its padded k-sigma box. Embree
+// traverses in float32 (the ray starts where it enters the scene bounds, so float32 rounding
+// stays below the box padding); the callback tests in float64 on the caller's ray and, in the
+// hard modes, shrinks the ray's far limit to the best hit so far (plus a margin covering the
+// float32 rounding), so every box that could hold a nearer hit is still visited. Soft mode keeps
+// the K nearest contributions (by max-response distance, then index) in a sorted buffer and
+// re-traverses past the last one until the transmittance falls below its threshold (3DGRT's
+// k-buffer). Ties are broken by (t, Gaussian index), so the answer does not depend on the
+// traversal order, the BVH or the thread count: the same bytes for any number of threads.
+//
+// Frames: everything is in the scene's local frame (world = local + origin), float64, unit
+// directions; only Embree's traversal is float32.
+
+#include <embree3/rtcore.h>
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <stdexcept>
+#include <string>
+#include <thread>
+#include <vector>
+
+namespace py = pybind11;
+
+namespace {
+
+constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr int kModeEntry = 0, kModeMaxResponse = 1, kModeSoft = 2;
+constexpr int64_t kChunk = 512;  // rays per work item handed to a thread
+
+template <typename T>
+using Arr = py::array_t<T, py::array::c_style | py::array::forcecast>;
+
+RTCDevice shared_device() {
+  // One device per process; its TBB pool builds every scene's BVH.
+  static RTCDevice device = [] {
+    RTCDevice d = rtcNewDevice(nullptr);
+    if (!d) throw std::runtime_error("Embree: rtcNewDevice failed (error " +
+                                     std::to_string(rtcGetDeviceError(nullptr)) + ")");
+    return d;
+  }();
+  return device;
+}
+
+float round_down(double x) {
+  float f = static_cast<float>(x);
+  return static_cast<double>(f) > x ? std::nextafter(f, -std::numeric_limits<float>::infinity()) : f;
+}
+
+float round_up(double x) {
+  float f = static_cast<float>(x);
+  return static_cast<double>(f) < x ? std::nextafter(f, std::numeric_limits<float>::infinity()) : f;
+}
+
+struct Contribution {
+  double t;    // max-response distance
+  double alpha;
+  int64_t g;
+};
+
+bool key_less(double ta, int64_t ga, double tb, int64_t gb) { return ta < tb || (ta == tb && ga < gb); }
+
+class GaussianScene;
+
+// Per-ray state, reached from the intersect callback through the context (Embree 3 passes the
+// context it was given; ours extends it).
+struct RayState {
+  RTCIntersectContext ctx;  // must stay first
+  const GaussianScene* scene;
+  double o[3], d[3];
+  double t0;          // where the float32 Embree ray starts, along the float64 ray
+  double tmin, tmax;  // the asked range (exact tests use it)
+  double margin;      // float32 slack on the Embree ray's parameter
+  int mode;
+  // hard modes
+  double best_t;
+  int64_t best_g;
+  // soft mode: the sorted k-buffer and the key the next contribution must exceed
+  Contribution* buf;
+  int cap, count;
+  double after_t;
+  int64_t after_g;
+  double alpha_min;
+  uint64_t tests;
+};
+
+class GaussianScene {
+ public:
+  // mu (G, 3), a (G, 3, 3) world-to-unit-frame matrices, opacity (G,), k, box lo / hi (G, 3)
+  // (the k-sigma boxes already padded), pad (m): float32 slack of rays against the boxes.
+  GaussianScene(Arr<double> mu, Arr<double> a, Arr<double> opacity, double k, Arr<double> lo, Arr<double> hi,
+                double pad)
+      : mu_(mu), a_(a), opacity_(opacity), k_(k), kk_(k * k), pad_(pad) {
+    n_ = mu.shape(0);
+    if (mu.ndim() != 2 || mu.shape(1) != 3) throw std::invalid_argument("mu: expected (G, 3)");
+    if (a.ndim() != 3 || a.shape(0) != n_ || a.shape(1) != 3 || a.shape(2) != 3)
+      throw std::invalid_argument("a: expected (G, 3, 3)");
+    if (opacity.ndim() != 1 || opacity.shape(0) != n_) throw std::invalid_argument("opacity: expected (G,)");
+    if (lo.ndim() != 2 || lo.shape(0) != n_ || hi.ndim() != 2 || hi.shape(0) != n_ || lo.shape(1) != 3 ||
+        hi.shape(1) != 3)
+      throw std::invalid_argument("lo / hi: expected (G, 3)");
+    mu_p_ = mu_.data();
+    a_p_ = a_.data();
+    op_p_ = opacity_.data();
+    box_.resize(static_cast<size_t>(n_) * 6);
+    const double* l = lo.data();
+    const double* h = hi.data();
+    for (int64_t i = 0; i < 3 * n_; ++i) {
+      box_[2 * i] = round_down(l[i]);
+      box_[2 * i + 1] = round_up(h[i]);
+    }
+    RTCDevice dev = shared_device();
+    scene_ = rtcNewScene(dev);
+    rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
+    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_MEDIUM);
+    if (n_ > 0) {
+      py::gil_scoped_release release;
+      RTCGeometry geom = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_USER);
+      rtcSetGeometryUserPrimitiveCount(geom, static_cast<unsigned>(n_));
+      rtcSetGeometryUserData(geom, this);
+      rtcSetGeometryBoundsFunction(geom, &GaussianScene::bounds_fn, this);
+      rtcSetGeometryIntersectFunction(geom, &GaussianScene::intersect_fn);
+      rtcSetGeometryOccludedFunction(geom, &GaussianScene::occluded_fn);
+      rtcCommitGeometry(geom);
+      rtcAttachGeometry(scene_, geom);
+      rtcReleaseGeometry(geom);
+      rtcCommitScene(scene_);
+    }
+    RTCError err = rtcGetDeviceError(dev);
+    if (err != RTC_ERROR_NONE) throw std::runtime_error("Embree: scene build failed (error " + std::to_string(err) + ")");
+  }
+
+  ~GaussianScene() {
+    if (scene_) rtcReleaseScene(scene_);
+  }
+
+  GaussianScene(const GaussianScene&) = delete;
+  GaussianScene& operator=(const GaussianScene&) = delete;
+
+  int64_t size() const { return n_; }
+
+  // The exact test of Gaussian g on ray (o, d): t* (max response), d2 (squared Mahalanobis
+  // distance there) and the half chord of the k-sigma ellipsoid (0 on a miss).
+  void exact(int64_t g, const double* o, const double* d, double& t_star, double& d2, double& half) const {
+    const double* A = a_p_ + 9 * g;
+    const double* m = mu_p_ + 3 * g;
+    const double w0 = o[0] - m[0], w1 = o[1] - m[1], w2 = o[2] - m[2];
+    const double op0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
+    const double op1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
+    const double op2 = A[6] * w0 + A[7] * w1 + A[8] * w2;
+    const double dp0 = A[0] * d[0] + A[1] * d[1] + A[2] * d[2];
+    const double dp1 = A[3] * d[0] + A[4] * d[1] + A[5] * d[2];
+    const double dp2 = A[6] * d[0] + A[7] * d[1] + A[8] * d[2];
+    const double aa = std::max(dp0 * dp0 + dp1 * dp1 + dp2 * dp2, 1e-300);
+    const double b = op0 * dp0 + op1 * dp1 + op2 * dp2;
+    t_star = -b / aa;
+    const double c0 = op1 * dp2 - op2 * dp1, c1 = op2 * dp0 - op0 * dp2, c2 = op0 * dp1 - op1 * dp0;
+    d2 = (c0 * c0 + c1 * c1 + c2 * c2) / aa;
+    half = std::sqrt(std::max(kk_ - d2, 0.0) / aa);
+  }
+
+  // Outward unit normal of the ellipsoid level set through p: A^T A (p - mu), normalised.
+  void ellipsoid_normal(int64_t g, const double* p, double* n) const {
+    const double* A = a_p_ + 9 * g;
+    const double* m = mu_p_ + 3 * g;
+    const double w0 = p[0] - m[0], w1 = p[1] - m[1], w2 = p[2] - m[2];
+    const double u0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
+    const double u1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
+    const double u2 = A[6] * w0 + A[7] * w1 + A[8] * w2;
+    n[0] = A[0] * u0 + A[3] * u1 + A[6] * u2;
+    n[1] = A[1] * u0 + A[4] * u1 + A[7] * u2;
+    n[2] = A[2] * u0 + A[5] * u1 + A[8] * u2;
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (len > 0) {
+      n[0] /= len, n[1] /= len, n[2] /= len;
+    } else {
+      n[0] = n[1] = n[2] = 0.0;
+    }
+  }
+
+  // Starts a ray's Embree query: float32 origin at t0 along the float64 ray, far limit s_hi.
+  void init_ray(RayState& st, RTCRayHit& rh, double s_near, double s_far) const {
+    rh.ray.org_x = static_cast<float>(st.o[0] + st.t0 * st.d[0]);
+    rh.ray.org_y = static_cast<float>(st.o[1] + st.t0 * st.d[1]);
+    rh.ray.org_z = static_cast<float>(st.o[2] + st.t0 * st.d[2]);
+    rh.ray.dir_x = static_cast<float>(st.d[0]);
+    rh.ray.dir_y = static_cast<float>(st.d[1]);
+    rh.ray.dir_z = static_cast<float>(st.d[2]);
+    rh.ray.tnear = std::max(0.0f, round_down(s_near));
+    rh.ray.tfar = std::isfinite(s_far) ? std::min(round_up(s_far), std::numeric_limits<float>::max())
+                                       : std::numeric_limits<float>::infinity();
+    rh.ray.time = 0.0f;
+    rh.ray.mask = 0xFFFFFFFFu;
+    rh.ray.id = 0;
+    rh.ray.flags = 0;
+    rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+    rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+  }
+
+  // The Embree ray's parameter that surely lies beyond the float64 ray's point at t.
+  double param_beyond(const RayState& st, double t) const {
+    const double s = t - st.t0;
+    return s + st.margin + 4e-7 * std::abs(s);
+  }
+
+  // --- one ray -----------------------------------------------------------------------------
+  void trace_hard_ray(RayState& st, double t_lo, double t_hi) const {
+    st.best_t = kInf;
+    st.best_g = -1;
+    if (!(t_hi >= t_lo) || n_ == 0) return;
+    st.t0 = t_lo;
+    RTCRayHit rh;
+    init_ray(st, rh, 0.0, param_beyond(st, t_hi));
+    rtcIntersect1(scene_, &st.ctx, &rh);
+  }
+
+  // Returns the number of traversals; depth / best / acc as composite_front_to_back.
+  int trace_soft_ray(RayState& st, double t_lo, double t_hi, double log_t_min, int max_rounds, double& depth,
+                     int64_t& best, double& acc, bool& unfinished) const {
+    depth = kInf;
+    best = -1;
+    acc = 0.0;
+    unfinished = false;
+    if (!(t_hi >= t_lo) || n_ == 0) return 0;
+    st.t0 = t_lo;
+    st.after_t = -kInf;
+    st.after_g = -1;
+    double log_tr = 0.0, wsum = 0.0, wt = 0.0, best_w = 0.0;
+    int rounds = 0;
+    while (true) {
+      if (rounds >= max_rounds) {
+        unfinished = true;
+        break;
+      }
+      ++rounds;
+      st.count = 0;
+      RTCRayHit rh;
+      const double s_near = std::isfinite(st.after_t) ? st.after_t - st.t0 - st.margin - 4e-7 * std::abs(st.after_t - st.t0) : 0.0;
+      init_ray(st, rh, s_near, param_beyond(st, t_hi));
+      rtcIntersect1(scene_, &st.ctx, &rh);
+      bool stopped = false;
+      for (int i = 0; i < st.count; ++i) {
+        const Contribution& c = st.buf[i];
+        if (log_tr < log_t_min) {
+          stopped = true;
+          break;
+        }
+        const double w = std::exp(log_tr) * c.alpha;
+        wsum += w;
+        wt += w * c.t;
+        if (w > best_w) best_w = w, best = c.g;
+        log_tr += std::log1p(-c.alpha);
+      }
+      if (stopped || log_tr < log_t_min || st.count < st.cap) break;
+      st.after_t = st.buf[st.count - 1].t;
+      st.after_g = st.buf[st.count - 1].g;
+    }
+    if (wsum > 0) depth = wt / wsum;
+    acc = wsum;
+    if (!(best_w > 0)) best = -1;
+    return rounds;
+  }
+
+ private:
+  static void bounds_fn(const RTCBoundsFunctionArguments* args) {
+    const GaussianScene* self = static_cast<const GaussianScene*>(args->geometryUserPtr);
+    const float* b = self->box_.data() + 6 * static_cast<size_t>(args->primID);
+    RTCBounds* out = args->bounds_o;
+    out->lower_x = b[0], out->upper_x = b[1];
+    out->lower_y = b[2], out->upper_y = b[3];
+    out->lower_z = b[4], out->upper_z = b[5];
+  }
+
+  static void occluded_fn(const RTCOccludedFunctionNArguments* args) { (void)args; }
+
+  static void intersect_fn(const RTCIntersectFunctionNArguments* args) {
+    if (!args->valid[0]) return;
+    RayState& st = *reinterpret_cast<RayState*>(args->context);
+    const GaussianScene& s = *st.scene;
+    const int64_t g = args->primID;
+    RTCRayHit* rh = reinterpret_cast<RTCRayHit*>(args->rayhit);
+    double t_star, d2, half;
+    s.exact(g, st.o, st.d, t_star, d2, half);
+    ++st.tests;
+    if (!(d2 <= s.kk_)) return;
+    if (st.mode == kModeSoft) {
+      s.add_contribution(st, rh, g, t_star, d2);
+      return;
+    }
+    double t_hit;
+    if (st.mode == kModeEntry) {
+      const double t_in = t_star - half, t_out = t_star + half;
+      if (!(t_out >= st.tmin && t_in <= st.tmax)) return;
+      t_hit = std::max(t_in, st.tmin);  // a ray starting inside hits at once
+    } else {
+      if (!(t_star >= st.tmin && t_star <= st.tmax)) return;
+      t_hit = t_star;
+    }
+    if (!key_less(t_hit, g, st.best_t, st.best_g)) return;
+    st.best_t = t_hit;
+    st.best_g = g;
+    const float far = round_up(s.param_beyond(st, t_hit));
+    if (far < rh->ray.tfar) rh->ray.tfar = far;
+    rh->hit.geomID = args->geomID;
+    rh->hit.primID = args->primID;
+  }
+
+  void add_contribution(RayState& st, RTCRayHit* rh, int64_t g, double t_star, double d2) const {
+    if (!(t_star >= st.tmin && t_star <= st.tmax)) return;
+    const double alpha = op_p_[g] * std::exp(-0.5 * d2);
+    if (!(alpha >= st.alpha_min)) return;
+    if (!key_less(st.after_t, st.after_g, t_star, g)) return;  // composited in an earlier round
+    Contribution* buf = st.buf;
+    int n = st.count;
+    if (n == st.cap && !key_less(t_star, g, buf[n - 1].t, buf[n - 1].g)) return;
+    int pos = n;
+    while (pos > 0 && key_less(t_star, g, buf[pos - 1].t, buf[pos - 1].g)) --pos;
+    if (pos > 0 && buf[pos - 1].g == g && buf[pos - 1].t == t_star) return;  // visited twice
+    const int last = std::min(n, st.cap - 1);
+    for (int i = last; i > pos; --i) buf[i] = buf[i - 1];
+    buf[pos] = Contribution{t_star, std::min(alpha, 0.999), g};
+    if (n < st.cap) st.count = n + 1;
+    if (st.count == st.cap) {
+      // Only contributions nearer than the K-th can still enter the buffer this round.
+      const float far = round_up(param_beyond(st, buf[st.cap - 1].t));
+      if (far < rh->ray.tfar) rh->ray.tfar = far;
+    }
+  }
+
+  Arr<double> mu_, a_, opacity_;
+  const double* mu_p_ = nullptr;
+  const double* a_p_ = nullptr;
+  const double* op_p_ = nullptr;
+  std::vector<float> box_;  // (G, 3, 2): lo, hi per axis, rounded outwards to float32
+  double k_, kk_, pad_;
+  int64_t n_ = 0;
+  RTCScene scene_ = nullptr;
+
+ public:
+  double pad() const { return pad_; }
+};
+
+// Runs fn(ray, state, thread) over rays in chunks on `threads` std::threads; each chunk's rays
+// are independent, so the result does not depend on which thread ran which chunk.
+template <typename Fn>
+void parallel_rays(int64_t n, int threads, Fn fn) {
+  const int64_t chunks = (n + kChunk - 1) / kChunk;
+  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, chunks)));
+  std::atomic<int64_t> next{0};
+  std::vector<std::exception_ptr> errors(nt);
+  auto work = [&](int tid) {
+    try {
+      for (int64_t c = next++; c < chunks; c = next++) {
+        const int64_t lo = c * kChunk, hi = std::min(n, lo + kChunk);
+        fn(lo, hi, tid);
+      }
+    } catch (...) {
+      errors[tid] = std::current_exception();
+    }
+  };
+  if (nt == 1) {
+    work(0);
+  } else {
+    std::vector<std::thread> pool;
+    for (int t = 1; t < nt; ++t) pool.emplace_back(work, t);
+    work(0);
+    for (auto& th : pool) th.join();
+  }
+  for (auto& e : errors)
+    if (e) std::rethrow_exception(e);
+}
+
+int resolve_threads(int threads) {
+  if (threads > 0) return threads;
+  const unsigned hc = std::thread::hardware_concurrency();
+  return hc ? static_cast<int>(hc) : 1;
+}
+
+void check_rays(const Arr<double>& o, const Arr<double>& d, const Arr<double>& tmin, const Arr<double>& tmax,
+                const Arr<double>& t_lo, const Arr<double>& t_hi) {
+  const auto n = o.shape(0);
+  if (o.ndim() != 2 || o.shape(1) != 3 || d.ndim() != 2 || d.shape(0) != n || d.shape(1) != 3)
+    throw std::invalid_argument("o, d: expected (N, 3) float64");
+  for (const Arr<double>* x : {&tmin, &tmax, &t_lo, &t_hi})
+    if (x->ndim() != 1 || x->shape(0) != n) throw std::invalid_argument("tmin, tmax, t_lo, t_hi: expected (N,)");
+}
+
+struct Outputs {
+  // The per-ray fields of `Hits` that a Gaussian hit fills (arrays allocated by the caller).
+  bool* hit;
+  double* t;
+  double* points;
+  float* normals;
+  int64_t* gaussian;
+  int64_t* voxel;
+  int16_t* label;
+  float* color;
+  float* alpha;
+};
+
+struct Attributes {
+  // Per-Gaussian attributes copied into the hits: flat axis (G, 3) float64 (max-response
+  // normals), voxel (G,) int64, label (G,) int16, colour (G, 3) float32.
+  const double* flat_axis;
+  const int64_t* voxel;
+  const int16_t* label;
+  const float* color;
+};
+
+void fill_hit(const GaussianScene& s, const Attributes& at, const Outputs& out, int64_t i, const double* o,
+              const double* d, double t, int64_t g, bool entry_normal, float alpha) {
+  out.hit[i] = true;
+  out.t[i] = t;
+  double p[3] = {o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]};
+  out.points[3 * i] = p[0], out.points[3 * i + 1] = p[1], out.points[3 * i + 2] = p[2];
+  double nrm[3];
+  if (entry_normal) {
+    s.ellipsoid_normal(g, p, nrm);
+  } else {
+    const double* fa = at.flat_axis + 3 * g;
+    nrm[0] = fa[0], nrm[1] = fa[1], nrm[2] = fa[2];
+  }
+  if (nrm[0] * d[0] + nrm[1] * d[1] + nrm[2] * d[2] > 0) nrm[0] = -nrm[0], nrm[1] = -nrm[1], nrm[2] = -nrm[2];
+  for (int c = 0; c < 3; ++c) {
+    out.normals[3 * i + c] = static_cast<float>(nrm[c]);
+    out.color[3 * i + c] = at.color[3 * g + c];
+  }
+  out.gaussian[i] = g;
+  out.voxel[i] = at.voxel[g];
+  out.label[i] = at.label[g];
+  out.alpha[i] = alpha;
+}
+
+template <typename T>
+T* mutable_data(py::array_t<T, py::array::c_style>& a, int64_t n, int64_t width, const char* name) {
+  const bool ok = width == 1 ? (a.ndim() == 1 && a.shape(0) == n) : (a.ndim() == 2 && a.shape(0) == n && a.shape(1) == width);
+  if (!ok) throw std::invalid_argument(std::string(name) + ": output array of the wrong shape");
+  return a.mutable_data();
+}
+
+// trace(scene, mode, o, d, tmin, tmax, t_lo, t_hi, attributes..., outputs..., options) -> stats
+py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, Arr<double> tmin, Arr<double> tmax,
+                Arr<double> t_lo, Arr<double> t_hi, Arr<double> flat_axis, Arr<int64_t> voxel, Arr<int16_t> label,
+                Arr<float> color, py::array_t<bool, py::array::c_style> hit, py::array_t<double, py::array::c_style> t,
+                py::array_t<double, py::array::c_style> points, py::array_t<float, py::array::c_style> normals,
+                py::array_t<int64_t, py::array::c_style> gaussian, py::array_t<int64_t, py::array::c_style> vox_out,
+                py::array_t<int16_t, py::array::c_style> label_out, py::array_t<float, py::array::c_style> color_out,
+                py::array_t<float, py::array::c_style> alpha_out, double soft_min_transmittance,
+                double soft_alpha_min, double soft_hit_alpha, int k_buffer, int max_rounds, int threads) {
+  if (mode < kModeEntry || mode > kModeSoft) throw std::invalid_argument("mode: expected 0 (entry), 1 (max_response) or 2 (soft)");
+  if (k_buffer < 1) throw std::invalid_argument("k_buffer: expected at least 1");
+  check_rays(o, d, tmin, tmax, t_lo, t_hi);
+  const int64_t n = o.shape(0), G = s.size();
+  if (flat_axis.shape(0) != G || voxel.shape(0) != G || label.shape(0) != G || color.shape(0) != G)
+    throw std::invalid_argument("attributes: expected one row per Gaussian");
+  Outputs out{mutable_data(hit, n, 1, "hit"),           mutable_data(t, n, 1, "t"),
+              mutable_data(points, n, 3, "points"),     mutable_data(normals, n, 3, "normals"),
+              mutable_data(gaussian, n, 1, "gaussian"), mutable_data(vox_out, n, 1, "voxel"),
+              mutable_data(label_out, n, 1, "label"),   mutable_data(color_out, n, 3, "color"),
+              mutable_data(alpha_out, n, 1, "alpha")};
+  Attributes at{flat_axis.data(), voxel.data(), label.data(), color.data()};
+  const double *op = o.data(), *dp = d.data(), *tminp = tmin.data(), *tmaxp = tmax.data(), *lop = t_lo.data(),
+               *hip = t_hi.data();
+  const int nt = resolve_threads(threads);
+  std::vector<uint64_t> tests(nt, 0), rounds(nt, 0), unfinished(nt, 0);
+  const double log_t_min = std::log(soft_min_transmittance);
+  {
+    py::gil_scoped_release release;
+    parallel_rays(n, nt, [&](int64_t lo, int64_t hi, int tid) {
+      RayState st;
+      rtcInitIntersectContext(&st.ctx);
+      st.scene = &s;
+      st.mode = mode;
+      st.margin = 2.0 * s.pad();
+      st.alpha_min = soft_alpha_min;
+      st.tests = 0;
+      std::vector<Contribution> buf(static_cast<size_t>(k_buffer));
+      st.buf = buf.data();
+      st.cap = k_buffer;
+      uint64_t casts = 0, unf = 0;
+      for (int64_t i = lo; i < hi; ++i) {
+        for (int c = 0; c < 3; ++c) st.o[c] = op[3 * i + c], st.d[c] = dp[3 * i + c];
+        st.tmin = tminp[i];
+        st.tmax = tmaxp[i];
+        if (mode == kModeSoft) {
+          double depth, acc;
+          int64_t g;
+          bool unfinished_ray;
+          casts += s.trace_soft_ray(st, lop[i], hip[i], log_t_min, max_rounds, depth, g, acc, unfinished_ray);
+          unf += unfinished_ray;
+          if (acc >= soft_hit_alpha && g >= 0) fill_hit(s, at, out, i, st.o, st.d, depth, g, false, static_cast<float>(acc));
+        } else {
+          s.trace_hard_ray(st, lop[i], hip[i]);
+          casts += hip[i] >= lop[i] && G > 0;
+          if (st.best_g >= 0) fill_hit(s, at, out, i, st.o, st.d, st.best_t, st.best_g, mode == kModeEntry, 1.0f);
+        }
+      }
+      tests[tid] += st.tests;
+      rounds[tid] += casts;
+      unfinished[tid] += unf;
+    });
+  }
+  uint64_t total_tests = 0, total_rounds = 0, total_unfinished = 0;
+  for (int i = 0; i < nt; ++i) total_tests += tests[i], total_rounds += rounds[i], total_unfinished += unfinished[i];
+  return py::make_tuple(total_rounds, total_tests, total_unfinished);
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() = "Compiled trace core: Embree user-geometry Gaussians with exact float64 tests (see _core.cpp).";
+  m.attr("EMBREE_VERSION") = RTC_VERSION_STRING;
+  py::class_<GaussianScene>(m, "GaussianScene")
+      .def(py::init<Arr<double>, Arr<double>, Arr<double>, double, Arr<double>, Arr<double>, double>(),
+           py::arg("mu"), py::arg("a"), py::arg("opacity"), py::arg("k"), py::arg("lo"), py::arg("hi"), py::arg("pad"),
+           "Build the BVH of G Gaussians: mu (G, 3), a (G, 3, 3), opacity (G,) float64; k sigma; padded "
+           "k-sigma boxes lo / hi (G, 3) float64 (local frame, metres); pad (m) the float32 slack of rays.")
+      .def_property_readonly("size", &GaussianScene::size);
+  m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");
+}

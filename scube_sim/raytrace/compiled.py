@@ -1,0 +1,128 @@
+"""The compiled trace core (`_core.cpp`): one Embree traversal per ray over user-geometry
+Gaussians with the exact float64 test inside, multithreaded over rays, the same bytes for any
+thread count. The default `TraceCore` wherever the extension was built; `reference.py` is what
+it is tested against.
+
+`available()` tells whether it imports; `load_error()` why not. Where it does not, `Tracer` falls
+back to the NumPy walk and says so once (`CoreUnavailableWarning`).
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError, ScubeSimError
+from .contracts import SceneGaussians, TraceOptions
+from .hits import Hits, TraceStats
+
+try:
+    from . import _core
+    _LOAD_ERROR: str | None = None
+except ImportError as exc:  # the extension was not built on this install
+    _core = None
+    _LOAD_ERROR = f"{type(exc).__name__}: {exc}"
+
+_MODE_CODES = {"entry": 0, "max_response": 1, "soft": 2}
+CORE_ENV = "SCUBE_SIM_CORE"  # 'compiled' | 'reference' | 'auto' (default): the default core
+CORES = ("auto", "compiled", "reference")
+
+
+class CoreUnavailable(ScubeSimError, RuntimeError):
+    """The compiled core was asked for by name and is not built."""
+
+
+class CoreUnavailableWarning(UserWarning):
+    pass
+
+
+def available() -> bool:
+    return _core is not None
+
+
+def load_error() -> str | None:
+    """Why the compiled core does not import (None when it does)."""
+    return _LOAD_ERROR
+
+
+def embree_version() -> str | None:
+    return _core.EMBREE_VERSION if _core is not None else None
+
+
+_warned = False
+
+
+def default_core_name() -> str:
+    """The core a `Tracer` uses when none is given: `SCUBE_SIM_CORE` if set, else the compiled
+    core where it imports (the reference otherwise, said once)."""
+    global _warned
+    name = os.environ.get(CORE_ENV, "auto").strip().lower() or "auto"
+    if name not in CORES:
+        raise InputError(f"{CORE_ENV}: expected one of {CORES}, got {name!r}")
+    if name != "auto":
+        return name
+    if available():
+        return "compiled"
+    if not _warned:
+        _warned = True
+        warnings.warn(f"scube-sim: the compiled tracer core is not built ({_LOAD_ERROR}); tracing runs on the "
+                      "NumPy reference walk, several times slower. Install libembree-dev and a C++ compiler, "
+                      "then reinstall the package.", CoreUnavailableWarning, stacklevel=3)
+    return "reference"
+
+
+@dataclass
+class CompiledScene:
+    """The core's BVH and what the hits are filled from. lo, hi (3,): the padded boxes' bounds."""
+
+    handle: object
+    scene: SceneGaussians
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+class CompiledCore:
+    """The compiled `TraceCore`."""
+
+    name = "compiled"
+
+    def __init__(self):
+        if _core is None:
+            raise CoreUnavailable(f"the compiled tracer core is not built ({_LOAD_ERROR}); install libembree-dev "
+                                  "and a C++ compiler, then reinstall scube-sim, or use core='reference'")
+
+    def prepare(self, scene: SceneGaussians) -> CompiledScene:
+        lo = scene.aabb_lo - scene.pad
+        hi = scene.aabb_hi + scene.pad
+        handle = _core.GaussianScene(np.ascontiguousarray(scene.mu, np.float64),
+                                     np.ascontiguousarray(scene.a, np.float64),
+                                     np.ascontiguousarray(scene.opacity, np.float64), float(scene.k),
+                                     np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
+                                     float(scene.pad))
+        # Attributes the hits copy, in the dtypes the extension reads without a copy per call.
+        scene.flat_axis = np.ascontiguousarray(scene.flat_axis, np.float64)
+        scene.voxel = np.ascontiguousarray(scene.voxel, np.int64)
+        scene.labels = np.ascontiguousarray(scene.labels, np.int16)
+        scene.colors = np.ascontiguousarray(scene.colors, np.float32)
+        return CompiledScene(handle, scene, lo.min(0) if len(lo) else np.zeros(3),
+                             hi.max(0) if len(hi) else np.zeros(3))
+
+    def trace(self, prepared: CompiledScene, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi,
+              stats: TraceStats) -> Hits:
+        n = o.shape[0]
+        out = Hits.empty(n)
+        s = prepared.scene
+        f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, t_lo, t_hi)]
+        casts, tests, unfinished = _core.trace(
+            prepared.handle, _MODE_CODES[opts.mode], *f64, s.flat_axis, s.voxel, s.labels, s.colors,
+            out.hit, out.t, out.points, out.normals, out.gaussian, out.voxel, out.label, out.color, out.alpha,
+            float(opts.soft_min_transmittance), float(opts.soft_alpha_min), float(opts.soft_hit_alpha),
+            int(opts.k_buffer), int(opts.max_iterations), int(opts.threads))
+        stats.casts += 1
+        stats.rays_cast += int(casts)
+        stats.exact_tests += int(tests)
+        stats.unfinished += int(unfinished)
+        return out
