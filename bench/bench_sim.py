@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from scube_sim.raytrace.compiled import CORE_ENV
+
 from .common import RESULTS, rss_mb, write_results
 
 REPO = Path(__file__).resolve().parents[1]
@@ -46,12 +48,14 @@ def speed(ticks: int = 20) -> list[dict]:
     rows = []
     work = Path(tempfile.mkdtemp(prefix="scube-bench-sim-"))
     try:
-        for rep in ("voxsplat", "mesh"):
+        for rep, core in (("voxsplat", "reference"), ("voxsplat", "compiled"), ("mesh", "-")):
+            # The Gaussian core of every tracer the scenario builds (meshes are Embree's triangles).
+            os.environ[CORE_ENV] = core if core != "-" else "auto"
             for preset in ("hdl64e", "os1-128"):
                 sc, base = _scenario("urban-loop", **{"scene.representation": rep})
                 sc.sensors = [SensorSpec(preset=preset)]
                 sc.duration_s = ticks / sc.tick_hz
-                out = work / f"{rep}-{preset}"
+                out = work / f"{rep}-{core}-{preset}"
                 # 1. bare tracing of the same sweeps
                 sc.outputs.files, sc.outputs.usd = [], None
                 sim, src, t0, t1 = build_run(sc, base, out)
@@ -76,11 +80,14 @@ def speed(ticks: int = 20) -> list[dict]:
                     n = sum(1 for _ in frames)
                     per_tick.append((time.perf_counter() - t) / n)
                 loop, sinks = per_tick
-                rows.append({"scene": f"urban block, {rep}", "sensor": preset, "ticks": ticks,
+                rows.append({"scene": f"urban block, {rep}", "core": core, "sensor": preset, "ticks": ticks,
                              "bare_s_per_sweep": bare, "loop_s_per_tick": loop, "loop_sinks_s_per_tick": sinks,
-                             "ticks_per_s": 1 / sinks, "loop_overhead": loop / bare, "sinks_overhead": sinks / bare})
+                             "ticks_per_s": 1 / sinks, "loop_overhead": loop / bare, "sinks_overhead": sinks / bare,
+                             # how many such sensors at 10 Hz fit in one 2-core machine's time
+                             "sensors_at_10Hz": 1 / (10 * sinks)})
                 print(rows[-1])
     finally:
+        os.environ.pop(CORE_ENV, None)
         shutil.rmtree(work, ignore_errors=True)
     return rows
 
@@ -166,10 +173,14 @@ def main():
     args = ap.parse_args()
     if args.only in (None, "speed"):
         rows = speed(10 if args.quick else 20)
-        write_results("sim_speed", rows, ["scene", "sensor", "ticks", "bare_s_per_sweep", "loop_s_per_tick",
-                                          "loop_sinks_s_per_tick", "ticks_per_s", "loop_overhead", "sinks_overhead"],
-                      "bare: LiDAR.scan on the same scene and poses; loop: Simulator.run without sinks; "
-                      "loop_sinks: with PCD files and a USD stage with value clips (writer thread).")
+        md = write_results("sim_speed", rows, ["scene", "core", "sensor", "ticks", "bare_s_per_sweep", "loop_s_per_tick",
+                                               "loop_sinks_s_per_tick", "ticks_per_s", "loop_overhead", "sinks_overhead",
+                                               "sensors_at_10Hz"],
+                           "bare: LiDAR.scan on the same scene and poses; loop: Simulator.run without sinks; "
+                           "loop_sinks: with PCD files and a USD stage with value clips (writer thread). core: the "
+                           "Gaussian tracer core (reference: the NumPy walk, the 'before'; compiled: the 'after'). "
+                           "sensors_at_10Hz: 0.1 s / loop_sinks_s_per_tick.")
+        print(md.read_text())
     if args.only in (None, "soak"):
         rows = soak(300 if args.quick else 3000)
         md = write_results("sim_soak", rows, list(rows[0]), "RSS sampled every 50 ticks; slope by least squares.")

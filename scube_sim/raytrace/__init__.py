@@ -5,10 +5,10 @@
 `TraceableScene` (contracts.py).
 """
 
+from .backends import DEFAULT_BACKEND
 from .compose import nearest_hits
 from .contracts import BoundedScene, TraceableScene, TraceCore, TracerBackend
 from .hits import Hits, TraceStats
-from .backends import DEFAULT_BACKEND
 from .tracer import MODES, Tracer
 
 __all__ = ["DEFAULT_BACKEND", "MODES", "BoundedScene", "Hits", "TraceCore", "TraceStats", "TraceableScene", "Tracer",

@@ -34,6 +34,7 @@ namespace py = pybind11;
 namespace {
 
 constexpr double kInf = std::numeric_limits<double>::infinity();
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
 constexpr int kModeEntry = 0, kModeMaxResponse = 1, kModeSoft = 2;
 constexpr int64_t kChunk = 512;  // rays per work item handed to a thread
 
@@ -62,14 +63,38 @@ float round_up(double x) {
 }
 
 struct Contribution {
-  double t;    // max-response distance
+  double t;  // max-response distance
   double alpha;
+  double log1m;  // log(1 - alpha)
   int64_t g;
 };
 
 bool key_less(double ta, int64_t ga, double tb, int64_t gb) { return ta < tb || (ta == tb && ga < gb); }
 
 class GaussianScene;
+
+constexpr int kGeo = 16;  // doubles per Gaussian: mean (3), A (9), flat axis (3), opacity
+
+// transforms.quat_to_rotmat of one wxyz quaternion (normalize_quat's rules), row-major R.
+void rotation(const double* q, double* R) {
+  double w = q[0], x = q[1], y = q[2], z = q[3];
+  double n = std::sqrt(w * w + x * x + y * y + z * z);
+  if (std::isinf(n) && std::isfinite(w) && std::isfinite(x) && std::isfinite(y) && std::isfinite(z)) {
+    const double m = std::max(std::max(std::abs(w), std::abs(x)), std::max(std::abs(y), std::abs(z)));
+    w /= m, x /= m, y /= m, z /= m;
+    n = std::sqrt(w * w + x * x + y * y + z * z);
+  }
+  if (!std::isfinite(n) || n < 1e-12) {
+    w = 1.0, x = y = z = 0.0;
+  } else {
+    w /= n, x /= n, y /= n, z /= n;
+  }
+  const double xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
+  const double wx = w * x, wy = w * y, wz = w * z;
+  R[0] = 1 - 2 * (yy + zz), R[1] = 2 * (xy - wz), R[2] = 2 * (xz + wy);
+  R[3] = 2 * (xy + wz), R[4] = 1 - 2 * (xx + zz), R[5] = 2 * (yz - wx);
+  R[6] = 2 * (xz - wy), R[7] = 2 * (yz + wx), R[8] = 1 - 2 * (xx + yy);
+}
 
 // Per-ray state, reached from the intersect callback through the context (Embree 3 passes the
 // context it was given; ours extends it).
@@ -90,34 +115,61 @@ struct RayState {
   double after_t;
   int64_t after_g;
   double alpha_min;
+  double log_tr_base;  // log transmittance before this round's contributions
+  double log_t_min;
+  bool cut;            // the buffer already ends where the transmittance falls below the threshold
   uint64_t tests;
 };
 
 class GaussianScene {
  public:
-  // mu (G, 3), a (G, 3, 3) world-to-unit-frame matrices, opacity (G,), k, box lo / hi (G, 3)
-  // (the k-sigma boxes already padded), pad (m): float32 slack of rays against the boxes.
-  GaussianScene(Arr<double> mu, Arr<double> a, Arr<double> opacity, double k, Arr<double> lo, Arr<double> hi,
-                double pad)
-      : mu_(mu), a_(a), opacity_(opacity), k_(k), kk_(k * k), pad_(pad) {
-    n_ = mu.shape(0);
-    if (mu.ndim() != 2 || mu.shape(1) != 3) throw std::invalid_argument("mu: expected (G, 3)");
-    if (a.ndim() != 3 || a.shape(0) != n_ || a.shape(1) != 3 || a.shape(2) != 3)
-      throw std::invalid_argument("a: expected (G, 3, 3)");
+  // means (G, 3), quats (G, 4) wxyz of any norm, scales (G, 3) (positive), opacity (G,) float64;
+  // k sigma; pad (m): the float32 slack of rays against the boxes. Derives, per Gaussian, what
+  // the traversal reads (mean, world-to-unit-frame matrix A = S^-1 R^T, flat axis, opacity, packed
+  // together) and its k-sigma box padded by `pad`, with the formulas of transforms.py and
+  // gaussian_math.py (a zero or non-finite quaternion is the identity).
+  GaussianScene(Arr<double> means, Arr<double> quats, Arr<double> scales, Arr<double> opacity, double k, double pad)
+      : k_(k), kk_(k * k), pad_(pad) {
+    n_ = means.shape(0);
+    if (means.ndim() != 2 || means.shape(1) != 3) throw std::invalid_argument("means: expected (G, 3)");
+    if (quats.ndim() != 2 || quats.shape(0) != n_ || quats.shape(1) != 4)
+      throw std::invalid_argument("quats: expected (G, 4)");
+    if (scales.ndim() != 2 || scales.shape(0) != n_ || scales.shape(1) != 3)
+      throw std::invalid_argument("scales: expected (G, 3)");
     if (opacity.ndim() != 1 || opacity.shape(0) != n_) throw std::invalid_argument("opacity: expected (G,)");
-    if (lo.ndim() != 2 || lo.shape(0) != n_ || hi.ndim() != 2 || hi.shape(0) != n_ || lo.shape(1) != 3 ||
-        hi.shape(1) != 3)
-      throw std::invalid_argument("lo / hi: expected (G, 3)");
-    mu_p_ = mu_.data();
-    a_p_ = a_.data();
-    op_p_ = opacity_.data();
+    geo_.resize(static_cast<size_t>(n_) * kGeo);
     box_.resize(static_cast<size_t>(n_) * 6);
-    const double* l = lo.data();
-    const double* h = hi.data();
-    for (int64_t i = 0; i < 3 * n_; ++i) {
-      box_[2 * i] = round_down(l[i]);
-      box_[2 * i + 1] = round_up(h[i]);
+    const double *mp = means.data(), *qp = quats.data(), *sp = scales.data(), *opp = opacity.data();
+    for (int c = 0; c < 3; ++c) lo_[c] = kInf, hi_[c] = -kInf;
+    for (int64_t i = 0; i < n_; ++i) {
+      double R[9];
+      rotation(qp + 4 * i, R);
+      const double* m = mp + 3 * i;
+      const double* sc = sp + 3 * i;
+      double* G = geo_.data() + kGeo * i;
+      G[0] = m[0], G[1] = m[1], G[2] = m[2];
+      for (int r = 0; r < 3; ++r) {
+        const double inv = 1.0 / sc[r];
+        for (int c = 0; c < 3; ++c) G[3 + 3 * r + c] = R[3 * c + r] * inv;  // A = S^-1 R^T
+      }
+      int flat = 0;  // the first smallest scale, as numpy's argmin
+      for (int c = 1; c < 3; ++c)
+        if (sc[c] < sc[flat]) flat = c;
+      G[12] = R[flat], G[13] = R[3 + flat], G[14] = R[6 + flat];
+      G[15] = opp[i];
+      float* b = box_.data() + 6 * i;
+      for (int r = 0; r < 3; ++r) {
+        double v = 0.0;
+        for (int c = 0; c < 3; ++c) v += (R[3 * r + c] * R[3 * r + c]) * (sc[c] * sc[c]);
+        const double half = k * std::sqrt(v);
+        b[2 * r] = round_down((m[r] - half) - pad);
+        b[2 * r + 1] = round_up((m[r] + half) + pad);
+        lo_[r] = std::min(lo_[r], static_cast<double>(b[2 * r]));
+        hi_[r] = std::max(hi_[r], static_cast<double>(b[2 * r + 1]));
+      }
     }
+    if (n_ == 0)
+      for (int c = 0; c < 3; ++c) lo_[c] = hi_[c] = 0.0;
     RTCDevice dev = shared_device();
     scene_ = rtcNewScene(dev);
     rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
@@ -151,8 +203,8 @@ class GaussianScene {
   // The exact test of Gaussian g on ray (o, d): t* (max response), d2 (squared Mahalanobis
   // distance there) and the half chord of the k-sigma ellipsoid (0 on a miss).
   void exact(int64_t g, const double* o, const double* d, double& t_star, double& d2, double& half) const {
-    const double* A = a_p_ + 9 * g;
-    const double* m = mu_p_ + 3 * g;
+    const double* m = geo_.data() + kGeo * g;
+    const double* A = m + 3;
     const double w0 = o[0] - m[0], w1 = o[1] - m[1], w2 = o[2] - m[2];
     const double op0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
     const double op1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
@@ -170,8 +222,8 @@ class GaussianScene {
 
   // Outward unit normal of the ellipsoid level set through p: A^T A (p - mu), normalised.
   void ellipsoid_normal(int64_t g, const double* p, double* n) const {
-    const double* A = a_p_ + 9 * g;
-    const double* m = mu_p_ + 3 * g;
+    const double* m = geo_.data() + kGeo * g;
+    const double* A = m + 3;
     const double w0 = p[0] - m[0], w1 = p[1] - m[1], w2 = p[2] - m[2];
     const double u0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
     const double u1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
@@ -244,6 +296,9 @@ class GaussianScene {
       }
       ++rounds;
       st.count = 0;
+      st.cut = false;
+      st.log_tr_base = log_tr;
+      st.log_t_min = log_t_min;
       RTCRayHit rh;
       const double s_near = std::isfinite(st.after_t) ? st.after_t - st.t0 - st.margin - 4e-7 * std::abs(st.after_t - st.t0) : 0.0;
       init_ray(st, rh, s_near, param_beyond(st, t_hi));
@@ -259,7 +314,7 @@ class GaussianScene {
         wsum += w;
         wt += w * c.t;
         if (w > best_w) best_w = w, best = c.g;
-        log_tr += std::log1p(-c.alpha);
+        log_tr += c.log1m;
       }
       if (stopped || log_tr < log_t_min || st.count < st.cap) break;
       st.after_t = st.buf[st.count - 1].t;
@@ -317,30 +372,41 @@ class GaussianScene {
 
   void add_contribution(RayState& st, RTCRayHit* rh, int64_t g, double t_star, double d2) const {
     if (!(t_star >= st.tmin && t_star <= st.tmax)) return;
-    const double alpha = op_p_[g] * std::exp(-0.5 * d2);
+    const double alpha = geo_[kGeo * g + 15] * std::exp(-0.5 * d2);
     if (!(alpha >= st.alpha_min)) return;
     if (!key_less(st.after_t, st.after_g, t_star, g)) return;  // composited in an earlier round
     Contribution* buf = st.buf;
     int n = st.count;
-    if (n == st.cap && !key_less(t_star, g, buf[n - 1].t, buf[n - 1].g)) return;
+    if ((st.cut || n == st.cap) && !key_less(t_star, g, buf[n - 1].t, buf[n - 1].g)) return;
     int pos = n;
     while (pos > 0 && key_less(t_star, g, buf[pos - 1].t, buf[pos - 1].g)) --pos;
     if (pos > 0 && buf[pos - 1].g == g && buf[pos - 1].t == t_star) return;  // visited twice
     const int last = std::min(n, st.cap - 1);
     for (int i = last; i > pos; --i) buf[i] = buf[i - 1];
-    buf[pos] = Contribution{t_star, std::min(alpha, 0.999), g};
+    const double a = std::min(alpha, 0.999);
+    buf[pos] = Contribution{t_star, a, std::log1p(-a), g};
     if (n < st.cap) st.count = n + 1;
-    if (st.count == st.cap) {
-      // Only contributions nearer than the K-th can still enter the buffer this round.
-      const float far = round_up(param_beyond(st, buf[st.cap - 1].t));
+    // Early termination inside the traversal: once the buffer's transmittance falls below the
+    // threshold at entry j, nothing beyond j is composited (a nearer contribution found later
+    // only moves that point nearer), so the buffer ends at j and the ray's far limit with it.
+    double log_tr = st.log_tr_base;
+    for (int i = 0; i < st.count; ++i) {
+      log_tr += buf[i].log1m;
+      if (log_tr < st.log_t_min) {
+        st.count = i + 1;
+        st.cut = true;
+        break;
+      }
+    }
+    if (st.cut || st.count == st.cap) {
+      // Only contributions nearer than the last can still enter the buffer this round.
+      const float far = round_up(param_beyond(st, buf[st.count - 1].t));
       if (far < rh->ray.tfar) rh->ray.tfar = far;
     }
   }
 
-  Arr<double> mu_, a_, opacity_;
-  const double* mu_p_ = nullptr;
-  const double* a_p_ = nullptr;
-  const double* op_p_ = nullptr;
+  std::vector<double> geo_;  // (G, kGeo): mean, A, flat axis, opacity
+  double lo_[3], hi_[3];     // the boxes' bounds
   std::vector<float> box_;  // (G, 3, 2): lo, hi per axis, rounded outwards to float32
   double k_, kk_, pad_;
   int64_t n_ = 0;
@@ -348,6 +414,10 @@ class GaussianScene {
 
  public:
   double pad() const { return pad_; }
+  const double* flat_axis(int64_t g) const { return geo_.data() + kGeo * g + 12; }
+  py::tuple bounds() const {
+    return py::make_tuple(py::make_tuple(lo_[0], lo_[1], lo_[2]), py::make_tuple(hi_[0], hi_[1], hi_[2]));
+  }
 };
 
 // Runs fn(ray, state, thread) over rays in chunks on `threads` std::threads; each chunk's rays
@@ -387,12 +457,30 @@ int resolve_threads(int threads) {
 }
 
 void check_rays(const Arr<double>& o, const Arr<double>& d, const Arr<double>& tmin, const Arr<double>& tmax,
-                const Arr<double>& t_lo, const Arr<double>& t_hi) {
+                const Arr<double>& lo, const Arr<double>& hi) {
   const auto n = o.shape(0);
   if (o.ndim() != 2 || o.shape(1) != 3 || d.ndim() != 2 || d.shape(0) != n || d.shape(1) != 3)
     throw std::invalid_argument("o, d: expected (N, 3) float64");
-  for (const Arr<double>* x : {&tmin, &tmax, &t_lo, &t_hi})
-    if (x->ndim() != 1 || x->shape(0) != n) throw std::invalid_argument("tmin, tmax, t_lo, t_hi: expected (N,)");
+  for (const Arr<double>* x : {&tmin, &tmax})
+    if (x->ndim() != 1 || x->shape(0) != n) throw std::invalid_argument("tmin, tmax: expected (N,)");
+  for (const Arr<double>* x : {&lo, &hi})
+    if (x->ndim() != 1 || x->shape(0) != 3) throw std::invalid_argument("lo, hi: expected (3,)");
+}
+
+// The part [t_lo, t_hi] of [tmin, tmax] inside the box lo, hi; as gaussian_math.clip_to_box,
+// operation for operation: a 0 * inf (a ray in a slab's plane) is NaN and means "inside".
+void clip_to_box(const double* o, const double* d, double tmin, double tmax, const double* lo, const double* hi,
+                 double& t_lo, double& t_hi) {
+  double near = kNaN, far = kNaN;
+  for (int c = 0; c < 3; ++c) {
+    const double inv = 1.0 / d[c];
+    const double t1 = (lo[c] - o[c]) * inv, t2 = (hi[c] - o[c]) * inv;
+    const bool nan = std::isnan(t1) || std::isnan(t2);
+    near = std::fmax(near, nan ? kNaN : std::min(t1, t2));
+    far = std::fmin(far, nan ? kNaN : std::max(t1, t2));
+  }
+  t_lo = std::isnan(near) ? near : std::max(tmin, near);
+  t_hi = std::isnan(far) ? far : std::min(tmax, far);
 }
 
 struct Outputs {
@@ -409,9 +497,8 @@ struct Outputs {
 };
 
 struct Attributes {
-  // Per-Gaussian attributes copied into the hits: flat axis (G, 3) float64 (max-response
-  // normals), voxel (G,) int64, label (G,) int16, colour (G, 3) float32.
-  const double* flat_axis;
+  // Per-Gaussian attributes copied into the hits: voxel (G,) int64, label (G,) int16, colour
+  // (G, 3) float32.
   const int64_t* voxel;
   const int16_t* label;
   const float* color;
@@ -427,7 +514,7 @@ void fill_hit(const GaussianScene& s, const Attributes& at, const Outputs& out, 
   if (entry_normal) {
     s.ellipsoid_normal(g, p, nrm);
   } else {
-    const double* fa = at.flat_axis + 3 * g;
+    const double* fa = s.flat_axis(g);
     nrm[0] = fa[0], nrm[1] = fa[1], nrm[2] = fa[2];
   }
   if (nrm[0] * d[0] + nrm[1] * d[1] + nrm[2] * d[2] > 0) nrm[0] = -nrm[0], nrm[1] = -nrm[1], nrm[2] = -nrm[2];
@@ -441,6 +528,21 @@ void fill_hit(const GaussianScene& s, const Attributes& at, const Outputs& out, 
   out.alpha[i] = alpha;
 }
 
+// A miss, as `Hits.empty` writes it.
+void fill_miss(const Outputs& out, int64_t i, float alpha) {
+  out.hit[i] = false;
+  out.t[i] = kInf;
+  for (int c = 0; c < 3; ++c) {
+    out.points[3 * i + c] = kNaN;
+    out.normals[3 * i + c] = 0.0f;
+    out.color[3 * i + c] = 0.0f;
+  }
+  out.gaussian[i] = -1;
+  out.voxel[i] = -1;
+  out.label[i] = 0;
+  out.alpha[i] = alpha;
+}
+
 template <typename T>
 T* mutable_data(py::array_t<T, py::array::c_style>& a, int64_t n, int64_t width, const char* name) {
   const bool ok = width == 1 ? (a.ndim() == 1 && a.shape(0) == n) : (a.ndim() == 2 && a.shape(0) == n && a.shape(1) == width);
@@ -448,9 +550,10 @@ T* mutable_data(py::array_t<T, py::array::c_style>& a, int64_t n, int64_t width,
   return a.mutable_data();
 }
 
-// trace(scene, mode, o, d, tmin, tmax, t_lo, t_hi, attributes..., outputs..., options) -> stats
+// trace(scene, mode, o, d, tmin, tmax, box lo, hi, attributes..., outputs..., options) -> stats;
+// every output element is written, misses included.
 py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, Arr<double> tmin, Arr<double> tmax,
-                Arr<double> t_lo, Arr<double> t_hi, Arr<double> flat_axis, Arr<int64_t> voxel, Arr<int16_t> label,
+                Arr<double> lo, Arr<double> hi, Arr<int64_t> voxel, Arr<int16_t> label,
                 Arr<float> color, py::array_t<bool, py::array::c_style> hit, py::array_t<double, py::array::c_style> t,
                 py::array_t<double, py::array::c_style> points, py::array_t<float, py::array::c_style> normals,
                 py::array_t<int64_t, py::array::c_style> gaussian, py::array_t<int64_t, py::array::c_style> vox_out,
@@ -459,18 +562,18 @@ py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, 
                 double soft_alpha_min, double soft_hit_alpha, int k_buffer, int max_rounds, int threads) {
   if (mode < kModeEntry || mode > kModeSoft) throw std::invalid_argument("mode: expected 0 (entry), 1 (max_response) or 2 (soft)");
   if (k_buffer < 1) throw std::invalid_argument("k_buffer: expected at least 1");
-  check_rays(o, d, tmin, tmax, t_lo, t_hi);
+  check_rays(o, d, tmin, tmax, lo, hi);
   const int64_t n = o.shape(0), G = s.size();
-  if (flat_axis.shape(0) != G || voxel.shape(0) != G || label.shape(0) != G || color.shape(0) != G)
+  if (voxel.shape(0) != G || label.shape(0) != G || color.shape(0) != G)
     throw std::invalid_argument("attributes: expected one row per Gaussian");
   Outputs out{mutable_data(hit, n, 1, "hit"),           mutable_data(t, n, 1, "t"),
               mutable_data(points, n, 3, "points"),     mutable_data(normals, n, 3, "normals"),
               mutable_data(gaussian, n, 1, "gaussian"), mutable_data(vox_out, n, 1, "voxel"),
               mutable_data(label_out, n, 1, "label"),   mutable_data(color_out, n, 3, "color"),
               mutable_data(alpha_out, n, 1, "alpha")};
-  Attributes at{flat_axis.data(), voxel.data(), label.data(), color.data()};
-  const double *op = o.data(), *dp = d.data(), *tminp = tmin.data(), *tmaxp = tmax.data(), *lop = t_lo.data(),
-               *hip = t_hi.data();
+  Attributes at{voxel.data(), label.data(), color.data()};
+  const double *op = o.data(), *dp = d.data(), *tminp = tmin.data(), *tmaxp = tmax.data(), *box_lo = lo.data(),
+               *box_hi = hi.data();
   const int nt = resolve_threads(threads);
   std::vector<uint64_t> tests(nt, 0), rounds(nt, 0), unfinished(nt, 0);
   const double log_t_min = std::log(soft_min_transmittance);
@@ -492,17 +595,28 @@ py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, 
         for (int c = 0; c < 3; ++c) st.o[c] = op[3 * i + c], st.d[c] = dp[3 * i + c];
         st.tmin = tminp[i];
         st.tmax = tmaxp[i];
+        // Candidates are searched only inside the bounds; the exact tests use the whole range.
+        double t_lo, t_hi;
+        clip_to_box(st.o, st.d, st.tmin, st.tmax, box_lo, box_hi, t_lo, t_hi);
         if (mode == kModeSoft) {
           double depth, acc;
           int64_t g;
           bool unfinished_ray;
-          casts += s.trace_soft_ray(st, lop[i], hip[i], log_t_min, max_rounds, depth, g, acc, unfinished_ray);
+          casts += s.trace_soft_ray(st, t_lo, t_hi, log_t_min, max_rounds, depth, g, acc, unfinished_ray);
           unf += unfinished_ray;
-          if (acc >= soft_hit_alpha && g >= 0) fill_hit(s, at, out, i, st.o, st.d, depth, g, false, static_cast<float>(acc));
+          if (acc >= soft_hit_alpha && g >= 0) {
+            fill_hit(s, at, out, i, st.o, st.d, depth, g, false, static_cast<float>(acc));
+          } else {
+            fill_miss(out, i, 0.0f);
+          }
         } else {
-          s.trace_hard_ray(st, lop[i], hip[i]);
-          casts += hip[i] >= lop[i] && G > 0;
-          if (st.best_g >= 0) fill_hit(s, at, out, i, st.o, st.d, st.best_t, st.best_g, mode == kModeEntry, 1.0f);
+          s.trace_hard_ray(st, t_lo, t_hi);
+          casts += t_hi >= t_lo && G > 0;
+          if (st.best_g >= 0) {
+            fill_hit(s, at, out, i, st.o, st.d, st.best_t, st.best_g, mode == kModeEntry, 1.0f);
+          } else {
+            fill_miss(out, i, 0.0f);
+          }
         }
       }
       tests[tid] += st.tests;
@@ -521,10 +635,11 @@ PYBIND11_MODULE(_core, m) {
   m.doc() = "Compiled trace core: Embree user-geometry Gaussians with exact float64 tests (see _core.cpp).";
   m.attr("EMBREE_VERSION") = RTC_VERSION_STRING;
   py::class_<GaussianScene>(m, "GaussianScene")
-      .def(py::init<Arr<double>, Arr<double>, Arr<double>, double, Arr<double>, Arr<double>, double>(),
-           py::arg("mu"), py::arg("a"), py::arg("opacity"), py::arg("k"), py::arg("lo"), py::arg("hi"), py::arg("pad"),
-           "Build the BVH of G Gaussians: mu (G, 3), a (G, 3, 3), opacity (G,) float64; k sigma; padded "
-           "k-sigma boxes lo / hi (G, 3) float64 (local frame, metres); pad (m) the float32 slack of rays.")
-      .def_property_readonly("size", &GaussianScene::size);
+      .def(py::init<Arr<double>, Arr<double>, Arr<double>, Arr<double>, double, double>(), py::arg("means"),
+           py::arg("quats"), py::arg("scales"), py::arg("opacity"), py::arg("k"), py::arg("pad"),
+           "Build the BVH of G Gaussians: means (G, 3), quats (G, 4) wxyz, scales (G, 3) > 0, opacity (G,) "
+           "float64 (local frame, metres); k sigma; pad (m) the float32 slack of rays against the boxes.")
+      .def_property_readonly("size", &GaussianScene::size)
+      .def("bounds", &GaussianScene::bounds, "((3,), (3,)): the padded boxes' lower and upper corners");
   m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");
 }

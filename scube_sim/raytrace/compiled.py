@@ -76,7 +76,7 @@ def default_core_name() -> str:
 
 @dataclass
 class CompiledScene:
-    """The core's BVH and what the hits are filled from. lo, hi (3,): the padded boxes' bounds."""
+    """The core's BVH and what the hits are filled from. lo, hi (3,): the search box."""
 
     handle: object
     scene: SceneGaussians
@@ -95,29 +95,29 @@ class CompiledCore:
                                   "and a C++ compiler, then reinstall scube-sim, or use core='reference'")
 
     def prepare(self, scene: SceneGaussians) -> CompiledScene:
-        lo = scene.aabb_lo - scene.pad
-        hi = scene.aabb_hi + scene.pad
-        handle = _core.GaussianScene(np.ascontiguousarray(scene.mu, np.float64),
-                                     np.ascontiguousarray(scene.a, np.float64),
-                                     np.ascontiguousarray(scene.opacity, np.float64), float(scene.k),
-                                     np.ascontiguousarray(lo, np.float64), np.ascontiguousarray(hi, np.float64),
-                                     float(scene.pad))
+        g = scene.gaussians
+        c64 = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
+        handle = _core.GaussianScene(*c64, float(scene.k), float(scene.pad))
         # Attributes the hits copy, in the dtypes the extension reads without a copy per call.
-        scene.flat_axis = np.ascontiguousarray(scene.flat_axis, np.float64)
         scene.voxel = np.ascontiguousarray(scene.voxel, np.int64)
         scene.labels = np.ascontiguousarray(scene.labels, np.int16)
         scene.colors = np.ascontiguousarray(scene.colors, np.float32)
-        return CompiledScene(handle, scene, lo.min(0) if len(lo) else np.zeros(3),
-                             hi.max(0) if len(hi) else np.zeros(3))
+        lo, hi = (np.array(b, np.float64) for b in handle.bounds())
+        # The search box reaches beyond the padded boxes, so a clipped ray never starts inside a
+        # box it cannot then leave.
+        return CompiledScene(handle, scene, lo - 2.0 * scene.pad, hi + 2.0 * scene.pad)
 
-    def trace(self, prepared: CompiledScene, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi,
-              stats: TraceStats) -> Hits:
+    def trace(self, prepared: CompiledScene, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits:
         n = o.shape[0]
-        out = Hits.empty(n)
+        # Every element is written by the extension, misses included (as `Hits.empty`).
+        out = Hits(hit=np.empty(n, bool), t=np.empty(n), points=np.empty((n, 3)), normals=np.empty((n, 3), np.float32),
+                   gaussian=np.empty(n, np.int64), voxel=np.empty(n, np.int64), face=np.full(n, -1, np.int64),
+                   label=np.empty(n, np.int16), instance=np.zeros(n, np.int32), color=np.empty((n, 3), np.float32),
+                   alpha=np.empty(n, np.float32))
         s = prepared.scene
-        f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, t_lo, t_hi)]
+        f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, prepared.lo, prepared.hi)]
         casts, tests, unfinished = _core.trace(
-            prepared.handle, _MODE_CODES[opts.mode], *f64, s.flat_axis, s.voxel, s.labels, s.colors,
+            prepared.handle, _MODE_CODES[opts.mode], *f64, s.voxel, s.labels, s.colors,
             out.hit, out.t, out.points, out.normals, out.gaussian, out.voxel, out.label, out.color, out.alpha,
             float(opts.soft_min_transmittance), float(opts.soft_alpha_min), float(opts.soft_hit_alpha),
             int(opts.k_buffer), int(opts.max_iterations), int(opts.threads))

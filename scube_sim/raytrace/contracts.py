@@ -12,11 +12,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
 from ..voxsplat import Gaussians, VoxSplat
+from . import gaussian_math as gm
 from .hits import Hits, TraceStats
 
 
@@ -77,7 +79,7 @@ class TraceOptions:
     soft_min_transmittance: float = 1e-3
     soft_alpha_min: float = 1.0 / 255.0
     soft_hit_alpha: float = 0.5
-    k_buffer: int = 16
+    k_buffer: int = 256
     threads: int = 0
 
 
@@ -86,30 +88,64 @@ class SceneGaussians:
     """The Gaussians a core builds its acceleration structure over, prepared once by `Tracer`
     (local frame, float64 unless said).
 
-    gaussians: the kept Gaussians (|scales| floored); rot (G, 3, 3) rotations; mu (G, 3) means;
-    a (G, 3, 3) world-to-unit-frame matrices (gaussian_math); opacity (G,); k sigma; labels (G,)
-    int16; colors (G, 3) float32; voxel (G,) int64 (-1: none); flat_axis (G, 3) unit axis of least
-    spread (max-response normals); aabb_lo / aabb_hi (G, 3) k-sigma boxes; pad (m): the float32
-    slack rays need against bounds; voxsplat: the source VoxSplat, if any (voxel-box proxies)."""
+    gaussians: the kept Gaussians (|scales| floored); k sigma; labels (G,) int16; colors (G, 3)
+    float32; voxel (G,) int64 (-1: none); pad (m): the float32 slack rays need against bounds;
+    voxsplat: the source VoxSplat, if any (voxel-box proxies). The derived arrays (rot, a,
+    flat_axis, aabb_lo / aabb_hi) are computed on first use: the compiled core derives its own in
+    C++ and never asks for them."""
 
     gaussians: Gaussians
-    rot: np.ndarray
-    mu: np.ndarray
-    a: np.ndarray
-    opacity: np.ndarray
     k: float
     labels: np.ndarray
     colors: np.ndarray
     voxel: np.ndarray
-    flat_axis: np.ndarray
-    aabb_lo: np.ndarray
-    aabb_hi: np.ndarray
     pad: float
     voxsplat: VoxSplat | None = None
 
+    @property
+    def mu(self) -> np.ndarray:
+        """(G, 3) means."""
+        return self.gaussians.means
+
+    @property
+    def opacity(self) -> np.ndarray:
+        return self.gaussians.opacities
+
+    @cached_property
+    def rot(self) -> np.ndarray:
+        """(G, 3, 3) rotations."""
+        return self.gaussians.rotations()
+
+    @cached_property
+    def a(self) -> np.ndarray:
+        """(G, 3, 3) world-to-unit-frame matrices (gaussian_math)."""
+        return gm.unit_frame_matrices(self.rot, self.gaussians.scales)
+
+    @cached_property
+    def flat_axis(self) -> np.ndarray:
+        """(G, 3) unit axis of least spread (the max-response normal)."""
+        n = len(self.gaussians)
+        return self.rot[np.arange(n), :, np.argmin(self.gaussians.scales, axis=1)] if n else np.zeros((0, 3))
+
+    @cached_property
+    def _aabbs(self) -> tuple[np.ndarray, np.ndarray]:
+        if not len(self.gaussians):
+            return np.zeros((0, 3)), np.zeros((0, 3))
+        return gm.gaussian_aabbs(self.mu, self.rot, self.gaussians.scales, self.k)
+
+    @property
+    def aabb_lo(self) -> np.ndarray:
+        """(G, 3) lower corners of the k-sigma boxes."""
+        return self._aabbs[0]
+
+    @property
+    def aabb_hi(self) -> np.ndarray:
+        return self._aabbs[1]
+
 
 class PreparedScene(Protocol):
-    """A core's built scene: `lo`, `hi` (3,) float64 corners of what it searches (local frame)."""
+    """A core's built scene: `lo`, `hi` (3,) float64 corners of the box it searches (local frame,
+    padded so that a ray clipped to it never starts inside a primitive it cannot then leave)."""
 
     lo: np.ndarray
     hi: np.ndarray
@@ -118,13 +154,13 @@ class PreparedScene(Protocol):
 class TraceCore(Protocol):
     """The traversal of Gaussians: `prepare` builds once per scene, `trace` answers ray batches.
 
-    trace: o, d (N, 3) float64 local frame (d unit); tmin, tmax (N,) the asked range; t_lo, t_hi
-    (N,) the part of it inside the prepared bounds (empty: t_lo > t_hi). Returns the nearest hit
-    per ray (hard modes) or the composited one (soft) as `Hits`, points in the local frame."""
+    trace: o, d (N, 3) float64 local frame (d unit); tmin, tmax (N,) the asked range (the core
+    searches only its part inside `prepared.lo / hi`; exact tests use the whole range). Returns
+    the nearest hit per ray (hard modes) or the composited one (soft) as `Hits`, points in the
+    local frame."""
 
     name: str
 
     def prepare(self, scene: SceneGaussians) -> PreparedScene: ...
 
-    def trace(self, prepared: PreparedScene, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi,
-              stats: TraceStats) -> Hits: ...
+    def trace(self, prepared: PreparedScene, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits: ...

@@ -39,7 +39,8 @@ class PreparedGaussians:
     frame matrices; opacity (G,); backend: the Embree BVH of the proxies, whose primitive p
     belongs to proxy p // faces_per_proxy. Per-Gaussian proxies: frame_scale (G,) and the
     template's planes (planes_n (F, 3), planes_h (F,)). Voxel boxes: box_center, box_half (B, 3)
-    and box_members (B, M) Gaussian ids (-1 padded). lo, hi (3,): the proxies' bounds;
+    and box_members (B, M) Gaussian ids (-1 padded). lo, hi (3,): the search box (the proxies'
+    bounds, padded);
     num_faces: triangles in the BVH; attributes: the scene the proxies were built from."""
 
     gaussians: Gaussians
@@ -119,13 +120,16 @@ class ReferenceCore:
         return PreparedGaussians(
             gaussians=g, mu=scene.mu, a=scene.a, opacity=scene.opacity, k=scene.k, proxy=self.proxy,
             backend=make_backend(self.backend, v, f), faces_per_proxy=fpp, planes_n=planes_n, planes_h=planes_h,
-            lo=v.min(0).astype(np.float64) if len(v) else np.zeros(3),
-            hi=v.max(0).astype(np.float64) if len(v) else np.zeros(3), num_faces=int(f.shape[0]),
+            # The search box reaches beyond the padded proxies, so a clipped ray never starts
+            # inside a proxy it cannot then leave.
+            lo=(v.min(0).astype(np.float64) if len(v) else np.zeros(3)) - 2.0 * pad,
+            hi=(v.max(0).astype(np.float64) if len(v) else np.zeros(3)) + 2.0 * pad, num_faces=int(f.shape[0]),
             attributes=scene, frame_scale=frame_scale, box_center=box_center, box_half=box_half,
             box_members=box_members)
 
-    def trace(self, prepared: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi,
-              stats: TraceStats) -> Hits:
+    def trace(self, prepared: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits:
+        # Candidates are searched only inside the bounds; exact tests use the full ray.
+        t_lo, t_hi = gm.clip_to_box(o, d, tmin, tmax, prepared.lo, prepared.hi)
         if opts.mode == "soft":
             depth, g, acc = trace_soft(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
             hit = acc >= opts.soft_hit_alpha

@@ -3,8 +3,8 @@
 Gaussians are handed, once per static scene, to a `TraceCore` that builds its BVH and answers
 ray batches with exact float64 tests: the compiled core (`compiled.py`, Embree user geometry, one
 traversal per ray, the default wherever it is built) or the NumPy reference walk over triangle
-proxies (`reference.py`). This class validates rays, clips them to the scene bounds and hands
-them to the core; meshes are traced here with Embree's own triangles.
+proxies (`reference.py`). This class validates rays and hands them to the core (which searches
+only inside its padded bounds); meshes are traced here with Embree's own triangles.
 
 Depth definitions (hard opacity: alpha := 1 for Gaussians at or above `opacity_floor`):
 - ``entry``: where the ray enters the k-sigma ellipsoid (a solid surface).
@@ -47,7 +47,8 @@ class Tracer:
     core: 'compiled' | 'reference' | a `TraceCore`; default: `compiled.default_core_name()` (the
     compiled core where it is built; the environment variable SCUBE_SIM_CORE overrides).
     threads: the compiled core's threads (0: all cores); soft_k_buffer: its soft contributions
-    gathered per traversal (3DGRT's k-buffer).
+    gathered per traversal (3DGRT's k-buffer; 256 measured fastest on the shipped splats, see
+    `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
     backend: 'open3d' or 'embreex', the Embree engine for meshes and for the reference core's
     proxies. proxy: the reference core's 'octahedron' | 'icosahedron' (per Gaussian) or
     'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
@@ -75,7 +76,7 @@ class Tracer:
         labels: np.ndarray | None = None,
         core: str | TraceCore | None = None,
         threads: int = 0,
-        soft_k_buffer: int = 16,
+        soft_k_buffer: int = 256,
     ):
         if backend not in BACKENDS:
             raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
@@ -152,28 +153,26 @@ class Tracer:
         self.origin = g.origin.copy()
         floor = self.soft_alpha_min if self.mode == "soft" else self.opacity_floor
         keep = g.opacities >= floor
-        g = g.subset(keep)
+        if not keep.all():
+            g = g.subset(keep)
+        else:
+            g = g.subset(slice(None)) if g is scene else g  # never change the caller's Gaussians
         # A zero scale is a flat (2D) Gaussian and a negative one means the same spread: keep the
         # result defined by using |s|, floored where float64 still inverts it.
         g.scales = np.maximum(np.abs(g.scales), MIN_SCALE)
         self.gaussians = g
         self.labels = g_labels[keep]
-        rot = g.rotations()
         n = len(g)
-        lo, hi = gm.gaussian_aabbs(g.means, rot, g.scales, self.k) if n else (np.zeros((0, 3)),) * 2
-        # The float32 tolerance follows the scene's extent; proxies and boxes are padded by it,
-        # and the search bounds are those of the padded proxies themselves (which reach beyond
-        # the ellipsoids), so a clipped ray never starts inside a proxy it cannot then leave.
-        self._set_tolerances(np.abs(np.concatenate([lo, hi])).max() if n else 0.0)
+        # The float32 tolerance follows the scene's extent, bounded per Gaussian by |mean| + k
+        # times its largest scale (no rotation needed; a larger bound only widens the margins).
+        extent = float(np.max(np.abs(g.means).max(axis=1) + self.k * g.scales.max(axis=1))) if n else 0.0
+        self._set_tolerances(extent)
         self.scene_gaussians = SceneGaussians(
-            gaussians=g, rot=rot, mu=g.means, a=gm.unit_frame_matrices(rot, g.scales), opacity=g.opacities,
-            k=self.k, labels=self.labels, colors=g.colors,
-            voxel=g.voxel if g.voxel is not None else np.full(n, -1, np.int64),
-            # Surfel normal for max-response hits: the axis of least spread.
-            flat_axis=rot[np.arange(n), :, np.argmin(g.scales, axis=1)] if n else np.zeros((0, 3)),
-            aabb_lo=lo, aabb_hi=hi, pad=self._pad, voxsplat=scene if isinstance(scene, VoxSplat) else None)
+            gaussians=g, k=self.k, labels=self.labels, colors=g.colors,
+            voxel=g.voxel if g.voxel is not None else np.full(n, -1, np.int64), pad=self._pad,
+            voxsplat=scene if isinstance(scene, VoxSplat) else None)
         self.prepared = self.core.prepare(self.scene_gaussians)
-        self._set_bounds(self.prepared.lo, self.prepared.hi)
+        self._lo, self._hi = self.prepared.lo, self.prepared.hi
         self.num_primitives = int(getattr(self.prepared, "num_faces", n))
 
     def _set_tolerances(self, extent: float) -> None:
@@ -196,17 +195,6 @@ class Tracer:
         """(lo, hi) (3,) float64 corners of the searched box, local frame (world = local + `origin`)."""
         return self._lo, self._hi
 
-    def _clip_to_bounds(self, o, d, tmin, tmax):
-        """Shrink [tmin, tmax] to the part of each ray inside the scene bounds (empty: tmin > tmax)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            inv = 1.0 / d
-            t1 = (self._lo - o) * inv
-            t2 = (self._hi - o) * inv
-        # A direction component of 0 gives inf/-inf or NaN (0 * inf): NaN means "inside the slab".
-        near = np.nanmax(np.minimum(t1, t2), axis=1)
-        far = np.nanmin(np.maximum(t1, t2), axis=1)
-        return np.maximum(tmin, near), np.minimum(tmax, far)
-
     # --- queries -----------------------------------------------------------------------------
     def trace_world(self, origins, dirs, t_min=0.0, t_max=np.inf) -> Hits:
         """Like `trace` with float64 world-frame origins; hit points stay in the local frame."""
@@ -222,7 +210,7 @@ class Tracer:
             raise InputError(f"origins ({n}) and dirs ({d.shape[0]}) differ in length")
         if not (np.all(np.isfinite(o)) and np.all(np.isfinite(d))):
             raise InputError("trace: ray origins or directions contain NaN or Inf")
-        norm = np.linalg.norm(d, axis=1, keepdims=True)
+        norm = np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]  # linalg.norm's result at a third of its time
         if np.any(norm == 0):
             raise InputError("trace: a ray direction has zero length")
         d = d / norm
@@ -232,12 +220,10 @@ class Tracer:
             raise InputError("trace: t_min / t_max contain NaN")
         if self.is_mesh:
             return self._trace_mesh(o, d, tmin, tmax)
-        # Candidates are searched only inside the scene bounds; exact tests use the full ray.
-        t_lo, t_hi = self._clip_to_bounds(o, d, tmin, tmax)
         # The settings are read now: a tracer's mode or exact_order may change between calls.
         opts = TraceOptions(self.mode, self.exact_order, self.max_iterations, self.soft_min_transmittance,
                             self.soft_alpha_min, self.soft_hit_alpha, self.soft_k_buffer, self.threads)
-        return self.core.trace(self.prepared, opts, o, d, tmin, tmax, t_lo, t_hi, self.stats)
+        return self.core.trace(self.prepared, opts, o, d, tmin, tmax, self.stats)
 
     # --- meshes ------------------------------------------------------------------------------
     def _trace_mesh(self, o, d, tmin, tmax) -> Hits:

@@ -35,9 +35,9 @@ class RecordingCore:
         self.calls.append(("prepare", scene))
         return self.inner.prepare(scene)
 
-    def trace(self, prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats):
+    def trace(self, prepared, opts, o, d, tmin, tmax, stats):
         self.calls.append(("trace", prepared, opts, o.shape[0]))
-        return self.inner.trace(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+        return self.inner.trace(prepared, opts, o, d, tmin, tmax, stats)
 
 
 def test_the_compiled_core_is_built():
