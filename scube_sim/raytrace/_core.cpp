@@ -200,18 +200,22 @@ class GaussianScene {
 
   int64_t size() const { return n_; }
 
+  // out = A v for a row-major 3x3 A (the unit-frame matrix of a Gaussian).
+  static void apply(const double* A, const double* v, double* out) {
+    out[0] = A[0] * v[0] + A[1] * v[1] + A[2] * v[2];
+    out[1] = A[3] * v[0] + A[4] * v[1] + A[5] * v[2];
+    out[2] = A[6] * v[0] + A[7] * v[1] + A[8] * v[2];
+  }
+
   // The exact test of Gaussian g on ray (o, d): t* (max response), d2 (squared Mahalanobis
   // distance there) and the half chord of the k-sigma ellipsoid (0 on a miss).
   void exact(int64_t g, const double* o, const double* d, double& t_star, double& d2, double& half) const {
     const double* m = geo_.data() + kGeo * g;
-    const double* A = m + 3;
-    const double w0 = o[0] - m[0], w1 = o[1] - m[1], w2 = o[2] - m[2];
-    const double op0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
-    const double op1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
-    const double op2 = A[6] * w0 + A[7] * w1 + A[8] * w2;
-    const double dp0 = A[0] * d[0] + A[1] * d[1] + A[2] * d[2];
-    const double dp1 = A[3] * d[0] + A[4] * d[1] + A[5] * d[2];
-    const double dp2 = A[6] * d[0] + A[7] * d[1] + A[8] * d[2];
+    const double w[3] = {o[0] - m[0], o[1] - m[1], o[2] - m[2]};
+    double op[3], dp[3];
+    apply(m + 3, w, op);
+    apply(m + 3, d, dp);
+    const double op0 = op[0], op1 = op[1], op2 = op[2], dp0 = dp[0], dp1 = dp[1], dp2 = dp[2];
     const double aa = std::max(dp0 * dp0 + dp1 * dp1 + dp2 * dp2, 1e-300);
     const double b = op0 * dp0 + op1 * dp1 + op2 * dp2;
     t_star = -b / aa;
@@ -224,10 +228,10 @@ class GaussianScene {
   void ellipsoid_normal(int64_t g, const double* p, double* n) const {
     const double* m = geo_.data() + kGeo * g;
     const double* A = m + 3;
-    const double w0 = p[0] - m[0], w1 = p[1] - m[1], w2 = p[2] - m[2];
-    const double u0 = A[0] * w0 + A[1] * w1 + A[2] * w2;
-    const double u1 = A[3] * w0 + A[4] * w1 + A[5] * w2;
-    const double u2 = A[6] * w0 + A[7] * w1 + A[8] * w2;
+    const double w[3] = {p[0] - m[0], p[1] - m[1], p[2] - m[2]};
+    double u[3];
+    apply(A, w, u);
+    const double u0 = u[0], u1 = u[1], u2 = u[2];
     n[0] = A[0] * u0 + A[3] * u1 + A[6] * u2;
     n[1] = A[1] * u0 + A[4] * u1 + A[7] * u2;
     n[2] = A[2] * u0 + A[5] * u1 + A[8] * u2;
