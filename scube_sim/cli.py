@@ -421,6 +421,10 @@ def worlds_generate_cmd(
     frame_offsets: Optional[str] = typer.Option(None, "--frame-offsets",
                                                 help="stored instants in frames after T, comma-separated, "
                                                 "starting at 0 (default 0,5,10); only for a new folder"),
+    fine_voxel: Optional[float] = typer.Option(None, "--fine-voxel", help="fine ground-truth voxel size in metres "
+                                               "(default 0.1); only for a new folder"),
+    coarse_factor: Optional[int] = typer.Option(None, "--coarse-factor", help="coarse voxel = factor x fine "
+                                                "(default 4); only for a new folder"),
 ) -> None:
     """Write dataset samples: images at T, T+5, T+10 (or --frame-offsets), depth, semantics, poses, boxes, GT
     voxels and LiDAR."""
@@ -432,7 +436,7 @@ def worlds_generate_cmd(
         if count < 0 or start < 0 or jobs < 1:
             raise CliError("--count and --start must be >= 0 and --jobs >= 1")
         cfg = None
-        new = rig is not None or image_scale is not None or frame_offsets is not None
+        new = any(v is not None for v in (rig, image_scale, frame_offsets, fine_voxel, coarse_factor))
         if new or not (output / "dataset.json").exists():
             kw = {}
             if frame_offsets is not None:
@@ -444,6 +448,10 @@ def worlds_generate_cmd(
                 kw["rigs"] = [r.strip() for r in rig.split(",") if r.strip()]
             if image_scale is not None:
                 kw["image_scale"] = image_scale
+            if fine_voxel is not None:
+                kw["fine_voxel_m"] = fine_voxel
+            if coarse_factor is not None:
+                kw["coarse_factor"] = coarse_factor
             cfg = validate_model(DatasetConfig, kw, "worlds generate options", error=CliError)
         res = generate_dataset(output, split, count, cfg, start=start, jobs=jobs)
         typer.echo(f"{split}: wrote {res['written']}, skipped {res['skipped']} complete; "

@@ -74,8 +74,8 @@ class DatasetConfig(StrictModel):
     image_scale: float = Field(default=0.25, gt=0, le=1)
     frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)
     frame_rate_hz: float = 10.0
-    fine_voxel_m: float = 0.1
-    coarse_factor: int = 4
+    fine_voxel_m: float = Field(default=0.1, ge=0.05, le=1.6)
+    coarse_factor: int = Field(default=4, ge=1, le=16)
     visibility_scale: float = Field(default=0.5, gt=0, le=1)
     lidar: str = "waymo-top"
     styles: list[str] = Field(default_factory=lambda: list(STYLES))

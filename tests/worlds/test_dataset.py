@@ -279,6 +279,16 @@ def test_cli_worlds_generate(tmp_path):
         r = runner.invoke(app, ["worlds", "generate", "-o", str(tmp_path / "bad"), "--count", "0",
                                 "--frame-offsets", bad])
         assert r.exit_code == 2 and why in r.output, r.output
+    # --fine-voxel / --coarse-factor: the ground-truth grids of a new folder
+    grids = tmp_path / "grids"
+    r = runner.invoke(app, ["worlds", "generate", "-o", str(grids), "--count", "0", "--fine-voxel", "0.2",
+                            "--coarse-factor", "4"])
+    assert r.exit_code == 0, r.output
+    cfg = json.loads((grids / "dataset.json").read_text())["config"]
+    assert (cfg["fine_voxel_m"], cfg["coarse_factor"]) == (0.2, 4)
+    for opt, bad in (("--fine-voxel", "0"), ("--coarse-factor", "0")):
+        r = runner.invoke(app, ["worlds", "generate", "-o", str(tmp_path / "bad"), "--count", "0", opt, bad])
+        assert r.exit_code == 2 and "error:" in r.output, r.output
 
 
 # --- ground truth in a sample ----------------------------------------------------------------------
