@@ -35,7 +35,8 @@ from ..errors import NotFoundError, ScubeSimError
 
 # Modules that register a stage when imported. The geometry and appearance stages add theirs
 # here (e.g. "scube_sim.model.geometry") when they are written.
-STAGE_MODULES: list[str] = ["scube_sim.model.voxel_semantics", "scube_sim.model.appearance"]
+STAGE_MODULES: list[str] = ["scube_sim.model.voxel_semantics", "scube_sim.model.appearance",
+                             "scube_sim.model.geometry"]
 
 
 class StageError(ScubeSimError):

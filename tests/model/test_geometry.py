@@ -1,0 +1,221 @@
+"""The geometry stages on a tiny worlds dataset: the structure VAE reconstructs a grid it overfits,
+the conditional latent model's loss falls 10x with t and noise fixed, the trainer and `eval` run
+both stages, and bad inputs give one clear error."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from typer.testing import CliRunner
+
+from scube_sim.cli import app
+from scube_sim.errors import InputError
+from scube_sim.labels import label_id
+from scube_sim.model.geometry import (GeometryDataConfig, GeometryModelConfig, GeometryNet, VAEConfig,
+                                      _grid_metrics, dense_target, grid_in_box, prune_decode)
+from scube_sim.model.lifting import LiftGrid
+from scube_sim.model.stages import get_stage
+from scube_sim.model.trainer import train
+from scube_sim.model.config import config_from_dict
+from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
+
+TINY = DatasetConfig(image_scale=0.04, visibility_scale=0.04, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0],
+                     lidar="vlp16", styles=["suburban"])
+# 3.2 m voxels over the default 102.4 x 102.4 x 25.6 m box: 32 x 32 x 8
+DATA = {"voxel_size": 3.2, "image_scale": 1.0}
+VAE = {"widths": [16], "blocks": 1, "latent_channels": 4, "groups": 4}
+MODEL = {"vae": VAE, "encoder": {"kind": "cnn", "channels": 8, "stride": 4}, "feature_channels": 4, "depth_bins": 8,
+         "cond_channels": 8, "widths": [8, 16], "blocks": 1, "groups": 4, "sample_steps": 2}
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    out = tmp_path_factory.mktemp("geometry")
+    for split in ("train", "val", "test"):
+        generate_dataset(out, split, 1, TINY, progress=False)
+    return out
+
+
+def test_grid_in_box_coarsens_by_majority_and_any_visibility():
+    grid = LiftGrid((-10.24 + 1.6, -51.2, -3.23), 1.6, (4, 4, 4))  # the box starts one 1.6 m voxel in x
+    ijk = torch.tensor([[2, 0, 0], [3, 0, 0], [3, 1, 1], [2, 1, 0], [0, 0, 0], [20, 0, 0]])
+    road, car = label_id("road"), label_id("car")
+    labels = torch.tensor([road, car, car, car, road, road])
+    visible = torch.tensor([False, False, True, False, True, True])
+    out, lab, vis = grid_in_box(ijk, labels, visible, 2, 0.8, grid)
+    # 0.8 m voxels (2..3, 0..1, 0..1) fall in 1.6 m voxel (1, 0, 0) = box voxel (0, 0, 0); (0, 0, 0) is
+    # left of the box and (20, 0, 0) -> 1.6 m voxel 10, past its 4 voxels
+    assert out.tolist() == [[0, 0, 0]] and lab.tolist() == [car] and vis.tolist() == [True]
+
+
+def test_grid_metrics_by_hand():
+    road, car = label_id("road"), label_id("car")
+    gt = {"gt_ijk": torch.tensor([[0, 0, 0], [1, 0, 0], [2, 0, 0]]), "gt_labels": torch.tensor([road, road, car])}
+    pred = (torch.tensor([[1, 0, 0], [2, 0, 0], [3, 0, 0]]), torch.tensor([road, road, car]))
+    m = _grid_metrics([pred], [gt], split=False)
+    assert m["iou"] == pytest.approx(2 / 4)
+    # road: TP 1 (voxel 1), FP 1 (voxel 2 predicted road), FN 1 (voxel 0) -> 1/3; car: TP 0 -> 0
+    assert m["label_iou_road"] == pytest.approx(1 / 3) and m["label_iou_car"] == 0.0
+    assert m["miou"] == pytest.approx(1 / 6)
+    # voxels 1, 2 match; 0 and 3 are one voxel from the other grid: Chamfer 0.5 (1/3 + 1/3) = 1/3
+    assert m["chamfer_q50"] == pytest.approx(1 / 3)
+
+
+def test_prune_decode_keeps_children_of_occupied_parents_only():
+    final = torch.full((1, 4, 4, 4), -5.0)
+    final[0, 0, 0, 0] = final[0, 3, 3, 3] = 5.0
+    parent = torch.full((1, 2, 2, 2), -5.0)
+    parent[0, 0, 0, 0] = 5.0  # (3, 3, 3)'s parent (1, 1, 1) is empty: pruned
+    labels = torch.zeros(1, 26, 4, 4, 4)
+    labels[0, 7] = 1.0
+    ijks, labs = prune_decode([parent], final, labels)
+    assert ijks[0].tolist() == [[0, 0, 0]] and labs[0].tolist() == [7]
+
+
+def _vae_batch(data):
+    stage = get_stage("geometry-vae")
+    ds = stage.dataset(data, GeometryDataConfig(**DATA), "train", 0)
+    return stage, [ds[0]]
+
+
+def test_structure_vae_overfits_one_grid(data):
+    torch.manual_seed(0)
+    stage, batch = _vae_batch(data)
+    model = stage.build_model(stage.model_config(vae=VAEConfig(**VAE)))
+    assert len(batch[0]["gt_ijk"]) > 50
+    opt = torch.optim.Adam(model.parameters(), 1e-2)
+    model.eval()
+    iou0 = stage.evaluate(model, [batch])["iou"]
+    model.train()
+    for _ in range(200):
+        loss, _ = stage.loss(model, batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        m = stage.evaluate(model, [batch])
+    assert iou0 < 0.3 and m["iou"] > 0.9, (iou0, m)
+    assert float(model.vae.latent_std) > 0
+
+
+def _geometry_item(data):
+    stage = get_stage("geometry")
+    ds = stage.dataset(data, GeometryDataConfig(**DATA), "val", 0)
+    return stage, ds[0]
+
+
+@pytest.mark.parametrize("mode", ["diffusion", "predictor"])
+def test_conditional_model_overfits_one_sample_with_t_and_noise_fixed(data, mode):
+    stage, item = _geometry_item(data)
+    torch.manual_seed(0)
+    model = GeometryNet(GeometryModelConfig(**MODEL, mode=mode, depth_weight=0.0))
+    model.vae_loaded = True  # a random frozen VAE is still a fixed encoding of the grid
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], 3e-3)
+    model.train()
+    losses = []
+    for _ in range(60):
+        torch.manual_seed(1)  # the same t and noise every step
+        loss, _ = model.loss(item, item["lift_grid"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < losses[0] / 10, losses[::10]
+    model.eval()
+    with torch.no_grad():
+        cond, probs, target = model.conditioner(item, item["lift_grid"])
+        z = model.predict_latent(cond, seed=3)
+        z2 = model.predict_latent(cond, seed=3)
+    assert torch.equal(z, z2)  # the same input and seed: the same latent
+    ijks, labs = model.decode(z)
+    assert ijks[0].shape[1] == 3 and len(ijks[0]) == len(labs[0])
+    torch.testing.assert_close(probs.sum(1), torch.ones_like(probs.sum(1)))
+
+
+def test_depth_loss_targets_come_from_the_depth_maps(data):
+    _, item = _geometry_item(data)
+    model = GeometryNet(GeometryModelConfig(**MODEL))
+    _, probs, target = model.conditioner(item, item["lift_grid"])
+    n, d, h, w = probs.shape
+    assert target.shape == (n, h, w)
+    # sky pixels (inf depth) have no target; ground pixels near the cameras do
+    # feature pixel (r, c) of stride 4 reads the image pixel at (4 r + 2, 4 c + 2), clamped to the image
+    rows = torch.clamp(torch.arange(h) * 4 + 2, max=item["images"].shape[2] - 1)
+    cols = torch.clamp(torch.arange(w) * 4 + 2, max=item["images"].shape[3] - 1)
+    sky = item["sky"][:, rows][:, :, cols]
+    valid = item["valid"][:, rows][:, :, cols]
+    depth = item["depth"][:, rows][:, :, cols]
+    in_range = valid & ~sky & (depth >= 0.1) & (depth < 90.0)
+    assert bool((target[~in_range] == -1).all()) and bool((target[in_range] >= 0).all())
+    assert float(in_range.float().mean()) > 0.3
+    centres = model.conditioner.bin_centres.float()
+    # the target bin is the one whose edges hold the depth
+    edges = model.conditioner.bin_edges
+    ok = target >= 0
+    assert bool(((edges[target[ok]] <= depth[ok].double()) & (depth[ok].double() < edges[target[ok] + 1])).all())
+    assert len(centres) == d
+
+
+def test_bad_inputs_give_clear_errors(data):
+    _, item = _geometry_item(data)
+    model = GeometryNet(GeometryModelConfig(**MODEL))
+    grid = item["lift_grid"]
+    with pytest.raises(InputError, match=r"images: expected \(N >= 1, 3, H, W\)"):
+        model.conditioner({**item, "images": item["images"][:0]}, grid)
+    k = item["intrinsics"].clone()
+    k[0, :2] *= 4  # K of an image four times larger
+    with pytest.raises(InputError, match=r"camera FRONT: intrinsics .* principal point"):
+        model.conditioner({**item, "intrinsics": k}, grid)
+    pose = item["cam_to_chunk"].clone()
+    pose[1, 0, 3] = math.nan
+    with pytest.raises(InputError, match=r"camera FRONT_LEFT: cam_to_chunk must be a finite rigid"):
+        model.conditioner({**item, "cam_to_chunk": pose}, grid)
+    with pytest.raises(InputError, match="vae_checkpoint"):
+        model.loss(item, grid)
+
+
+def test_a_camera_that_sees_only_sky_gives_a_defined_output(data):
+    _, item = _geometry_item(data)
+    torch.manual_seed(0)
+    model = GeometryNet(GeometryModelConfig(**MODEL))
+    model.vae_loaded = True
+    sky = {**item, "depth": torch.full_like(item["depth"], math.inf), "sky": torch.ones_like(item["sky"])}
+    loss, logs = model.loss(sky, sky["lift_grid"])
+    assert math.isfinite(float(loss.detach())) and logs["depth"] == 0.0
+
+
+def _write(path, stage, steps, model, data=DATA):
+    path.write_text(yaml.safe_dump({"stage": stage, "train": {"seed": 0, "steps": steps, "batch_size": 1,
+                                                              "lr": 1e-3, "threads": 1},
+                                    "model": model, "data": data}))
+    return path
+
+
+def test_both_stages_train_resume_and_evaluate(data, tmp_path):
+    vae_run = tmp_path / "vae"
+    res = train("geometry-vae", config_from_dict(yaml.safe_load(_write(tmp_path / "v.yaml", "geometry-vae", 2,
+                                                                       {"vae": VAE}).read_text())),
+                data, vae_run, progress=False)
+    assert (vae_run / "last.pt").is_file()
+    cfg = yaml.safe_load(_write(tmp_path / "g.yaml", "geometry", 2,
+                                {**MODEL, "vae_checkpoint": str(vae_run / "last.pt")}).read_text())
+    run = tmp_path / "geo"
+    train("geometry", config_from_dict(cfg), data, run, progress=False)
+    out = tmp_path / "m.json"
+    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
+                                 "--split", "test", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    m = json.loads(out.read_text())["metrics"]
+    assert 0.0 <= m["iou"] <= 1.0 and "miou" in m and "iou_visible" in m and "chamfer_invisible_q90" in m
+    # the VAE's weights travel inside the conditional model's checkpoint
+    (vae_run / "last.pt").unlink()
+    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
+                                 "--split", "test", "-o", str(tmp_path / "m2.json")])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "m2.json").read_text())["metrics"]["iou"] == m["iou"]
