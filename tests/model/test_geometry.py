@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import math
 
-import numpy as np
 import pytest
 import torch
 import yaml
@@ -16,8 +15,8 @@ from typer.testing import CliRunner
 from scube_sim.cli import app
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
-from scube_sim.model.geometry import (GeometryDataConfig, GeometryModelConfig, GeometryNet, VAEConfig,
-                                      _grid_metrics, dense_target, grid_in_box, prune_decode)
+from scube_sim.model.geometry import GeometryDataConfig, GeometryModelConfig, GeometryNet, _grid_metrics, grid_in_box
+from scube_sim.model.geometry_nets import VAEConfig, prune_decode
 from scube_sim.model.lifting import LiftGrid
 from scube_sim.model.stages import get_stage
 from scube_sim.model.trainer import train
@@ -199,7 +198,7 @@ def _write(path, stage, steps, model, data=DATA):
 
 def test_both_stages_train_resume_and_evaluate(data, tmp_path):
     vae_run = tmp_path / "vae"
-    res = train("geometry-vae", config_from_dict(yaml.safe_load(_write(tmp_path / "v.yaml", "geometry-vae", 2,
+    train("geometry-vae", config_from_dict(yaml.safe_load(_write(tmp_path / "v.yaml", "geometry-vae", 2,
                                                                        {"vae": VAE}).read_text())),
                 data, vae_run, progress=False)
     assert (vae_run / "last.pt").is_file()

@@ -1,0 +1,244 @@
+"""The geometry stage's networks (`geometry.py` wires them to data and the trainer): the dense
+structure VAE of a level and the dense denoiser U-Net, with their building blocks and losses.
+
+Tensors are dense boxes (B, C, X, Y, Z) of one level's voxels (chunk frame axes: x forward, y
+left, z up). A structure VAE halves the box L = len(widths) times to its latent and decodes it
+back level by level, predicting occupancy at each: a voxel exists where it and every ancestor is
+occupied (subdivide and prune). The last level's 8 children per voxel come from a per-parent
+linear head (occupancy and label logits), so no convolution runs at the finest resolution.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+from torch import nn
+
+from ..config import StrictModel
+from ..labels import LABEL_NAMES
+
+NUM_LABELS = len(LABEL_NAMES)
+
+
+class VAEConfig(StrictModel):
+    """Structure VAE: widths per level below the grid (L = len(widths) halvings; paper: base 64 /
+    32, multipliers 1, 2, 4), residual blocks per level, latent channels (paper: 8), the KL
+    weight, group-norm groups."""
+
+    widths: tuple[int, ...] = Field(default=(32, 64), min_length=1, max_length=4)
+    blocks: int = Field(default=1, ge=0)
+    latent_channels: int = Field(default=8, ge=1)
+    kl_weight: float = Field(default=1e-4, ge=0)
+    groups: int = Field(default=8, ge=1)
+
+
+# ---------------------------------------------------------------------------- building blocks
+def _norm(channels: int, groups: int) -> nn.GroupNorm:
+    return nn.GroupNorm(math.gcd(groups, channels), channels)
+
+
+class ResBlock3d(nn.Module):
+    """Pre-norm residual block: (B, C, X, Y, Z) -> (B, C_out, X, Y, Z), optionally adding a
+    per-sample embedding (B, E) after the first convolution."""
+
+    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0):
+        super().__init__()
+        self.n1, self.c1 = _norm(cin, groups), nn.Conv3d(cin, cout, 3, padding=1)
+        self.n2, self.c2 = _norm(cout, groups), nn.Conv3d(cout, cout, 3, padding=1)
+        self.emb = nn.Linear(emb, cout) if emb else None
+        self.skip = nn.Conv3d(cin, cout, 1) if cin != cout else nn.Identity()
+
+    def forward(self, x, emb=None):
+        h = self.c1(F.silu(self.n1(x)))
+        if self.emb is not None:
+            h = h + self.emb(emb)[:, :, None, None, None]
+        return self.skip(x) + self.c2(F.silu(self.n2(h)))
+
+
+def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
+    """(B,) steps -> (B, dim) sinusoidal embedding (Transformer / DDPM)."""
+    half = dim // 2
+    freqs = torch.exp(-math.log(10000.0) * torch.arange(half, dtype=torch.float32) / half)
+    a = t.float()[:, None] * freqs[None]
+    return torch.cat([torch.sin(a), torch.cos(a)], 1)
+
+
+# ---------------------------------------------------------------------------- structure VAE
+class StructureVAE(nn.Module):
+    """Dense structure VAE of one level (module docstring). Input occupancy (B, X, Y, Z) and labels
+    (B, X, Y, Z) (-1 empty); X, Y, Z divisible by 2^L."""
+
+    def __init__(self, cfg: VAEConfig):
+        super().__init__()
+        self.cfg = cfg
+        w, g, lat = cfg.widths, cfg.groups, cfg.latent_channels
+        self.levels = len(w)
+        down, cin = [], 1 + NUM_LABELS
+        for c in w:
+            down.append(nn.ModuleList([nn.Conv3d(cin, c, 2, stride=2)] + [ResBlock3d(c, c, g) for _ in range(cfg.blocks)]))
+            cin = c
+        self.down = nn.ModuleList(down)
+        self.to_latent = nn.Sequential(_norm(w[-1], g), nn.SiLU(), nn.Conv3d(w[-1], 2 * lat, 1))
+        self.from_latent = nn.Conv3d(lat, w[-1], 3, padding=1)
+        self.dec_blocks = nn.ModuleList()
+        self.occ_heads = nn.ModuleList()
+        self.up = nn.ModuleList()
+        for i in range(self.levels - 1, -1, -1):  # decoder levels at stride 2^(i+1), coarsest first
+            self.dec_blocks.append(nn.ModuleList([ResBlock3d(w[i], w[i], g) for _ in range(max(1, cfg.blocks))]))
+            self.occ_heads.append(nn.Conv3d(w[i], 1, 1))
+            if i > 0:
+                self.up.append(nn.ConvTranspose3d(w[i], w[i - 1], 2, stride=2))
+        self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8 * (1 + NUM_LABELS), 1))
+        # running RMS of the posterior means: the diffusion works on latents / latent_std
+        self.register_buffer("latent_std", torch.ones(()))
+        self.register_buffer("_latent_sq", torch.zeros(()))
+        self.register_buffer("_latent_n", torch.zeros((), dtype=torch.float64))
+
+    @property
+    def stride(self) -> int:
+        return 2 ** self.levels
+
+    def encode(self, occ: torch.Tensor, labels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """-> (mu, logvar) (B, latent, X / 2^L, Y / 2^L, Z / 2^L)."""
+        onehot = F.one_hot(labels.clamp_min(0), NUM_LABELS).permute(0, 4, 1, 2, 3).to(occ.dtype) * occ[:, None]
+        x = torch.cat([occ[:, None], onehot], 1)
+        for conv, *blocks in self.down:
+            x = conv(x)
+            for b in blocks:
+                x = b(x)
+        mu, logvar = self.to_latent(x).chunk(2, 1)
+        return mu, logvar.clamp(-30.0, 20.0)
+
+    def decode(self, z: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor, torch.Tensor]:
+        """Latent (B, latent, ...) -> (occupancy logits per level, coarsest first, each (B, X / s,
+        Y / s, Z / s) for s = 2^L .. 2; final occupancy logits (B, X, Y, Z); label logits (B, L,
+        X, Y, Z))."""
+        x = self.from_latent(z)
+        occ = []
+        for i, blocks in enumerate(self.dec_blocks):
+            for b in blocks:
+                x = b(x)
+            occ.append(self.occ_heads[i](x)[:, 0])
+            if i < len(self.up):
+                x = self.up[i](x)
+        y = self.child_head(x)  # (B, 8 (1 + L), X/2, Y/2, Z/2): 8 children per voxel
+        b, _, X, Y, Z = y.shape
+        y = y.reshape(b, 2, 2, 2, 1 + NUM_LABELS, X, Y, Z).permute(0, 4, 5, 1, 6, 2, 7, 3)
+        y = y.reshape(b, 1 + NUM_LABELS, 2 * X, 2 * Y, 2 * Z)
+        return occ, y[:, 0], y[:, 1:]
+
+    def forward(self, occ, labels, sample: bool = True):
+        mu, logvar = self.encode(occ, labels)
+        if self.training:
+            with torch.no_grad():  # running RMS of the posterior means over training
+                self._latent_sq += mu.detach().pow(2).mean()
+                self._latent_n += 1
+                self.latent_std.copy_((self._latent_sq / self._latent_n).sqrt().clamp_min(1e-3))
+        z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
+        return (mu, logvar) + self.decode(z)
+
+    def loss(self, occ, labels) -> tuple[torch.Tensor, dict]:
+        """Structure BCE at every level (targets: max-pooled occupancy) + label cross-entropy on the
+        occupied voxels + kl_weight KL; the mean over the batch."""
+        mu, logvar, occ_levels, occ_final, lab_logits = self(occ, labels)
+        bce = structure_bce(occ_levels, occ_final, occ)
+        ce = label_ce(lab_logits, labels)
+        kl = 0.5 * (mu.pow(2) + logvar.exp() - 1 - logvar).mean()
+        loss = bce + ce + self.cfg.kl_weight * kl
+        return loss, {"bce": float(bce.detach()), "ce": float(ce.detach()), "kl": float(kl.detach())}
+
+
+def structure_bce(occ_levels: list[torch.Tensor], occ_final: torch.Tensor, occ: torch.Tensor) -> torch.Tensor:
+    """Mean BCE of the final occupancy plus each coarser level against the max-pooled target."""
+    total = F.binary_cross_entropy_with_logits(occ_final, occ)
+    for logits in occ_levels:
+        s = occ.shape[-1] // logits.shape[-1]
+        target = F.max_pool3d(occ[:, None], s)[:, 0]
+        total = total + F.binary_cross_entropy_with_logits(logits, target)
+    return total
+
+
+def label_ce(lab_logits: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of the label logits (B, L, X, Y, Z) on the occupied voxels (labels >= 0)."""
+    ok = labels >= 0
+    if not bool(ok.any()):
+        return lab_logits.sum() * 0.0
+    return F.cross_entropy(lab_logits.permute(0, 2, 3, 4, 1)[ok], labels[ok])
+
+
+def prune_decode(occ_levels: list[torch.Tensor], occ_final: torch.Tensor, lab_logits: torch.Tensor,
+                 threshold: float = 0.0) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Per sample: (ijk (V, 3) int64, labels (V,) int64) of the voxels predicted occupied (logit >
+    threshold) whose every ancestor is predicted occupied too (the hierarchy's pruning)."""
+    keep = occ_final > threshold
+    for logits in occ_levels:
+        s = occ_final.shape[-1] // logits.shape[-1]
+        up = (logits > threshold)
+        for d in (1, 2, 3):
+            up = up.repeat_interleave(s, dim=d)
+        keep = keep & up
+    ijks, labs = [], []
+    for b in range(keep.shape[0]):
+        ijk = torch.nonzero(keep[b])
+        ijks.append(ijk)
+        labs.append(lab_logits[b].argmax(0)[ijk[:, 0], ijk[:, 1], ijk[:, 2]])
+    return ijks, labs
+
+
+class Denoiser3d(nn.Module):
+    """Dense 3D U-Net: (latent (B, Cz, ...) noisy, condition (B, Cc, ...), t (B,)) -> (B, Cz, ...)."""
+
+    def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int):
+        super().__init__()
+        emb = 4 * widths[0]
+        self.emb_dim = widths[0]
+        self.time = nn.Sequential(nn.Linear(widths[0], emb), nn.SiLU(), nn.Linear(emb, emb))
+        self.inp = nn.Conv3d(latent + cond, widths[0], 3, padding=1)
+        self.enc = nn.ModuleList()
+        self.downs = nn.ModuleList()
+        c = widths[0]
+        skips = []
+        for i, wd in enumerate(widths):
+            for _ in range(blocks):
+                self.enc.append(ResBlock3d(c, wd, groups, emb))
+                c = wd
+                skips.append(c)
+            if i + 1 < len(widths):
+                self.downs.append(nn.Conv3d(c, c, 2, stride=2))
+        self.mid = ResBlock3d(c, c, groups, emb)
+        self.dec = nn.ModuleList()
+        self.ups = nn.ModuleList()
+        for i, wd in reversed(list(enumerate(widths))):
+            for _ in range(blocks):
+                self.dec.append(ResBlock3d(c + skips.pop(), wd, groups, emb))
+                c = wd
+            if i > 0:
+                self.ups.append(nn.ConvTranspose3d(c, c, 2, stride=2))
+        self.out = nn.Sequential(_norm(c, groups), nn.SiLU(), nn.Conv3d(c, latent, 3, padding=1))
+        nn.init.zeros_(self.out[-1].weight)
+        nn.init.zeros_(self.out[-1].bias)
+        self.widths, self.blocks = widths, blocks
+
+    def forward(self, z, cond, t):
+        e = self.time(timestep_embedding(t, self.emb_dim))
+        x = self.inp(torch.cat([z, cond], 1))
+        hs, k = [], 0
+        for i in range(len(self.widths)):
+            for _ in range(self.blocks):
+                x = self.enc[k](x, e)
+                k += 1
+                hs.append(x)
+            if i < len(self.downs):
+                x = self.downs[i](x)
+        x = self.mid(x, e)
+        k = 0
+        for j in range(len(self.widths)):
+            for _ in range(self.blocks):
+                x = self.dec[k](torch.cat([x, hs.pop()], 1), e)
+                k += 1
+            if j < len(self.ups):
+                x = self.ups[j](x)
+        return self.out(x)
