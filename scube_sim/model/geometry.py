@@ -118,6 +118,8 @@ class GeometryModelConfig(StrictModel):
     widths: tuple[int, ...] = Field(default=(64, 128, 256), min_length=1, max_length=5)
     blocks: int = Field(default=2, ge=1)
     groups: int = Field(default=8, ge=1)
+    attention_levels: tuple[int, ...] = ()  # U-Net levels (0: the latent's resolution) with self-attention
+    heads: int = Field(default=8, ge=1)
     train_steps: int = Field(default=1000, ge=1)
     beta_start: float = Field(default=1e-4, gt=0)
     beta_end: float = Field(default=2e-2, gt=0)
@@ -290,7 +292,8 @@ class GeometryNet(nn.Module):
         for p in self.vae.parameters():
             p.requires_grad_(False)
         self.conditioner = ImageConditioner(cfg, self.vae.stride)
-        self.denoiser = Denoiser3d(cfg.vae.latent_channels, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups)
+        self.denoiser = Denoiser3d(cfg.vae.latent_channels, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
+                                   attention_levels=cfg.attention_levels, heads=cfg.heads)
         self.schedule = NoiseSchedule(cfg.train_steps, cfg.beta_start, cfg.beta_end)
 
     def _load_vae(self, name: str) -> None:

@@ -191,7 +191,8 @@ def prune_decode(occ_levels: list[torch.Tensor], occ_final: torch.Tensor, lab_lo
 class Denoiser3d(nn.Module):
     """Dense 3D U-Net: (latent (B, Cz, ...) noisy, condition (B, Cc, ...), t (B,)) -> (B, Cz, ...)."""
 
-    def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int):
+    def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int,
+                 attention_levels: tuple[int, ...] = (), heads: int = 8):
         super().__init__()
         emb = 4 * widths[0]
         self.emb_dim = widths[0]
@@ -221,6 +222,8 @@ class Denoiser3d(nn.Module):
         nn.init.zeros_(self.out[-1].weight)
         nn.init.zeros_(self.out[-1].bias)
         self.widths, self.blocks = widths, blocks
+        if attention_levels:
+            raise NotImplementedError("attention_levels: self-attention in the denoiser is not implemented yet")
 
     def forward(self, z, cond, t):
         e = self.time(timestep_embedding(t, self.emb_dim))
