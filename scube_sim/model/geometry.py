@@ -43,10 +43,13 @@ from ..config import StrictModel
 from ..errors import InputError
 from ..labels import LABEL_NAMES
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
+from .appearance import positional_encoding
 from .augment import AugmentConfig, CameraSelection
-from .data import DataConfig, WorldsTorchDataset
+from .data import DataConfig, WorldsTorchDataset, item_generator
 from .diffusion import NoiseSchedule, ddim_sample
 from .geometry_nets import Denoiser3d, StructureVAE, VAEConfig, prune_decode
+from .geometry_sparse import SparseDenoiser, SparseStructureVAE, decoded_voxels, row_ids
+from .sparse import SparseTensor
 from .geometry_metrics import geometry_sample_metrics, summarise, visible_voxels
 from .image_encoder import ImageEncoderConfig, build_image_encoder
 from .lifting import LiftGrid, depth_bin_centres, depth_bin_edges, depth_focal_loss, depth_to_bin, \
@@ -54,6 +57,7 @@ from .lifting import LiftGrid, depth_bin_centres, depth_bin_edges, depth_focal_l
 from .stages import Stage, register_stage
 
 NUM_LABELS = len(LABEL_NAMES)
+SITE_PE_FREQUENCIES = 6
 # The cpu profile's box: the whole 102.4 m chunk in x and y, the lowest 25.6 m in z.
 DEFAULT_REGION = (float(CHUNK_CORNER[0]), float(CHUNK_CORNER[1]), float(CHUNK_CORNER[2]),
                   float(CHUNK_CORNER[0] + CHUNK_SIZE), float(CHUNK_CORNER[1] + CHUNK_SIZE),
@@ -62,35 +66,62 @@ DEFAULT_REGION = (float(CHUNK_CORNER[0]), float(CHUNK_CORNER[1]), float(CHUNK_CO
 
 # ---------------------------------------------------------------------------- configs
 class GeometryDataConfig(StrictModel):
-    """The level's grid: `voxel_size` metres (the stored coarse grid coarsened by an integer
-    factor; the cpu profile's data stores 0.8 m) over `region` (x_min, y_min, z_min, x_max, y_max,
-    z_max, chunk frame metres, a whole number of voxels from CHUNK_CORNER); the input images at
-    `image_scale` of the stored ones; in training, rig randomisation and photometric
-    augmentation of the inputs."""
+    """The level (`coarse` | `fine`) and its grid: `voxel_size` metres (a stored grid coarsened by
+    an integer factor: the coarse level reads the stored coarse grid, the fine level the stored
+    fine one) over `region` (x_min, y_min, z_min, x_max, y_max, z_max, chunk frame metres, a whole
+    number of `coarse_voxel_size` voxels from CHUNK_CORNER). `coarse_voxel_size` (None: the coarse
+    level's voxel_size) is the grid the images are lifted into, and the fine level's latent grid.
+    `crop`: training items keep a random `crop` x `crop` metre window in x, y (whole coarse
+    voxels; the fine level trains on windows, the whole box is evaluated). The input images at
+    `image_scale` of the stored ones; in training, rig randomisation and photometric augmentation
+    of the inputs."""
 
-    level: str = Field(default="coarse", pattern="^coarse$")
+    level: str = Field(default="coarse", pattern="^(coarse|fine)$")
     voxel_size: float = Field(default=0.8, gt=0)
+    coarse_voxel_size: float | None = Field(default=None, gt=0)
     region: tuple[float, float, float, float, float, float] = DEFAULT_REGION
+    crop: float | None = Field(default=None, gt=0)
     image_scale: float = Field(default=0.67, gt=0, le=1)
     augment: AugmentConfig = Field(default_factory=AugmentConfig)
     cameras: CameraSelection = Field(default_factory=CameraSelection)
 
+    @property
+    def lift_voxel_size(self) -> float:
+        return float(self.coarse_voxel_size if self.coarse_voxel_size is not None else self.voxel_size)
+
     @model_validator(mode="after")
     def _whole_voxels(self):
+        vs = self.lift_voxel_size
+        if self.level == "coarse" and abs(vs - self.voxel_size) > 1e-9:
+            raise ValueError(f"coarse level: coarse_voxel_size ({vs}) must equal voxel_size ({self.voxel_size})")
+        ratio = vs / self.voxel_size
+        if ratio < 1 or abs(ratio - round(ratio)) > 1e-6:
+            raise ValueError(f"coarse_voxel_size ({vs}) must be a whole multiple of voxel_size ({self.voxel_size})")
         lo, hi = np.array(self.region[:3]), np.array(self.region[3:])
-        for name, v in (("region's corner", (lo - CHUNK_CORNER) / self.voxel_size), ("region's size", (hi - lo) / self.voxel_size)):
+        for name, v in (("region's corner", (lo - CHUNK_CORNER) / vs), ("region's size", (hi - lo) / vs)):
             if np.any(np.abs(v - np.round(v)) > 1e-6) or (name == "region's size" and np.any(np.round(v) < 1)):
-                raise ValueError(f"{name} must be a positive whole number of {self.voxel_size} m voxels "
+                raise ValueError(f"{name} must be a positive whole number of {vs} m voxels "
                                  f"(from CHUNK_CORNER {CHUNK_CORNER.tolist()}), got region {list(self.region)}")
+        if self.crop is not None:
+            c = self.crop / vs
+            if abs(c - round(c)) > 1e-6 or self.crop > min(hi[:2] - lo[:2]) + 1e-9:
+                raise ValueError(f"crop ({self.crop} m) must be a whole number of {vs} m voxels and fit the region")
         return self
 
-    def grid(self) -> LiftGrid:
-        lo, hi = np.array(self.region[:3]), np.array(self.region[3:])
-        dims = np.round((hi - lo) / self.voxel_size).astype(int)
-        return LiftGrid(tuple(float(v) for v in lo), float(self.voxel_size), tuple(int(d) for d in dims))
+    def grid(self, size: float | None = None, lo=None, hi=None) -> LiftGrid:
+        """The box (default: the region) at `size` metres (default: the lifting grid's)."""
+        lo = np.array(self.region[:3]) if lo is None else np.asarray(lo, float)
+        hi = np.array(self.region[3:]) if hi is None else np.asarray(hi, float)
+        size = self.lift_voxel_size if size is None else size
+        dims = np.round((hi - lo) / size).astype(int)
+        return LiftGrid(tuple(float(v) for v in lo), float(size), tuple(int(d) for d in dims))
 
 
 class GeometryVAEModelConfig(StrictModel):
+    """The structure VAE of one level: dense (coarse) or sparse with its latent on the coarse
+    grid's sites (fine)."""
+
+    level: str = Field(default="coarse", pattern="^(coarse|fine)$")
     vae: VAEConfig = Field(default_factory=VAEConfig)
 
 
@@ -104,6 +135,7 @@ class GeometryModelConfig(StrictModel):
     condition channels `cond_channels`. Diffusion: `train_steps` linear steps from beta_start to
     beta_end, `sample_steps` DDIM steps at inference (validation uses them too)."""
 
+    level: str = Field(default="coarse", pattern="^(coarse|fine)$")
     mode: str = Field(default="diffusion", pattern="^(diffusion|predictor)$")
     vae_checkpoint: str | None = None
     vae: VAEConfig = Field(default_factory=VAEConfig)
@@ -120,6 +152,7 @@ class GeometryModelConfig(StrictModel):
     groups: int = Field(default=8, ge=1)
     attention_levels: tuple[int, ...] = ()  # U-Net levels (0: the latent's resolution) with self-attention
     heads: int = Field(default=8, ge=1)
+    layout: str = Field(default="plain", pattern="^(plain|ldm)$")  # Denoiser3d's layouts (geometry_nets)
     train_steps: int = Field(default=1000, ge=1)
     beta_start: float = Field(default=1e-4, gt=0)
     beta_end: float = Field(default=2e-2, gt=0)
@@ -129,6 +162,13 @@ class GeometryModelConfig(StrictModel):
     def _check(self):
         if self.far <= self.near:
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
+        if self.level == "fine":
+            unsupported = [k for k, bad in (("attention_levels", bool(self.attention_levels)),
+                                            ("layout", self.layout != "plain"),
+                                            ("vae.input_width", self.vae.input_width is not None),
+                                            ("vae.decoder_blocks", self.vae.decoder_blocks is not None)) if bad]
+            if unsupported:
+                raise ValueError(f"the fine level's sparse networks do not implement {', '.join(unsupported)} yet")
         if self.sample_steps > self.train_steps:
             raise ValueError(f"sample_steps ({self.sample_steps}) cannot exceed train_steps ({self.train_steps})")
         return self
@@ -138,17 +178,23 @@ class GeometryModelConfig(StrictModel):
 class GeometryDataset(Dataset):
     """Worlds samples as the geometry stage reads them: the `WorldsTorchDataset` item (images at
     `image_scale`, cameras, depth, valid) plus ``gt_ijk`` (V, 3) int64 the level's ground-truth
-    voxels inside the region (relative to the region's corner), ``gt_labels`` (V,) int64,
-    ``gt_visible`` (V,) bool. Training items keep the cameras `cameras` picks and augment the
-    input images (seeded by seed, epoch and index)."""
+    voxels inside the box (relative to its corner), ``gt_labels`` (V,) int64, ``gt_visible`` (V,)
+    bool, the same at the coarse voxel size as ``coarse_gt_*`` (the fine level's latent grid),
+    ``lift_grid`` the box at the lifting voxel size and ``level``. The box is the region, or in
+    training a random `crop` window of it (seeded by seed, epoch and index). Training items keep
+    the cameras `cameras` picks and augment the input images."""
 
     def __init__(self, root: Path, split: str, cfg: GeometryDataConfig, seed: int = 0):
         self.cfg = cfg
-        self.grid = cfg.grid()
-        train = split == "train"
-        self.base = WorldsTorchDataset(root, split=split, train=train,
+        self.seed = seed
+        self.train = split == "train"
+        self.base = WorldsTorchDataset(root, split=split, train=self.train,
                                        config=DataConfig(image_scale=cfg.image_scale, seed=seed,
                                                          augment=cfg.augment, cameras=cfg.cameras))
+
+    @property
+    def grid(self) -> LiftGrid:
+        return self.cfg.grid()
 
     def __len__(self) -> int:
         return len(self.base)
@@ -156,18 +202,38 @@ class GeometryDataset(Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.base.set_epoch(epoch)
 
+    def box(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) of item `index`'s box, chunk frame metres."""
+        lo, hi = np.array(self.cfg.region[:3]), np.array(self.cfg.region[3:])
+        if self.cfg.crop is None or not self.train:
+            return lo, hi
+        vs = self.cfg.lift_voxel_size
+        gen = item_generator(self.seed + 3, self.base.epoch, index % len(self))
+        room = np.round((hi[:2] - lo[:2] - self.cfg.crop) / vs).astype(int)
+        shift = [int(torch.randint(0, int(r) + 1, (1,), generator=gen)) for r in room]
+        lo = lo.copy()
+        lo[:2] += np.array(shift) * vs
+        hi = hi.copy()
+        hi[:2] = lo[:2] + self.cfg.crop
+        return lo, hi
+
     def __getitem__(self, index: int) -> dict:
         item = self.base[index]
-        stored = float(item["coarse_voxel_size"])
-        ratio = self.cfg.voxel_size / stored
-        factor = int(round(ratio))
-        if factor < 1 or abs(ratio - factor) > 1e-6:
-            raise InputError(f"{item['sample']}: voxel_size {self.cfg.voxel_size} m is not a whole multiple of "
-                             f"the stored coarse grid's {stored} m")
-        gt = grid_in_box(item["coarse_ijk"], item["coarse_labels"], item["coarse_visible"], factor,
-                         stored, self.grid)
-        item["gt_ijk"], item["gt_labels"], item["gt_visible"] = gt
-        item["lift_grid"] = self.grid
+        lo, hi = self.box(index)
+        cfg = self.cfg
+        for prefix, level, size in (("gt", cfg.level, cfg.voxel_size), ("coarse_gt", "coarse", cfg.lift_voxel_size)):
+            stored = float(item[f"{level}_voxel_size"])
+            ratio = size / stored
+            factor = int(round(ratio))
+            if factor < 1 or abs(ratio - factor) > 1e-6:
+                raise InputError(f"{item['sample']}: voxel size {size} m is not a whole multiple of the stored "
+                                 f"{level} grid's {stored} m")
+            gt = grid_in_box(item[f"{level}_ijk"], item[f"{level}_labels"], item[f"{level}_visible"], factor,
+                             stored, cfg.grid(size, lo, hi))
+            item[f"{prefix}_ijk"], item[f"{prefix}_labels"], item[f"{prefix}_visible"] = gt
+        item["lift_grid"] = cfg.grid(None, lo, hi)
+        item["gt_grid"] = cfg.grid(cfg.voxel_size, lo, hi)
+        item["level"] = cfg.level
         return item
 
 
@@ -184,6 +250,9 @@ def grid_in_box(ijk: torch.Tensor, labels: torch.Tensor, visible: torch.Tensor, 
     keep = ((rel >= 0) & (rel < dims)).all(1)
     rel, labels, visible = rel[keep], labels[keep].to(torch.int64), visible[keep]
     key = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+    if factor == 1:  # the stored grid itself: unique voxels already
+        order = torch.argsort(key)
+        return rel[order], labels[order], visible[order]
     uniq, inv = torch.unique(key, return_inverse=True)
     counts = torch.zeros(len(uniq), NUM_LABELS, dtype=torch.int64).index_put_(
         (inv, labels), torch.ones_like(inv), accumulate=True)
@@ -207,7 +276,9 @@ class ImageConditioner(nn.Module):
     """Images -> per-pixel features (C) and depth distributions (D) -> Eq. 1 into the level's box
     -> strided convolutions to the latent's resolution (module docstring)."""
 
-    def __init__(self, cfg: GeometryModelConfig, latent_stride: int):
+    def __init__(self, cfg: GeometryModelConfig, latent_stride: int | None):
+        """latent_stride: the dense latent's size in lifting voxels; None: the sparse (fine) level,
+        whose condition is gathered per latent site (`site_condition`)."""
         super().__init__()
         self.cfg = cfg
         self.encoder = build_image_encoder(cfg.encoder)
@@ -216,6 +287,12 @@ class ImageConditioner(nn.Module):
                                   nn.Conv2d(e, cfg.feature_channels + cfg.depth_bins, 1))
         self.register_buffer("bin_edges", depth_bin_edges(cfg.depth_bins, cfg.near, cfg.far), persistent=False)
         self.register_buffer("bin_centres", depth_bin_centres(cfg.depth_bins, cfg.near, cfg.far), persistent=False)
+        self.site_proj = None
+        if latent_stride is None:  # lifted features + the coarse label of each site
+            self.site_proj = nn.Linear(cfg.feature_channels + 1 + NUM_LABELS + 6 * SITE_PE_FREQUENCIES,
+                                       cfg.cond_channels)
+            self.down = None
+            return
         levels = int(round(math.log2(latent_stride)))
         down, cin = [], cfg.feature_channels + 1  # + log(1 + frustum points per voxel)
         for i in range(levels):
@@ -246,7 +323,18 @@ class ImageConditioner(nn.Module):
         target_t = torch.where(valid_t, target_t, torch.full_like(target_t, -1))
         vol, hits = lift(feats, None if self.cfg.lifting == "broadcast" else probs, torch.stack(pts), grid, valid_t)
         x = torch.cat([vol, torch.log1p(hits)[None].to(vol.dtype)], 0)[None]
-        return self.down(x), probs, target_t
+        return (x if self.down is None else self.down(x)), probs, target_t
+
+    def site_condition(self, volume: torch.Tensor, sites: torch.Tensor, labels: torch.Tensor,
+                       grid: LiftGrid) -> torch.Tensor:
+        """(1, C + 1, X, Y, Z) lifted volume on `grid`, (N, 3) site indices in it, (N,) their coarse
+        labels -> (N, cond) per-site condition: the lifted features there, the label, and a
+        positional encoding of the site's centre (sparse convolutions see no box edges, so
+        absolute height comes from here)."""
+        f = volume[0][:, sites[:, 0], sites[:, 1], sites[:, 2]].T
+        centres = torch.tensor(grid.origin, dtype=f.dtype) + (sites.to(f.dtype) + 0.5) * grid.voxel_size
+        return self.site_proj(torch.cat([f, F.one_hot(labels, NUM_LABELS).to(f.dtype),
+                                         positional_encoding(centres, SITE_PE_FREQUENCIES)], 1))
 
 
 def check_inputs(item: dict, images: torch.Tensor) -> None:
@@ -280,20 +368,29 @@ def check_inputs(item: dict, images: torch.Tensor) -> None:
 
 
 class GeometryNet(nn.Module):
-    """The conditional model of one level with its frozen structure VAE (module docstring)."""
+    """The conditional model of one level with its frozen structure VAE (module docstring).
 
-    def __init__(self, cfg: GeometryModelConfig, grid: LiftGrid | None = None):
+    Coarse: a dense latent over the box, a dense denoiser. Fine: the latent on the coarse grid's
+    sites (the ground truth's in training, the coarse prediction's at inference), a sparse
+    denoiser conditioned per site on the lifted features there and the site's coarse label."""
+
+    def __init__(self, cfg: GeometryModelConfig):
         super().__init__()
         self.cfg = cfg
-        self.vae = StructureVAE(cfg.vae)
+        self.fine = cfg.level == "fine"
+        self.vae = SparseStructureVAE(cfg.vae) if self.fine else StructureVAE(cfg.vae)
         self.vae_loaded = False
         if cfg.vae_checkpoint is not None:
             self._load_vae(cfg.vae_checkpoint)
         for p in self.vae.parameters():
             p.requires_grad_(False)
-        self.conditioner = ImageConditioner(cfg, self.vae.stride)
-        self.denoiser = Denoiser3d(cfg.vae.latent_channels, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
-                                   attention_levels=cfg.attention_levels, heads=cfg.heads)
+        self.conditioner = ImageConditioner(cfg, None if self.fine else self.vae.stride)
+        lat = cfg.vae.latent_channels
+        if self.fine:
+            self.denoiser = SparseDenoiser(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups)
+        else:
+            self.denoiser = Denoiser3d(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
+                                       attention_levels=cfg.attention_levels, heads=cfg.heads, layout=cfg.layout)
         self.schedule = NoiseSchedule(cfg.train_steps, cfg.beta_start, cfg.beta_end)
 
     def _load_vae(self, name: str) -> None:
@@ -306,9 +403,10 @@ class GeometryNet(nn.Module):
             return  # a checkpoint of this model holds the VAE's weights; training checks `vae_loaded`
         vae_net, run = load_model("geometry-vae", path)
         got = VAEConfig(**run.model.get("vae", {}))
-        if got != self.cfg.vae:
-            raise InputError(f"vae_checkpoint {name}: its VAE is {got.model_dump()}, the config's model.vae is "
-                             f"{self.cfg.vae.model_dump()}")
+        level = run.model.get("level", "coarse")
+        if got != self.cfg.vae or level != self.cfg.level:
+            raise InputError(f"vae_checkpoint {name}: its VAE is the {level} level's {got.model_dump()}, the "
+                             f"config's is the {self.cfg.level} level's {self.cfg.vae.model_dump()}")
         self.vae.load_state_dict(vae_net.vae.state_dict())
         self.vae_loaded = True
 
@@ -317,48 +415,97 @@ class GeometryNet(nn.Module):
         self.vae.eval()  # frozen: no running statistics move, no posterior sampling
         return self
 
-    def latent_target(self, item: dict, grid: LiftGrid) -> torch.Tensor:
-        """The ground-truth grid's posterior mean / latent_std: (1, Cz, X', Y', Z')."""
-        occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], grid.dims)
+    def _check_level(self, item: dict) -> None:
+        if item.get("level", "coarse") != self.cfg.level:
+            raise InputError(f"{item.get('sample', 'sample')}: a {item.get('level')} level item for the "
+                             f"{self.cfg.level} level's model (data.level and model.level must agree)")
+
+    # -- the clean latent and the condition, per level
+    def latent_target(self, item: dict):
+        """The ground-truth grid's posterior mean / latent_std: coarse (1, Cz, X', Y', Z'); fine a
+        SparseTensor on the coarse sites (stride 2^L, batch 1)."""
         with torch.no_grad():
+            if self.fine:
+                coords = torch.cat([torch.zeros(len(item["gt_ijk"]), 1, dtype=torch.int64), item["gt_ijk"]], 1)
+                mu, _ = self.vae.encode(coords, item["gt_labels"], 1)
+                return mu.replace(mu.feats / self.vae.latent_std)
+            occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
             mu, _ = self.vae.encode(occ[None], lab[None])
-        return mu / self.vae.latent_std
+            return mu / self.vae.latent_std
 
-    def predict_latent(self, cond: torch.Tensor, steps: int | None = None, seed: int = 0) -> torch.Tensor:
-        """x_0 (1, Cz, ...) scaled latent: DDIM from seeded noise (diffusion) or one pass (predictor)."""
-        shape = (cond.shape[0], self.cfg.vae.latent_channels, *cond.shape[2:])
-        last = self.schedule.steps - 1
-        if self.cfg.mode == "predictor":
-            return self.denoiser(cond.new_zeros(shape), cond, torch.full((shape[0],), last))
-        noise = torch.randn(shape, generator=torch.Generator().manual_seed(int(seed)), dtype=cond.dtype)
+    def _site_labels(self, sites: torch.Tensor, ijk: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
+        """The labels of `sites` (N, 3) from a grid (ijk, labels) that holds them (0 where not)."""
+        a, b = row_ids(sites, ijk)
+        order = torch.argsort(b)
+        pos = torch.searchsorted(b[order], a).clamp_max(max(len(b) - 1, 0))
+        hit = (b[order][pos] == a) if len(b) else torch.zeros(len(a), dtype=torch.bool)
+        return torch.where(hit, labels[order][pos] if len(b) else 0, torch.zeros_like(a))
 
-        def v_fn(x, t):
-            return self.denoiser(x, cond, torch.full((x.shape[0],), t))
+    def _v(self, x_t, cond, t: torch.Tensor):
+        if self.fine:
+            return self.denoiser(cond[0].replace(torch.cat([x_t, cond[1]], 1)), t).feats
+        return self.denoiser(x_t, cond, t)
 
-        return ddim_sample(v_fn, noise, self.schedule, steps or self.cfg.sample_steps)
-
-    def decode(self, z_scaled: torch.Tensor):
-        """Scaled latent -> per sample (ijk (V, 3), labels (V,)) in the box's voxels."""
-        occ_levels, occ_final, lab = self.vae.decode(z_scaled * self.vae.latent_std)
-        return prune_decode(occ_levels, occ_final, lab)
-
-    def loss(self, item: dict, grid: LiftGrid) -> tuple[torch.Tensor, dict]:
+    def loss(self, item: dict, grid: LiftGrid | None = None) -> tuple[torch.Tensor, dict]:
+        self._check_level(item)
         if not self.vae_loaded:
             raise InputError(f"model.vae_checkpoint {self.cfg.vae_checkpoint!r}: not found; train the level's "
                              f"structure VAE first (scube-sim train geometry-vae ...) and name its best.pt")
-        cond, probs, target = self.conditioner(item, grid)
-        x0 = self.latent_target(item, grid)
+        vol, probs, target = self.conditioner(item, grid or item["lift_grid"])
+        x0 = self.latent_target(item)
+        if self.fine:
+            sites = x0.coords[:, 1:]
+            labels = self._site_labels(sites, item["coarse_gt_ijk"], item["coarse_gt_labels"])
+            cond = (x0, self.conditioner.site_condition(vol, sites, labels, item["lift_grid"]))
+            x0 = x0.feats
+        else:
+            cond = vol
         last = self.schedule.steps - 1
         if self.cfg.mode == "predictor":
-            pred = self.denoiser(torch.zeros_like(x0), cond, torch.full((1,), last))
+            pred = self._v(torch.zeros_like(x0), cond, torch.full((1,), last))
             main = F.mse_loss(pred, x0)
         else:
-            t = torch.randint(0, self.schedule.steps, (x0.shape[0],))
+            t = torch.randint(0, self.schedule.steps, (1,))
             noise = torch.randn_like(x0)
-            v = self.denoiser(self.schedule.q_sample(x0, t, noise), cond, t)
-            main = F.mse_loss(v, self.schedule.v_target(x0, t, noise))
+            tt = t.expand(x0.shape[0])  # one sample: every row (site) at its step
+            v = self._v(self.schedule.q_sample(x0, tt, noise), cond, t)
+            main = F.mse_loss(v, self.schedule.v_target(x0, tt, noise))
         depth = depth_focal_loss(probs, target)
         return main + self.cfg.depth_weight * depth, {"latent": float(main.detach()), "depth": float(depth.detach())}
+
+    # -- inference
+    def sample_latent(self, cond, shape: tuple[int, ...], steps: int | None = None, seed: int = 0) -> torch.Tensor:
+        """x_0 of `shape` (scaled latent): DDIM from seeded noise (diffusion) or one pass (predictor)."""
+        last = self.schedule.steps - 1
+        if self.cfg.mode == "predictor":
+            return self._v(torch.zeros(shape), cond, torch.full((1,), last))
+        noise = torch.randn(shape, generator=torch.Generator().manual_seed(int(seed)))
+        return ddim_sample(lambda x, t: self._v(x, cond, torch.full((1,), t)), noise, self.schedule,
+                           steps or self.cfg.sample_steps)
+
+    def predict(self, item: dict, steps: int | None = None, seed: int = 0, coarse=None):
+        """One sample -> (ijk (V, 3) int64 in the level's box voxels, labels (V,)). coarse: the
+        fine level's latent grid (ijk, labels) at the coarse voxel size (default: the item's
+        ground truth, which evaluates the fine level alone)."""
+        self._check_level(item)
+        vol, _, _ = self.conditioner(item, item["lift_grid"])
+        lat = self.cfg.vae.latent_channels
+        if not self.fine:
+            z = self.sample_latent(vol, (1, lat, *vol.shape[2:]), steps, seed)
+            occ_levels, occ_final, lab = self.vae.decode(z * self.vae.latent_std)
+            ijks, labs = prune_decode(occ_levels, occ_final, lab)
+            return ijks[0], labs[0]
+        sites, site_labels = coarse if coarse is not None else (item["coarse_gt_ijk"], item["coarse_gt_labels"])
+        if not len(sites):
+            return torch.zeros(0, 3, dtype=torch.int64), torch.zeros(0, dtype=torch.int64)
+        st = SparseTensor.from_coords(torch.cat([torch.zeros(len(sites), 1, dtype=torch.int64), sites], 1),
+                                      torch.zeros(len(sites), lat), batch_size=1, stride=self.vae.stride)
+        st_sites = st.coords[:, 1:]
+        cond = (st, self.conditioner.site_condition(vol, st_sites, self._site_labels(st_sites, sites, site_labels),
+                                                    item["lift_grid"]))
+        z = self.sample_latent(cond, (len(st), lat), steps, seed)
+        coords, labels = decoded_voxels(self.vae.decode(st.replace(z * self.vae.latent_std)))
+        return coords[:, 1:], labels
 
 
 # ---------------------------------------------------------------------------- stages
@@ -371,7 +518,7 @@ def _grid_metrics(pred: list[tuple[torch.Tensor, torch.Tensor]], items: list[dic
     for (ijk, lab), item in zip(pred, items):
         gt_ijk = item["gt_ijk"]
         if split:
-            grid = item["lift_grid"]
+            grid = item["gt_grid"]
 
             def seen(g):
                 return visible_voxels(g, grid.voxel_size, grid.origin, item["intrinsics"], item["distortion"],
@@ -396,7 +543,8 @@ class GeometryVAEStage(Stage):
 
     def build_model(self, model_cfg: GeometryVAEModelConfig) -> nn.Module:
         net = nn.Module()
-        net.vae = StructureVAE(model_cfg.vae)
+        net.level = model_cfg.level
+        net.vae = SparseStructureVAE(model_cfg.vae) if model_cfg.level == "fine" else StructureVAE(model_cfg.vae)
         return net
 
     def dataset(self, data_dir: Path, data_cfg: GeometryDataConfig, split: str, seed: int) -> Dataset:
@@ -406,18 +554,36 @@ class GeometryVAEStage(Stage):
         return list(samples)
 
     def loss(self, model: nn.Module, batch: list) -> tuple[torch.Tensor, dict[str, float]]:
+        _check_vae_level(model, batch)
+        if model.level == "fine":
+            coords, labels = _sparse_batch(batch)
+            return model.vae.loss(coords, labels, len(batch))
         occ, lab = _dense_batch(batch)
         return model.vae.loss(occ, lab)
 
     def evaluate(self, model: nn.Module, batches: Iterable[list]) -> dict[str, float]:
         preds, items = [], []
         for batch in batches:
-            occ, lab = _dense_batch(batch)
-            _, _, occ_levels, occ_final, logits = model.vae(occ, lab, sample=False)
-            ijks, labs = prune_decode(occ_levels, occ_final, logits)
-            preds += list(zip(ijks, labs))
+            _check_vae_level(model, batch)
+            if model.level == "fine":
+                coords, labels = _sparse_batch(batch)
+                mu, _ = model.vae.encode(coords, labels, len(batch))
+                c, lab = decoded_voxels(model.vae.decode(mu))
+                preds += [(c[c[:, 0] == b, 1:], lab[c[:, 0] == b]) for b in range(len(batch))]
+            else:
+                occ, lab = _dense_batch(batch)
+                _, _, occ_levels, occ_final, logits = model.vae(occ, lab, sample=False)
+                ijks, labs = prune_decode(occ_levels, occ_final, logits)
+                preds += list(zip(ijks, labs))
             items += batch
         return _grid_metrics(preds, items, split=False)
+
+
+def _check_vae_level(model: nn.Module, batch: list[dict]) -> None:
+    for it in batch:
+        if it["level"] != model.level:
+            raise InputError(f"{it['sample']}: a {it['level']} level item for the {model.level} level's VAE "
+                             f"(data.level and model.level must agree)")
 
 
 class _VoxelsOnly(Dataset):
@@ -434,12 +600,19 @@ class _VoxelsOnly(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         item = self.ds[index]
-        return {k: item[k] for k in ("gt_ijk", "gt_labels", "gt_visible", "sample")} | {"dims": self.ds.grid.dims}
+        return {k: item[k] for k in ("gt_ijk", "gt_labels", "gt_visible", "sample", "level", "gt_grid")}
 
 
 def _dense_batch(batch: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
-    occ, lab = zip(*(dense_target(it["gt_ijk"], it["gt_labels"], it["dims"]) for it in batch))
+    occ, lab = zip(*(dense_target(it["gt_ijk"], it["gt_labels"], it["gt_grid"].dims) for it in batch))
     return torch.stack(occ), torch.stack(lab)
+
+
+def _sparse_batch(batch: list[dict]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Fine voxels of a batch: ((N, 4) [b, i, j, k], (N,) labels)."""
+    coords = torch.cat([torch.cat([torch.full((len(it["gt_ijk"]), 1), b, dtype=torch.int64), it["gt_ijk"]], 1)
+                        for b, it in enumerate(batch)])
+    return coords, torch.cat([it["gt_labels"] for it in batch])
 
 
 class GeometryStage(Stage):
@@ -461,7 +634,7 @@ class GeometryStage(Stage):
     def loss(self, model: nn.Module, batch: list) -> tuple[torch.Tensor, dict[str, float]]:
         total, logs = 0.0, {}
         for item in batch:
-            loss, lg = model.loss(item, _item_grid(item))
+            loss, lg = model.loss(item)
             total = total + loss
             for k, v in lg.items():
                 logs[k] = logs.get(k, 0.0) + v / len(batch)
@@ -471,17 +644,9 @@ class GeometryStage(Stage):
         preds, items = [], []
         for batch in batches:
             for item in batch:
-                grid = _item_grid(item)
-                cond, _, _ = model.conditioner(item, grid)
-                z = model.predict_latent(cond, seed=_sample_seed(item))
-                ijks, labs = model.decode(z)
-                preds.append((ijks[0], labs[0]))
+                preds.append(model.predict(item, seed=_sample_seed(item)))
                 items.append(item)
         return _grid_metrics(preds, items, split=True)
-
-
-def _item_grid(item: dict) -> LiftGrid:
-    return item["lift_grid"]
 
 
 def _sample_seed(item: dict) -> int:

@@ -6,6 +6,17 @@ left, z up). A structure VAE halves the box L = len(widths) times to its latent 
 back level by level, predicting occupancy at each: a voxel exists where it and every ancestor is
 occupied (subdivide and prune). The last level's 8 children per voxel come from a per-parent
 linear head (occupancy and label logits), so no convolution runs at the finest resolution.
+Optionally (`VAEConfig`) a stem at the grid's own resolution precedes the first halving and the
+decoder has its own block count (the XCube VAE's layout: its first level runs at the input
+resolution, and its decoder weighs about 1.7 times its encoder).
+
+The denoiser (`Denoiser3d`) is a 3D U-Net with a timestep embedding in one of two layouts:
+``plain`` (the original: `blocks` residual blocks per level on both sides, strided / transposed
+2x2x2 convolutions between levels, one middle block) and ``ldm`` (the latent-diffusion /
+XCube UNet: `blocks` per encoder level and `blocks` + 1 per decoder level, residual blocks that
+average-pool / nearest-upsample between levels, scale-shift (FiLM) timestep conditioning, a
+middle of two residual blocks). Either can add multi-head self-attention over the voxels of
+chosen levels (`SelfAttention3d`).
 """
 
 from __future__ import annotations
@@ -21,18 +32,29 @@ from ..config import StrictModel
 from ..labels import LABEL_NAMES
 
 NUM_LABELS = len(LABEL_NAMES)
+DENOISER_LAYOUTS = ("plain", "ldm")
 
 
 class VAEConfig(StrictModel):
-    """Structure VAE: widths per level below the grid (L = len(widths) halvings; paper: base 64 /
-    32, multipliers 1, 2, 4), residual blocks per level, latent channels (paper: 8), the KL
-    weight, group-norm groups."""
+    """Structure VAE: widths per level below the grid (L = len(widths) halvings), residual blocks
+    per level, latent channels (paper: 8), the KL weight, group-norm groups.
+
+    Optional layout (None everywhere: the original layout, and the original state-dict keys):
+    `input_width`: channels of a stem at the grid's own resolution (a 3x3x3 convolution and
+    `blocks` residual blocks) before the first halving, as the paper's (XCube's) VAE whose first
+    level runs at the input resolution: "base 64, multipliers 1, 2, 4" over a 256^3 grid with a
+    64^3 latent is input_width 64, widths (128, 256). `decoder_blocks`: residual blocks per
+    decoder level (None: max(1, blocks)). The defaults are None, not 0, so that a resolved
+    config of the original layout compares equal, key by key, to one written before these
+    fields existed (a run started then still resumes; its VAE checkpoint still matches)."""
 
     widths: tuple[int, ...] = Field(default=(32, 64), min_length=1, max_length=4)
     blocks: int = Field(default=1, ge=0)
     latent_channels: int = Field(default=8, ge=1)
     kl_weight: float = Field(default=1e-4, ge=0)
     groups: int = Field(default=8, ge=1)
+    input_width: int | None = Field(default=None, ge=1)
+    decoder_blocks: int | None = Field(default=None, ge=1)
 
 
 # ---------------------------------------------------------------------------- building blocks
@@ -40,22 +62,67 @@ def _norm(channels: int, groups: int) -> nn.GroupNorm:
     return nn.GroupNorm(math.gcd(groups, channels), channels)
 
 
+def _resample(x: torch.Tensor, how: str) -> torch.Tensor:
+    return F.avg_pool3d(x, 2) if how == "down" else F.interpolate(x, scale_factor=2, mode="nearest")
+
+
 class ResBlock3d(nn.Module):
     """Pre-norm residual block: (B, C, X, Y, Z) -> (B, C_out, X, Y, Z), optionally adding a
-    per-sample embedding (B, E) after the first convolution."""
+    per-sample embedding (B, E) after the first convolution. scale_shift: the embedding gives a
+    scale and a shift of the second normalisation instead (FiLM, LDM's use_scale_shift_norm).
+    resample ``down`` / ``up``: the block halves (average pooling) / doubles (nearest) the box,
+    applied to both branches after the first normalisation (LDM's resblock_updown)."""
 
-    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0):
+    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0, scale_shift: bool = False,
+                 resample: str | None = None):
         super().__init__()
+        if scale_shift and not emb:
+            raise ValueError("scale_shift needs an embedding (emb > 0)")
+        if resample not in (None, "down", "up"):
+            raise ValueError(f"resample: expected None, 'down' or 'up', got {resample!r}")
         self.n1, self.c1 = _norm(cin, groups), nn.Conv3d(cin, cout, 3, padding=1)
         self.n2, self.c2 = _norm(cout, groups), nn.Conv3d(cout, cout, 3, padding=1)
-        self.emb = nn.Linear(emb, cout) if emb else None
+        self.emb = nn.Linear(emb, (2 if scale_shift else 1) * cout) if emb else None
         self.skip = nn.Conv3d(cin, cout, 1) if cin != cout else nn.Identity()
+        self.scale_shift, self.resample = scale_shift, resample
 
     def forward(self, x, emb=None):
-        h = self.c1(F.silu(self.n1(x)))
+        h = F.silu(self.n1(x))
+        if self.resample is not None:
+            h, x = _resample(h, self.resample), _resample(x, self.resample)
+        h = self.c1(h)
+        if self.scale_shift:
+            scale, shift = self.emb(emb)[:, :, None, None, None].chunk(2, 1)
+            return self.skip(x) + self.c2(F.silu(self.n2(h) * (1 + scale) + shift))
         if self.emb is not None:
             h = h + self.emb(emb)[:, :, None, None, None]
         return self.skip(x) + self.c2(F.silu(self.n2(h)))
+
+
+class SelfAttention3d(nn.Module):
+    """Multi-head self-attention over all voxels of a box (LDM's AttentionBlock): (B, C, X, Y, Z)
+    -> x + proj(attention(qkv(norm(x)))), the same shape. No positional encoding: the block is
+    equivariant to any permutation of the voxels (the convolutions around it know the layout).
+    The output projection starts at zero, so a new block begins as the identity."""
+
+    def __init__(self, channels: int, heads: int, groups: int):
+        super().__init__()
+        if heads < 1 or channels % heads:
+            raise ValueError(f"attention: {channels} channels do not split into {heads} heads")
+        self.heads = heads
+        self.norm = _norm(channels, groups)
+        self.qkv = nn.Conv3d(channels, 3 * channels, 1)
+        self.proj = nn.Conv3d(channels, channels, 1)
+        nn.init.zeros_(self.proj.weight)
+        nn.init.zeros_(self.proj.bias)
+
+    def forward(self, x):
+        b, c, *size = x.shape
+        n = math.prod(size)
+        qkv = self.qkv(self.norm(x)).reshape(b, 3, self.heads, c // self.heads, n).transpose(3, 4)
+        q, k, v = qkv.unbind(1)  # each (B, heads, N, C / heads)
+        out = F.scaled_dot_product_attention(q, k, v)
+        return x + self.proj(out.transpose(2, 3).reshape(b, c, *size))
 
 
 def timestep_embedding(t: torch.Tensor, dim: int) -> torch.Tensor:
@@ -76,18 +143,25 @@ class StructureVAE(nn.Module):
         self.cfg = cfg
         w, g, lat = cfg.widths, cfg.groups, cfg.latent_channels
         self.levels = len(w)
-        down, cin = [], 1 + NUM_LABELS
+        cin = 1 + NUM_LABELS
+        self.stem = None
+        if cfg.input_width is not None:  # the first level, at the grid's own resolution
+            self.stem = nn.ModuleList([nn.Conv3d(cin, cfg.input_width, 3, padding=1)] +
+                                      [ResBlock3d(cfg.input_width, cfg.input_width, g) for _ in range(cfg.blocks)])
+            cin = cfg.input_width
+        down = []
         for c in w:
             down.append(nn.ModuleList([nn.Conv3d(cin, c, 2, stride=2)] + [ResBlock3d(c, c, g) for _ in range(cfg.blocks)]))
             cin = c
         self.down = nn.ModuleList(down)
         self.to_latent = nn.Sequential(_norm(w[-1], g), nn.SiLU(), nn.Conv3d(w[-1], 2 * lat, 1))
         self.from_latent = nn.Conv3d(lat, w[-1], 3, padding=1)
+        dec_blocks = cfg.decoder_blocks if cfg.decoder_blocks is not None else max(1, cfg.blocks)
         self.dec_blocks = nn.ModuleList()
         self.occ_heads = nn.ModuleList()
         self.up = nn.ModuleList()
         for i in range(self.levels - 1, -1, -1):  # decoder levels at stride 2^(i+1), coarsest first
-            self.dec_blocks.append(nn.ModuleList([ResBlock3d(w[i], w[i], g) for _ in range(max(1, cfg.blocks))]))
+            self.dec_blocks.append(nn.ModuleList([ResBlock3d(w[i], w[i], g) for _ in range(dec_blocks)]))
             self.occ_heads.append(nn.Conv3d(w[i], 1, 1))
             if i > 0:
                 self.up.append(nn.ConvTranspose3d(w[i], w[i - 1], 2, stride=2))
@@ -105,6 +179,10 @@ class StructureVAE(nn.Module):
         """-> (mu, logvar) (B, latent, X / 2^L, Y / 2^L, Z / 2^L)."""
         onehot = F.one_hot(labels.clamp_min(0), NUM_LABELS).permute(0, 4, 1, 2, 3).to(occ.dtype) * occ[:, None]
         x = torch.cat([occ[:, None], onehot], 1)
+        if self.stem is not None:
+            x = self.stem[0](x)
+            for b in self.stem[1:]:
+                x = b(x)
         for conv, *blocks in self.down:
             x = conv(x)
             for b in blocks:
@@ -189,59 +267,100 @@ def prune_decode(occ_levels: list[torch.Tensor], occ_final: torch.Tensor, lab_lo
 
 
 class Denoiser3d(nn.Module):
-    """Dense 3D U-Net: (latent (B, Cz, ...) noisy, condition (B, Cc, ...), t (B,)) -> (B, Cz, ...)."""
+    """Dense 3D U-Net: (latent (B, Cz, ...) noisy, condition (B, Cc, ...), t (B,)) -> (B, Cz, ...).
+
+    `widths` per level (level 0: the latent's resolution, halving between levels; the box's sides
+    must divide by 2^(len(widths) - 1)), `blocks` residual blocks per level, `layout` ``plain`` or
+    ``ldm`` (module docstring). `attention_levels`: levels with multi-head self-attention
+    (`heads` heads; the level's width must divide by it) after each of their residual blocks, in
+    the encoder and the decoder, and in the middle (between its blocks in ``ldm``) when the
+    deepest level is listed. Self-attention over a level of N voxels costs O(N^2): list only
+    small levels. With no attention the modules and the computation are the original ones."""
 
     def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int,
-                 attention_levels: tuple[int, ...] = (), heads: int = 8):
+                 attention_levels: tuple[int, ...] = (), heads: int = 8, layout: str = "plain"):
         super().__init__()
+        if layout not in DENOISER_LAYOUTS:
+            raise ValueError(f"layout: expected one of {', '.join(DENOISER_LAYOUTS)}, got {layout!r}")
+        levels = len(widths)
+        attn = set(attention_levels)
+        bad = sorted(a for a in attn if not 0 <= a < levels)
+        if bad:
+            raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
+        ldm = layout == "ldm"
         emb = 4 * widths[0]
         self.emb_dim = widths[0]
+
+        def res(cin: int, cout: int, resample: str | None = None) -> ResBlock3d:
+            return ResBlock3d(cin, cout, groups, emb, scale_shift=ldm, resample=resample)
+
+        def att(channels: int, level: int) -> nn.Module:
+            return SelfAttention3d(channels, heads, groups) if level in attn else nn.Identity()
+
         self.time = nn.Sequential(nn.Linear(widths[0], emb), nn.SiLU(), nn.Linear(emb, emb))
         self.inp = nn.Conv3d(latent + cond, widths[0], 3, padding=1)
         self.enc = nn.ModuleList()
+        self.enc_attn = nn.ModuleList()  # one per `enc` block (Identity where a level has none)
         self.downs = nn.ModuleList()
         c = widths[0]
-        skips = []
+        skips = [c] if ldm else []  # ldm: the input convolution's output is a skip too
         for i, wd in enumerate(widths):
             for _ in range(blocks):
-                self.enc.append(ResBlock3d(c, wd, groups, emb))
+                self.enc.append(res(c, wd))
                 c = wd
+                self.enc_attn.append(att(c, i))
                 skips.append(c)
-            if i + 1 < len(widths):
-                self.downs.append(nn.Conv3d(c, c, 2, stride=2))
-        self.mid = ResBlock3d(c, c, groups, emb)
+            if i + 1 < levels:
+                self.downs.append(res(c, c, "down") if ldm else nn.Conv3d(c, c, 2, stride=2))
+                if ldm:
+                    skips.append(c)
+        self.mid = res(c, c)
+        self.mid_attn = att(c, levels - 1)
+        self.mid2 = res(c, c) if ldm else None
         self.dec = nn.ModuleList()
+        self.dec_attn = nn.ModuleList()  # one per `dec` block
         self.ups = nn.ModuleList()
+        self.dec_per_level = blocks + 1 if ldm else blocks
         for i, wd in reversed(list(enumerate(widths))):
-            for _ in range(blocks):
-                self.dec.append(ResBlock3d(c + skips.pop(), wd, groups, emb))
+            for _ in range(self.dec_per_level):
+                self.dec.append(res(c + skips.pop(), wd))
                 c = wd
+                self.dec_attn.append(att(c, i))
             if i > 0:
-                self.ups.append(nn.ConvTranspose3d(c, c, 2, stride=2))
+                self.ups.append(res(c, c, "up") if ldm else nn.ConvTranspose3d(c, c, 2, stride=2))
         self.out = nn.Sequential(_norm(c, groups), nn.SiLU(), nn.Conv3d(c, latent, 3, padding=1))
         nn.init.zeros_(self.out[-1].weight)
         nn.init.zeros_(self.out[-1].bias)
-        self.widths, self.blocks = widths, blocks
-        if attention_levels:
-            raise NotImplementedError("attention_levels: self-attention in the denoiser is not implemented yet")
+        if ldm:  # LDM zero-initialises every residual branch's last convolution
+            for m in self.modules():
+                if isinstance(m, ResBlock3d):
+                    nn.init.zeros_(m.c2.weight)
+                    nn.init.zeros_(m.c2.bias)
+        self.widths, self.blocks, self.layout = widths, blocks, layout
+        self.attention_levels = tuple(sorted(attn))
 
     def forward(self, z, cond, t):
         e = self.time(timestep_embedding(t, self.emb_dim))
         x = self.inp(torch.cat([z, cond], 1))
-        hs, k = [], 0
+        ldm = self.layout == "ldm"
+        hs, k = ([x] if ldm else []), 0
         for i in range(len(self.widths)):
             for _ in range(self.blocks):
-                x = self.enc[k](x, e)
+                x = self.enc_attn[k](self.enc[k](x, e))
                 k += 1
                 hs.append(x)
             if i < len(self.downs):
-                x = self.downs[i](x)
-        x = self.mid(x, e)
+                x = self.downs[i](x, e) if ldm else self.downs[i](x)
+                if ldm:
+                    hs.append(x)
+        x = self.mid_attn(self.mid(x, e))
+        if self.mid2 is not None:
+            x = self.mid2(x, e)
         k = 0
         for j in range(len(self.widths)):
-            for _ in range(self.blocks):
-                x = self.dec[k](torch.cat([x, hs.pop()], 1), e)
+            for _ in range(self.dec_per_level):
+                x = self.dec_attn[k](self.dec[k](torch.cat([x, hs.pop()], 1), e))
                 k += 1
             if j < len(self.ups):
-                x = self.ups[j](x)
+                x = self.ups[j](x, e) if ldm else self.ups[j](x)
         return self.out(x)

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -120,7 +121,7 @@ def test_conditional_model_overfits_one_sample_with_t_and_noise_fixed(data, mode
     losses = []
     for _ in range(60):
         torch.manual_seed(1)  # the same t and noise every step
-        loss, _ = model.loss(item, item["lift_grid"])
+        loss, _ = model.loss(item)
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -128,12 +129,11 @@ def test_conditional_model_overfits_one_sample_with_t_and_noise_fixed(data, mode
     assert losses[-1] < losses[0] / 10, losses[::10]
     model.eval()
     with torch.no_grad():
-        cond, probs, target = model.conditioner(item, item["lift_grid"])
-        z = model.predict_latent(cond, seed=3)
-        z2 = model.predict_latent(cond, seed=3)
-    assert torch.equal(z, z2)  # the same input and seed: the same latent
-    ijks, labs = model.decode(z)
-    assert ijks[0].shape[1] == 3 and len(ijks[0]) == len(labs[0])
+        _, probs, _ = model.conditioner(item, item["lift_grid"])
+        ijk, labs = model.predict(item, seed=3)
+        ijk2, labs2 = model.predict(item, seed=3)
+    assert torch.equal(ijk, ijk2) and torch.equal(labs, labs2)  # the same input and seed: the same grid
+    assert ijk.shape[1] == 3 and len(ijk) == len(labs)
     torch.testing.assert_close(probs.sum(1), torch.ones_like(probs.sum(1)))
 
 
@@ -176,7 +176,7 @@ def test_bad_inputs_give_clear_errors(data):
     with pytest.raises(InputError, match=r"camera FRONT_LEFT: cam_to_chunk must be a finite rigid"):
         model.conditioner({**item, "cam_to_chunk": pose}, grid)
     with pytest.raises(InputError, match="vae_checkpoint"):
-        model.loss(item, grid)
+        model.loss(item)
 
 
 def test_a_camera_that_sees_only_sky_gives_a_defined_output(data):
@@ -185,7 +185,7 @@ def test_a_camera_that_sees_only_sky_gives_a_defined_output(data):
     model = GeometryNet(GeometryModelConfig(**MODEL))
     model.vae_loaded = True
     sky = {**item, "depth": torch.full_like(item["depth"], math.inf), "sky": torch.ones_like(item["sky"])}
-    loss, logs = model.loss(sky, sky["lift_grid"])
+    loss, logs = model.loss(sky)
     assert math.isfinite(float(loss.detach())) and logs["depth"] == 0.0
 
 
@@ -218,3 +218,78 @@ def test_both_stages_train_resume_and_evaluate(data, tmp_path):
                                  "--split", "test", "-o", str(tmp_path / "m2.json")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "m2.json").read_text())["metrics"]["iou"] == m["iou"]
+
+
+# --- the fine level: sparse, its latent on the coarse sites ------------------------------------------
+FINE_DATA = {"level": "fine", "voxel_size": 1.6, "coarse_voxel_size": 3.2, "image_scale": 1.0}
+
+
+def test_fine_items_hold_both_grids_and_crops_stay_inside(data):
+    stage = get_stage("geometry")
+    item = stage.dataset(data, GeometryDataConfig(**FINE_DATA), "val", 0)[0]
+    fine, coarse = item["gt_ijk"], item["coarse_gt_ijk"]
+    # every coarse voxel is the parent of some fine voxel and the other way round
+    assert torch.equal(torch.unique(fine // 2, dim=0), torch.unique(coarse, dim=0))
+    assert item["gt_grid"].voxel_size == 1.6 and item["lift_grid"].voxel_size == 3.2
+    crop = stage.dataset(data, GeometryDataConfig(**FINE_DATA, crop=32.0), "train", 0)
+    it = crop[0]
+    assert it["lift_grid"].dims[:2] == (10, 10) and bool((it["gt_ijk"][:, :2] < 20).all())
+    lo = np.array(it["lift_grid"].origin)
+    # the same window of the chunk, cut from the whole box's voxels of the same sample
+    whole = stage.dataset(data, GeometryDataConfig(**FINE_DATA), "train", 0)[0]
+    full = whole["gt_ijk"].numpy() * 1.6 + np.array(whole["gt_grid"].origin)
+    inside = np.all((full[:, :2] >= lo[:2]) & (full[:, :2] < lo[:2] + 32.0), axis=1)
+    assert inside.sum() == len(it["gt_ijk"]) > 0
+
+
+def test_fine_structure_vae_overfits_one_grid(data):
+    torch.manual_seed(0)
+    stage = get_stage("geometry-vae")
+    batch = [stage.dataset(data, GeometryDataConfig(**FINE_DATA), "train", 0)[0]]
+    model = stage.build_model(stage.model_config(level="fine", vae=VAEConfig(**VAE)))
+    opt = torch.optim.Adam(model.parameters(), 1e-2)
+    for _ in range(60):
+        model.train()
+        loss, _ = stage.loss(model, batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    model.eval()
+    with torch.no_grad():
+        m = stage.evaluate(model, [batch])
+    assert m["iou"] > 0.9, m
+
+
+@pytest.mark.parametrize("mode", ["diffusion", "predictor"])
+def test_fine_conditional_model_overfits_one_sample(data, mode):
+    stage = get_stage("geometry")
+    item = stage.dataset(data, GeometryDataConfig(**FINE_DATA, crop=19.2), "train", 0)[0]  # a 6 x 6 site window
+    assert 10 < len(item["coarse_gt_ijk"]) < 300
+    torch.manual_seed(0)
+    # one wide level: every site's latent is its own regression target here
+    model = GeometryNet(GeometryModelConfig(**{**MODEL, "widths": [32], "cond_channels": 16}, level="fine",
+                                            mode=mode, depth_weight=0.0))
+    model.vae_loaded = True
+    # a trained VAE's running RMS makes the scaled latent unit-sized: do the same for this random one
+    model.vae.latent_std.copy_(model.latent_target(item).feats.pow(2).mean().sqrt())
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], 3e-3)
+    model.train()
+    losses = []
+    for _ in range(40):
+        torch.manual_seed(1)
+        loss, _ = model.loss(item)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < losses[0] / 10, losses[::10]
+    model.eval()
+    with torch.no_grad():
+        ijk, labs = model.predict(item, seed=0)
+        again = model.predict(item, seed=0)
+    assert torch.equal(ijk, again[0]) and ijk.shape[1] == 3
+    # predicted fine voxels lie inside the coarse grid they were decoded from
+    parents = torch.unique(ijk // 2, dim=0)
+    assert bool(torch.isin(parents[:, 0] * 10000 + parents[:, 1] * 100 + parents[:, 2],
+                           item["coarse_gt_ijk"][:, 0] * 10000 + item["coarse_gt_ijk"][:, 1] * 100
+                           + item["coarse_gt_ijk"][:, 2]).all())
