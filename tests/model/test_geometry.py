@@ -293,3 +293,77 @@ def test_fine_conditional_model_overfits_one_sample(data, mode):
     assert bool(torch.isin(parents[:, 0] * 10000 + parents[:, 1] * 100 + parents[:, 2],
                            item["coarse_gt_ijk"][:, 0] * 10000 + item["coarse_gt_ijk"][:, 1] * 100
                            + item["coarse_gt_ijk"][:, 2]).all())
+
+
+# --- extremes ---------------------------------------------------------------------------------------
+def _shift_world(src, dst, offset):
+    """A copy of a worlds dataset whose world frame is moved by `offset` metres: every pose and box
+    of the samples' meta.json moves with it; images, depth and voxels (camera and chunk frames) stay."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    for meta in dst.glob("*/*/meta.json"):
+        m = json.loads(meta.read_text())
+
+        def move(pose):
+            pose[0][3] += offset[0]
+            pose[1][3] += offset[1]
+            pose[2][3] += offset[2]
+
+        move(m["chunk_to_world"])
+        move(m["lidar"]["pose_start"])
+        move(m["lidar"]["pose_end"])
+        for f in m["frames"]:
+            move(f["ego_pose"])
+            for c in f["cameras"]:
+                move(c["cam_to_world"])
+            for b in f["boxes"]:
+                b["center"] = [v + o for v, o in zip(b["center"], offset)]
+        meta.write_text(json.dumps(m))
+
+
+def test_a_chunk_a_million_metres_out_converts_to_the_same_grid(data, tmp_path):
+    far = tmp_path / "far"
+    _shift_world(data, far, (1.0e6, -1.0e6, 50.0))
+    stage = get_stage("geometry")
+    near_item = stage.dataset(data, GeometryDataConfig(**DATA), "test", 0)[0]
+    far_item = stage.dataset(far, GeometryDataConfig(**DATA), "test", 0)[0]
+    assert float(far_item["chunk_to_world"][0, 3]) - float(near_item["chunk_to_world"][0, 3]) == 1.0e6
+    torch.testing.assert_close(far_item["cam_to_chunk"], near_item["cam_to_chunk"], rtol=0, atol=1e-6)
+    torch.manual_seed(0)
+    model = GeometryNet(GeometryModelConfig(**MODEL)).eval()
+    with torch.no_grad():
+        a, la = model.predict(near_item, seed=5)
+        b, lb = model.predict(far_item, seed=5)
+    assert torch.equal(a, b) and torch.equal(la, lb)
+
+
+class _NanAtStep3:
+    """The VAE stage whose third loss is NaN (a diverged step)."""
+
+    def __init__(self, stage):
+        self.stage, self.calls = stage, 0
+
+    def __getattr__(self, name):
+        return getattr(self.stage, name)
+
+    def loss(self, model, batch):
+        loss, logs = self.stage.loss(model, batch)
+        self.calls += 1
+        return (loss * float("nan") if self.calls == 3 else loss), logs
+
+
+def test_a_non_finite_loss_stops_training_and_a_resume_continues(data, tmp_path):
+    from scube_sim.model.checkpoint import load_checkpoint
+    from scube_sim.model.trainer import TrainingError
+
+    cfg = yaml.safe_load(_write(tmp_path / "v.yaml", "geometry-vae", 4, {"vae": VAE}).read_text())
+    cfg["train"]["checkpoint_every"] = 1
+    stage = get_stage("geometry-vae")
+    flaky = _NanAtStep3(stage)
+    with pytest.raises(TrainingError, match=r"step 3: the loss is nan; the last good checkpoint is .*last\.pt"):
+        train(flaky, config_from_dict(cfg), data, tmp_path / "run", progress=False)
+    assert load_checkpoint(tmp_path / "run" / "last.pt")["step"] == 2
+    train(stage, config_from_dict(cfg), data, tmp_path / "run", resume=True, progress=False)
+    ck = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert ck["step"] == 4 and all(torch.isfinite(t).all() for t in ck["model"].values() if t.is_floating_point())
