@@ -29,6 +29,7 @@ box spans region[:3] + [ijk, ijk + 1) * voxel_size.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -42,6 +43,7 @@ from torch.utils.data import Dataset
 from ..config import StrictModel
 from ..errors import InputError
 from ..labels import LABEL_NAMES
+from ..memory import peak_mb, reset_peak, rss_mb
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
 from .appearance import positional_encoding
 from .augment import AugmentConfig, CameraSelection
@@ -483,6 +485,30 @@ class GeometryNet(nn.Module):
         return ddim_sample(lambda x, t: self._v(x, cond, torch.full((1,), t)), noise, self.schedule,
                            steps or self.cfg.sample_steps)
 
+    def predict_from_depth(self, item: dict):
+        """The 2D-prior baseline: each valid feature pixel's most likely depth bin (this network's
+        own depth head) unprojected to its bin centre, and the level's voxels those points fall in;
+        no 3D prior, no semantics (label 0). -> (ijk (V, 3), labels (V,))."""
+        self._check_level(item)
+        _, probs, _ = self.conditioner(item, item["lift_grid"])
+        stride = self.conditioner.encoder.stride
+        n, d, h, w = probs.shape
+        grid = item["gt_grid"]
+        best = probs.argmax(1)  # (N, h, w)
+        flat = []
+        for i in range(n):
+            pts = frustum_points(feature_intrinsics(item["intrinsics"][i], stride), item["distortion"][i],
+                                 item["cam_to_chunk"][i].double(), h, w, self.conditioner.bin_centres)
+            p = pts.gather(0, best[i][None, :, :, None].expand(1, h, w, 3))[0]  # (h, w, 3)
+            rows = torch.clamp(torch.arange(h) * stride + stride // 2, max=item["valid"].shape[1] - 1)
+            cols = torch.clamp(torch.arange(w) * stride + stride // 2, max=item["valid"].shape[2] - 1)
+            index, inside = grid.voxel_index(p)
+            flat.append(index[inside & item["valid"][i][rows][:, cols]])
+        keys = torch.unique(torch.cat(flat)) if flat else torch.zeros(0, dtype=torch.int64)
+        _, y, z = grid.dims
+        ijk = torch.stack([keys // (y * z), (keys // z) % y, keys % z], 1)
+        return ijk, torch.zeros(len(ijk), dtype=torch.int64)
+
     def predict(self, item: dict, steps: int | None = None, seed: int = 0, coarse=None):
         """One sample -> (ijk (V, 3) int64 in the level's box voxels, labels (V,)). coarse: the
         fine level's latent grid (ijk, labels) at the coarse voxel size (default: the item's
@@ -641,12 +667,20 @@ class GeometryStage(Stage):
         return total / len(batch), logs
 
     def evaluate(self, model: nn.Module, batches: Iterable[list]) -> dict[str, float]:
-        preds, items = [], []
+        preds, items, seconds, peaks = [], [], [], []
         for batch in batches:
             for item in batch:
+                base = rss_mb() if reset_peak() else float("nan")
+                t0 = time.perf_counter()
                 preds.append(model.predict(item, seed=_sample_seed(item)))
+                seconds.append(time.perf_counter() - t0)
+                peaks.append(peak_mb() - base)
                 items.append(item)
-        return _grid_metrics(preds, items, split=True)
+        out = _grid_metrics(preds, items, split=True)
+        # the conversion's cost per sample: wall seconds and peak resident memory above the start
+        out["seconds_per_sample"] = float(np.mean(seconds)) if seconds else 0.0
+        out["peak_mb_per_sample"] = float(np.max(peaks)) if peaks else 0.0
+        return out
 
 
 def _sample_seed(item: dict) -> int:

@@ -367,3 +367,28 @@ def test_a_non_finite_loss_stops_training_and_a_resume_continues(data, tmp_path)
     train(stage, config_from_dict(cfg), data, tmp_path / "run", resume=True, progress=False)
     ck = load_checkpoint(tmp_path / "run" / "last.pt")
     assert ck["step"] == 4 and all(torch.isfinite(t).all() for t in ck["model"].values() if t.is_floating_point())
+
+
+def test_the_depth_prior_baseline_puts_voxels_where_its_depth_says(data):
+    """With the depth head forced to the ground-truth bins, the unprojected voxels are the visible
+    surface: nearly all of them are ground-truth voxels or next to one."""
+    _, item = _geometry_item(data)
+    model = GeometryNet(GeometryModelConfig(**MODEL)).eval()
+    cond = model.conditioner
+    # the ground-truth bins at the feature pixels, as the depth loss sees them
+    with torch.no_grad():
+        _, probs, target = cond(item, item["lift_grid"])
+    logits = torch.full_like(probs, -30.0)
+    ok = target >= 0
+    logits.permute(0, 2, 3, 1)[ok] = torch.where(
+        torch.nn.functional.one_hot(target[ok], probs.shape[1]).bool(), 30.0, -30.0)
+    c = cond.cfg.feature_channels
+    orig = cond.head.forward
+    cond.head.forward = lambda x: torch.cat([orig(x)[:, :c], logits], 1)
+    with torch.no_grad():
+        ijk, labels = model.predict_from_depth(item)
+    cond.head.forward = orig
+    assert len(ijk) > 20 and bool((labels == 0).all())
+    gt = item["gt_ijk"]
+    d = torch.cdist(ijk.double(), gt.double()).min(1).values
+    assert float((d <= 1.0).double().mean()) > 0.9
