@@ -605,6 +605,33 @@ class GeometryVAEStage(Stage):
         return _grid_metrics(preds, items, split=False)
 
 
+def calibrate_latent_std(model: nn.Module, dataset: Dataset, limit: int | None = None) -> float:
+    """Set a `geometry-vae` model's latent_std to its final encoder's RMS of the posterior means
+    over `dataset` (a `geometry-vae` stage dataset; the first `limit` items), instead of the
+    running RMS over training that `track_latent_rms` leaves. Returns the new value."""
+    vae = model.vae
+    was = vae.training
+    vae.eval()
+    sq, n = 0.0, 0
+    with torch.no_grad():
+        for i in range(len(dataset) if limit is None else min(limit, len(dataset))):
+            batch = [dataset[i]]
+            if model.level == "fine":
+                coords, labels = _sparse_batch(batch)
+                mu = vae.encode(coords, labels, 1)[0].feats
+            else:
+                occ, lab = _dense_batch(batch)
+                mu = vae.encode(occ, lab)[0]
+            sq += float(mu.double().pow(2).mean())
+            n += 1
+    vae.train(was)
+    if n:
+        vae._latent_sq.fill_(sq)
+        vae._latent_n.fill_(n)
+        vae.latent_std.fill_(max((sq / n) ** 0.5, 1e-3))
+    return float(vae.latent_std)
+
+
 def _check_vae_level(model: nn.Module, batch: list[dict]) -> None:
     for it in batch:
         if it["level"] != model.level:

@@ -212,9 +212,7 @@ class StructureVAE(nn.Module):
         mu, logvar = self.encode(occ, labels)
         if self.training:
             with torch.no_grad():  # running RMS of the posterior means over training
-                self._latent_sq += mu.detach().pow(2).mean()
-                self._latent_n += 1
-                self.latent_std.copy_((self._latent_sq / self._latent_n).sqrt().clamp_min(1e-3))
+                track_latent_rms(self, mu)
         z = mu + torch.randn_like(mu) * (0.5 * logvar).exp() if sample else mu
         return (mu, logvar) + self.decode(z)
 
@@ -364,3 +362,12 @@ class Denoiser3d(nn.Module):
             if j < len(self.ups):
                 x = self.ups[j](x, e) if ldm else self.ups[j](x)
         return self.out(x)
+
+
+def track_latent_rms(vae: nn.Module, mu: torch.Tensor) -> None:
+    """Fold one training batch's posterior means into a VAE's `latent_std`: the RMS of mu over
+    every batch so far (buffers `_latent_sq` the running sum of mean(mu^2), `_latent_n` the count).
+    `geometry.calibrate_latent_std` replaces it by the final encoder's RMS over a dataset."""
+    vae._latent_sq += mu.detach().pow(2).mean()
+    vae._latent_n += 1
+    vae.latent_std.copy_((vae._latent_sq / vae._latent_n).sqrt().clamp_min(1e-3))

@@ -20,7 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from ..labels import LABEL_NAMES
-from .geometry_nets import VAEConfig, timestep_embedding
+from .geometry_nets import VAEConfig, timestep_embedding, track_latent_rms
 from .sparse import (Grid, SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseTensor, SubmanifoldConv3d,
                      cat_features, kernel_offsets, make_norm, site_order)
 
@@ -142,9 +142,7 @@ class SparseStructureVAE(nn.Module):
         mu, logvar = self.encode(coords, labels, batch_size)
         if self.training:
             with torch.no_grad():
-                self._latent_sq += mu.feats.detach().pow(2).mean()
-                self._latent_n += 1
-                self.latent_std.copy_((self._latent_sq / self._latent_n).sqrt().clamp_min(1e-3))
+                track_latent_rms(self, mu.feats)
         z = mu.feats + torch.randn_like(mu.feats) * (0.5 * logvar).exp() if sample else mu.feats
         return mu, logvar, self.decode(mu.replace(z), target=coords if self.training else None)
 

@@ -392,3 +392,25 @@ def test_the_depth_prior_baseline_puts_voxels_where_its_depth_says(data):
     gt = item["gt_ijk"]
     d = torch.cdist(ijk.double(), gt.double()).min(1).values
     assert float((d <= 1.0).double().mean()) > 0.9
+
+
+@pytest.mark.parametrize("level", ["coarse", "fine"])
+def test_calibrated_latents_have_unit_rms(data, level):
+    from scube_sim.model.geometry import calibrate_latent_std
+
+    torch.manual_seed(0)
+    stage = get_stage("geometry-vae")
+    cfg = GeometryDataConfig(**(DATA if level == "coarse" else FINE_DATA))
+    ds = stage.dataset(data, cfg, "train", 0)
+    model = stage.build_model(stage.model_config(level=level, vae=VAEConfig(**VAE)))
+    std = calibrate_latent_std(model, ds)
+    batch = [ds[0]]
+    from scube_sim.model.geometry import _dense_batch, _sparse_batch
+
+    with torch.no_grad():
+        if level == "fine":
+            mu = model.vae.encode(*_sparse_batch(batch), 1)[0].feats
+        else:
+            mu = model.vae.encode(*_dense_batch(batch))[0]
+    # one train item: its RMS over the calibrated scale is 1
+    assert float((mu / std).pow(2).mean().sqrt()) == pytest.approx(1.0, rel=1e-5)

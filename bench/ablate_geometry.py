@@ -1,0 +1,173 @@
+"""The geometry stage's comparisons and trades (issue 11), coarse level.
+
+1. **Variants at one budget**: each trained from scratch for the same `--steps` from the shipped
+   config (`scube_sim/model/configs/geometry-coarse.yaml`), seed 0, on the same frozen structure
+   VAE (`--vae`), then evaluated on `--eval-split`: the latent diffusion with depth-weighted
+   lifting (Eq. 1), the same with the broadcast lifting (the paper's ablation), the
+   deterministic single-step predictor, the diffusion at a lower image resolution, and the 2D-prior
+   baseline (the diffusion variant's own depth head unprojected into voxels, no 3D prior).
+2. **DDIM steps** (1, 5, 10, 25, 50) of the diffusion variant (or `--checkpoint`): IoU against
+   seconds and peak memory per sample, a table and a Pareto plot (docs/geometry_trade.png).
+
+Not part of `make bench` (it trains for hours on 2 cores). Run:
+`python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
+Each training is resumable: a rerun continues the runs in --work. Results:
+bench/results/geometry_ablation.{json,md} and geometry_ddim.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import yaml
+
+from .common import BENCH_DIR, write_results
+
+REPO = Path(__file__).resolve().parents[1]
+VARIANTS = {
+    "diffusion": {},
+    "broadcast lifting": {"model": {"lifting": "broadcast"}},
+    "single-step predictor": {"model": {"mode": "predictor"}},
+    "diffusion, half resolution": {"data": {"image_scale": 0.33}},
+}
+DDIM_STEPS = (1, 5, 10, 25, 50)
+
+
+def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
+    cfg = yaml.safe_load(yaml.safe_dump(base))
+    for section, values in variant.items():
+        cfg[section].update(values)
+    cfg["model"]["vae_checkpoint"] = vae
+    cfg["train"].update(steps=steps, checkpoint_every=25)
+    return cfg
+
+
+def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
+    from scube_sim.model.config import load_config
+    from scube_sim.model.trainer import LAST, evaluate, train
+
+    tag = name.replace(",", "").replace(" ", "-")
+    work = Path(args.work)
+    cfg_path = work / f"{tag}.yaml"
+    cfg_path.write_text(yaml.safe_dump(cfg))
+    run_dir = work / tag
+    timing = run_dir / "timing.json"
+    resume = (run_dir / LAST).is_file()
+    t0 = time.perf_counter()
+    res = train(stage, load_config(str(cfg_path)), args.data, run_dir, resume=resume, progress=True)
+    if not resume:
+        timing.write_text(json.dumps({"train_s": time.perf_counter() - t0, "steps": res.step}))
+    took = json.loads(timing.read_text()) if timing.is_file() else {}
+    m = evaluate(stage, res.last, args.data, split=args.eval_split, progress=True)
+    rows.append({"variant": name, "steps": res.step, "train_min": round(float(took.get("train_s", float("nan"))) / 60, 1),
+                 **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
+                                                               "chamfer_q50", "chamfer_q90", "seconds_per_sample",
+                                                               "peak_mb_per_sample")}})
+    return res.last
+
+
+def depth_prior_row(checkpoint: Path, args) -> dict:
+    """The 2D-prior baseline of a trained model's depth head on the eval split."""
+    from scube_sim.model.geometry import GeometryDataConfig, _grid_metrics
+    from scube_sim.model.stages import get_stage
+    from scube_sim.model.trainer import load_model
+
+    import torch
+
+    stage = get_stage("geometry")
+    model, run = load_model(stage, checkpoint)
+    data_cfg = GeometryDataConfig(**run.data)
+    ds = stage.dataset(Path(args.data), data_cfg, args.eval_split, 0)
+    preds, items = [], []
+    with torch.no_grad():
+        for i in range(len(ds)):
+            item = ds[i]
+            preds.append(model.predict_from_depth(item))
+            items.append(item)
+    m = _grid_metrics(preds, items, split=True)
+    return {"variant": "2D prior (own depth, unprojected)", "steps": "", "train_min": "",
+            **{k: round(v, 4) for k, v in m.items() if k in ("iou", "iou_visible", "iou_invisible", "chamfer_q50",
+                                                          "chamfer_q90")}}
+
+
+def ddim_trade(checkpoint: Path, args) -> list[dict]:
+    """IoU, seconds and peak memory per sample against the number of DDIM steps."""
+    from scube_sim.model.stages import get_stage
+    from scube_sim.model.trainer import evaluate_model, load_model
+    from scube_sim.model.geometry import GeometryDataConfig
+
+    stage = get_stage("geometry")
+    model, run = load_model(stage, checkpoint)
+    ds = stage.dataset(Path(args.data), GeometryDataConfig(**run.data), args.eval_split, 0)
+    rows = []
+    for steps in DDIM_STEPS:
+        model.cfg = model.cfg.model_copy(update={"sample_steps": steps})
+        m = evaluate_model(stage, model, ds, batch_size=1, progress=True)
+        rows.append({"ddim_steps": steps, "iou": round(m["iou"], 4), "miou": round(m["miou"], 4),
+                     "seconds_per_sample": round(m["seconds_per_sample"], 3),
+                     "peak_mb_per_sample": round(m["peak_mb_per_sample"], 1)})
+    return rows
+
+
+def plot_trade(rows: list[dict], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
+    for a, key, label in ((ax[0], "seconds_per_sample", "seconds per sample (2 cores)"),
+                          (ax[1], "peak_mb_per_sample", "peak memory per sample (MB)")):
+        xs, ys = [r[key] for r in rows], [r["iou"] for r in rows]
+        a.plot(xs, ys, "o-")
+        for r, x, y in zip(rows, xs, ys):
+            a.annotate(str(r.get("ddim_steps", r.get("variant"))), (x, y), textcoords="offset points", xytext=(4, 4))
+        a.set_xlabel(label)
+        a.set_ylabel("coarse IoU")
+        a.grid(alpha=0.3)
+    fig.suptitle("geometry stage: DDIM steps against IoU, time and memory")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def main(argv=None) -> None:
+    from scube_sim.model.stages import get_stage
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--vae", required=True, help="the coarse structure VAE's checkpoint (geometry-vae run)")
+    ap.add_argument("--steps", type=int, default=600, help="training steps of every variant (the budget)")
+    ap.add_argument("--work", default=str(BENCH_DIR / ".cache" / "ablate_geometry"))
+    ap.add_argument("--eval-split", default="test")
+    ap.add_argument("--only", nargs="*", default=None, help="variants to run (default: all)")
+    ap.add_argument("--checkpoint", default=None, help="the DDIM trade on this checkpoint instead of the diffusion variant's")
+    args = ap.parse_args(argv)
+    stage = get_stage("geometry")
+    base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse.yaml").read_text())
+    Path(args.work).mkdir(parents=True, exist_ok=True)
+    rows, diffusion_ck = [], None
+    for name, variant in VARIANTS.items():
+        if args.only and name not in args.only:
+            continue
+        ck = _train_and_evaluate(stage, name, _config(base, variant, args.steps, args.vae), args, rows)
+        if name == "diffusion":
+            diffusion_ck = ck
+            rows.append(depth_prior_row(ck, args))
+    if rows:
+        write_results("geometry_ablation", rows, list(rows[0]),
+                      notes=f"coarse level, {args.steps} steps each on the same frozen VAE, {args.eval_split} split")
+    trade_ck = Path(args.checkpoint) if args.checkpoint else diffusion_ck
+    if trade_ck is not None:
+        trade = ddim_trade(trade_ck, args)
+        write_results("geometry_ddim", trade, list(trade[0]), notes=f"checkpoint {trade_ck}, {args.eval_split} split")
+        plot_trade(trade, REPO / "docs" / "geometry_trade.png")
+
+
+if __name__ == "__main__":
+    main()
