@@ -164,13 +164,6 @@ class GeometryModelConfig(StrictModel):
     def _check(self):
         if self.far <= self.near:
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
-        if self.level == "fine":
-            unsupported = [k for k, bad in (("attention_levels", bool(self.attention_levels)),
-                                            ("layout", self.layout != "plain"),
-                                            ("vae.input_width", self.vae.input_width is not None),
-                                            ("vae.decoder_blocks", self.vae.decoder_blocks is not None)) if bad]
-            if unsupported:
-                raise ValueError(f"the fine level's sparse networks do not implement {', '.join(unsupported)} yet")
         if self.sample_steps > self.train_steps:
             raise ValueError(f"sample_steps ({self.sample_steps}) cannot exceed train_steps ({self.train_steps})")
         return self
@@ -389,7 +382,8 @@ class GeometryNet(nn.Module):
         self.conditioner = ImageConditioner(cfg, None if self.fine else self.vae.stride)
         lat = cfg.vae.latent_channels
         if self.fine:
-            self.denoiser = SparseDenoiser(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups)
+            self.denoiser = SparseDenoiser(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
+                                           attention_levels=cfg.attention_levels, heads=cfg.heads, layout=cfg.layout)
         else:
             self.denoiser = Denoiser3d(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
                                        attention_levels=cfg.attention_levels, heads=cfg.heads, layout=cfg.layout)

@@ -55,6 +55,10 @@ class VAEConfig(StrictModel):
     groups: int = Field(default=8, ge=1)
     input_width: int | None = Field(default=None, ge=1)
     decoder_blocks: int | None = Field(default=None, ge=1)
+    # The last level's children: None, one 1x1x1 head for the 8 children's occupancy and labels of
+    # each voxel; 3, their occupancy from a 3x3x3 convolution (a surface's neighbours say which
+    # children it passes through) and their labels from a 1x1x1 one.
+    child_kernel: int | None = Field(default=None, ge=1, le=3)
 
 
 # ---------------------------------------------------------------------------- building blocks
@@ -165,7 +169,13 @@ class StructureVAE(nn.Module):
             self.occ_heads.append(nn.Conv3d(w[i], 1, 1))
             if i > 0:
                 self.up.append(nn.ConvTranspose3d(w[i], w[i - 1], 2, stride=2))
-        self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8 * (1 + NUM_LABELS), 1))
+        if cfg.child_kernel is None:
+            self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8 * (1 + NUM_LABELS), 1))
+            self.child_labels = None
+        else:
+            k = cfg.child_kernel
+            self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8, k, padding=k // 2))
+            self.child_labels = nn.Conv3d(w[0], 8 * NUM_LABELS, 1)
         # running RMS of the posterior means: the diffusion works on latents / latent_std
         self.register_buffer("latent_std", torch.ones(()))
         self.register_buffer("_latent_sq", torch.zeros(()))
@@ -202,9 +212,16 @@ class StructureVAE(nn.Module):
             occ.append(self.occ_heads[i](x)[:, 0])
             if i < len(self.up):
                 x = self.up[i](x)
-        y = self.child_head(x)  # (B, 8 (1 + L), X/2, Y/2, Z/2): 8 children per voxel
-        b, _, X, Y, Z = y.shape
-        y = y.reshape(b, 2, 2, 2, 1 + NUM_LABELS, X, Y, Z).permute(0, 4, 5, 1, 6, 2, 7, 3)
+        if self.child_labels is None:
+            y = self.child_head(x)  # (B, 8 (1 + L), X/2, Y/2, Z/2): 8 children per voxel
+            b, _, X, Y, Z = y.shape
+            y = y.reshape(b, 2, 2, 2, 1 + NUM_LABELS, X, Y, Z)
+        else:
+            occ_c = self.child_head(x)
+            b, _, X, Y, Z = occ_c.shape
+            lab_c = self.child_labels(F.silu(self.child_head[0](x)))
+            y = torch.cat([occ_c.reshape(b, 2, 2, 2, 1, X, Y, Z), lab_c.reshape(b, 2, 2, 2, NUM_LABELS, X, Y, Z)], 4)
+        y = y.permute(0, 4, 5, 1, 6, 2, 7, 3)
         y = y.reshape(b, 1 + NUM_LABELS, 2 * X, 2 * Y, 2 * Z)
         return occ, y[:, 0], y[:, 1:]
 

@@ -10,7 +10,16 @@ Decoding from the latent sites (stride 2^L) down: each site's 8 children are can
 occupancy a per-site head predicts; the occupied ones (the ground truth's in training, the
 prediction's at inference) get features by a transposed convolution onto them, and so on down to
 stride 1, where the last head gives each child's occupancy and label logits directly (no
-convolution runs on the finest grid).
+convolution runs on the finest grid). Optionally (`VAEConfig`) a stem at the fine grid's own
+resolution precedes the first halving (`input_width`) and each decoder level has its own block
+count (`decoder_blocks`), as `geometry_nets.StructureVAE` (`SparseStructureVAE` lists the
+differences that remain).
+
+The denoiser (`SparseDenoiser`) has the dense `Denoiser3d`'s two layouts: ``plain`` (the
+original sparse U-Net) and ``ldm`` (XCube's / LDM's UNet, block for block the dense one's, with
+sparse average pooling and nearest up-sampling onto the encoder's own grids between levels), and
+optional multi-head self-attention over the active sites of each batch element
+(`SparseSelfAttention`).
 """
 
 from __future__ import annotations
@@ -19,8 +28,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ..errors import InputError
 from ..labels import LABEL_NAMES
-from .geometry_nets import VAEConfig, timestep_embedding, track_latent_rms
+from .geometry_nets import DENOISER_LAYOUTS, VAEConfig, timestep_embedding, track_latent_rms
 from .sparse import (Grid, SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseTensor, SubmanifoldConv3d,
                      cat_features, kernel_offsets, make_norm, site_order)
 
@@ -28,24 +38,113 @@ NUM_LABELS = len(LABEL_NAMES)
 _OFFS = kernel_offsets(2)  # (8, 3): child m of site o is 2 o + _OFFS[m]
 
 
+def parent_rows(fine: Grid, coarse: Grid) -> torch.Tensor:
+    """(len(fine),) int64: the row in `coarse` (twice the stride) of each fine site's parent
+    (fine ijk // 2), cached on `fine`. Every parent must be a site of `coarse`."""
+    def build():
+        q = torch.cat([fine.coords[:, :1], torch.div(fine.coords[:, 1:], 2, rounding_mode="floor")], 1)
+        rows = coarse.lookup(q)
+        if bool((rows < 0).any()):
+            raise InputError("sparse resampling: a site's parent is not on the coarser grid")
+        return rows
+    return fine.cached(("parent", coarse), build)
+
+
+def avg_pool2(x: SparseTensor) -> SparseTensor:
+    """2x2x2 average pooling onto the strided grid (`Grid.downsample(2, 2)`, the grid a strided
+    2x2x2 convolution of `x` lands on): each parent gets the mean of its active children (dense
+    `avg_pool3d` would count the empty children as zeros)."""
+    coarse, _ = x.grid.downsample(2, 2)
+    parent = parent_rows(x.grid, coarse)
+    count = torch.bincount(parent, minlength=len(coarse)).clamp_min(1).to(x.feats.dtype)
+    out = x.feats.new_zeros(len(coarse), x.num_channels).index_add(0, parent, x.feats)
+    return SparseTensor(out / count[:, None], coarse)
+
+
+def upsample_nearest2(x: SparseTensor, target: Grid) -> SparseTensor:
+    """Nearest up-sampling onto `target`'s sites (half x's stride): each site takes its parent's
+    features."""
+    return SparseTensor(x.feats[parent_rows(target, x.grid)], target)
+
+
+class SparseSiLU(nn.Module):
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        return x.replace(F.silu(x.feats))
+
+
 class TimeResBlock(nn.Module):
     """Sparse pre-norm residual block (group norm, SiLU, 3^3 submanifold convolutions), adding a
-    per-sample embedding (B, E) after the first convolution when `emb` > 0."""
+    per-sample embedding (B, E) after the first convolution when `emb` > 0 (the sparse
+    `geometry_nets.ResBlock3d`, with the same modules and parameters). scale_shift: the
+    embedding gives a scale and a shift of the second normalisation instead (FiLM). resample
+    ``down`` / ``up``: the block moves both branches, after the first normalisation, to the
+    2x2x2-pooled grid (`avg_pool2`) / onto `target`'s sites (`upsample_nearest2`)."""
 
-    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0):
+    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0, scale_shift: bool = False,
+                 resample: str | None = None):
         super().__init__()
+        if scale_shift and not emb:
+            raise ValueError("scale_shift needs an embedding (emb > 0)")
+        if resample not in (None, "down", "up"):
+            raise ValueError(f"resample: expected None, 'down' or 'up', got {resample!r}")
         self.n1, self.c1 = make_norm("group", cin, groups), SubmanifoldConv3d(cin, cout, 3)
         self.n2, self.c2 = make_norm("group", cout, groups), SubmanifoldConv3d(cout, cout, 3)
-        self.emb = nn.Linear(emb, cout) if emb else None
+        self.emb = nn.Linear(emb, (2 if scale_shift else 1) * cout) if emb else None
         self.skip = SparseLinear(cin, cout) if cin != cout else None
+        self.scale_shift, self.resample = scale_shift, resample
 
-    def forward(self, x: SparseTensor, emb: torch.Tensor | None = None) -> SparseTensor:
-        h = self.c1(x.replace(F.silu(self.n1(x).feats)))
-        if self.emb is not None:
-            h = h.replace(h.feats + self.emb(emb)[x.grid.batch])
-        h = self.c2(h.replace(F.silu(self.n2(h).feats)))
+    def forward(self, x: SparseTensor, emb: torch.Tensor | None = None, target: Grid | None = None) -> SparseTensor:
+        h = x.replace(F.silu(self.n1(x).feats))
+        if self.resample == "down":
+            h, x = avg_pool2(h), avg_pool2(x)
+        elif self.resample == "up":
+            if target is None:
+                raise ValueError("an up-sampling block needs the target grid")
+            h, x = upsample_nearest2(h, target), upsample_nearest2(x, target)
+        h = self.c1(h)
+        if self.scale_shift:
+            scale, shift = self.emb(emb)[h.grid.batch].chunk(2, 1)
+            h = self.c2(h.replace(F.silu(self.n2(h).feats * (1 + scale) + shift)))
+        else:
+            if self.emb is not None:
+                h = h.replace(h.feats + self.emb(emb)[x.grid.batch])
+            h = self.c2(h.replace(F.silu(self.n2(h).feats)))
         s = self.skip(x).feats if self.skip is not None else x.feats
         return h.replace(h.feats + s)
+
+
+class SparseSelfAttention(nn.Module):
+    """Multi-head self-attention over the active sites of each batch element separately (the
+    sparse `geometry_nets.SelfAttention3d`, the same parameters): x + proj(attention(qkv(norm(x)))).
+    No positional encoding; the output projection starts at zero (a new block is the identity).
+    One `scaled_dot_product_attention` per batch element (its sites are one contiguous run of
+    rows, the grid's order): O(N_b^2) work, and O(N_b) memory where a fused kernel runs."""
+
+    def __init__(self, channels: int, heads: int, groups: int):
+        super().__init__()
+        if heads < 1 or channels % heads:
+            raise ValueError(f"attention: {channels} channels do not split into {heads} heads")
+        self.heads = heads
+        self.norm = make_norm("group", channels, groups)
+        self.qkv = SparseLinear(channels, 3 * channels)
+        self.proj = SparseLinear(channels, channels)
+        nn.init.zeros_(self.proj.weight)
+        nn.init.zeros_(self.proj.bias)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        n, c = x.feats.shape
+        qkv = self.qkv(self.norm(x)).feats.reshape(n, 3, self.heads, c // self.heads)
+        # group the rows by batch element: a grid's rows are sorted by batch, so each element's
+        # are one contiguous run of grid.counts[b] rows
+        runs = torch.bincount(x.grid.batch, minlength=x.batch_size).tolist()
+        out = []
+        for part in qkv.split(runs):
+            if not len(part):
+                continue
+            q, k, v = part.permute(1, 2, 0, 3).unbind(0)  # each (heads, N_b, C / heads)
+            out.append(F.scaled_dot_product_attention(q, k, v).transpose(0, 1).reshape(len(part), c))
+        out = torch.cat(out) if out else x.feats.new_zeros(0, c)
+        return x.replace(x.feats + self.proj(x.replace(out)).feats)
 
 
 def child_coords(coords: torch.Tensor) -> torch.Tensor:
@@ -73,24 +172,43 @@ def member(coords: torch.Tensor, of: torch.Tensor) -> torch.Tensor:
 
 class SparseStructureVAE(nn.Module):
     """Fine structure VAE (module docstring). `encode` takes the fine voxels (N, 4) [b, i, j, k]
-    with labels; the latent sites are their ancestors at stride 2^L."""
+    with labels; the latent sites are their ancestors at stride 2^L.
+
+    The optional layout of `VAEConfig`, as the dense `StructureVAE`'s: `input_width` adds a stem
+    on the fine voxels themselves (a 3^3 submanifold convolution to input_width channels and
+    `blocks` residual blocks) before the first halving; `decoder_blocks` gives each decoder level
+    that many residual blocks (`dec` holds each level's first, `dec_more` the rest). Differences
+    from the dense layout, all of the sparse decoding or kept for the original state-dict keys:
+    decoder_blocks None is one block per level (dense: max(1, blocks)); the latent projections
+    are per-site linear layers (dense: a norm and SiLU before `to_latent`, a 3^3 convolution for
+    `from_latent`); each level's occupancy head predicts its 8 children's occupancy (the sites
+    themselves are given), so the coarsest level has none of its own and the finest is the final
+    head's; the final head has no norm before it. With input_width and decoder_blocks None the
+    modules and the state-dict keys are the original ones."""
 
     def __init__(self, cfg: VAEConfig):
         super().__init__()
-        if cfg.input_width is not None or cfg.decoder_blocks is not None:
-            raise ValueError("vae: the sparse (fine) structure VAE does not implement input_width / decoder_blocks")
         self.cfg = cfg
         w, g, lat = cfg.widths, cfg.groups, cfg.latent_channels
         self.levels = len(w)
-        self.down = nn.ModuleList()
         cin = 1 + NUM_LABELS
+        self.stem = None
+        if cfg.input_width is not None:  # at the fine grid's own resolution (stride 1)
+            self.stem = nn.ModuleList([SubmanifoldConv3d(cin, cfg.input_width, 3)] +
+                                      [TimeResBlock(cfg.input_width, cfg.input_width, g) for _ in range(cfg.blocks)])
+            cin = cfg.input_width
+        self.down = nn.ModuleList()
         for c in w:
             self.down.append(nn.ModuleList([SparseConv3d(cin, c, 2, 2)] +
                                            [TimeResBlock(c, c, g) for _ in range(cfg.blocks)]))
             cin = c
         self.to_latent = SparseLinear(w[-1], 2 * lat)
         self.from_latent = SparseLinear(lat, w[-1])
-        self.dec = nn.ModuleList([TimeResBlock(w[i], w[i], g) for i in range(self.levels - 1, -1, -1)])
+        dec_levels = range(self.levels - 1, -1, -1)  # decoder levels at stride 2^(i+1), coarsest first
+        more = (cfg.decoder_blocks if cfg.decoder_blocks is not None else 1) - 1
+        self.dec = nn.ModuleList([TimeResBlock(w[i], w[i], g) for i in dec_levels])
+        self.dec_more = nn.ModuleList([nn.ModuleList([TimeResBlock(w[i], w[i], g) for _ in range(more)])
+                                       for i in dec_levels])
         # level i (stride 2^(i+1)) -> its children at stride 2^i: occupancy per child, and for i > 0
         # the kept children's features
         self.occ = nn.ModuleList([SparseLinear(w[i], 8) for i in range(self.levels - 1, 0, -1)])
@@ -108,6 +226,10 @@ class SparseStructureVAE(nn.Module):
         """Fine voxels -> (mu on the latent sites (stride 2^L), logvar (N, latent))."""
         feats = torch.cat([torch.ones(len(coords), 1), F.one_hot(labels, NUM_LABELS).float()], 1)
         x = SparseTensor.from_coords(coords, feats, batch_size=batch_size)
+        if self.stem is not None:
+            x = self.stem[0](x)
+            for b in self.stem[1:]:
+                x = b(x)
         for conv, *blocks in self.down:
             x = conv(x)
             for b in blocks:
@@ -115,12 +237,18 @@ class SparseStructureVAE(nn.Module):
         mu, logvar = self.to_latent(x).feats.chunk(2, 1)
         return x.replace(mu), logvar.clamp(-30.0, 20.0)
 
+    def _dec_level(self, i: int, x: SparseTensor) -> SparseTensor:
+        x = self.dec[i](x)
+        for b in self.dec_more[i]:
+            x = b(x)
+        return x
+
     def decode(self, z: SparseTensor, target: torch.Tensor | None = None, threshold: float = 0.0):
         """Latent on its sites -> (candidate occupancy per level [(coords (M, 4), logits (M,))],
         coarsest first, the last at stride 1 with (M, L) label logits as a third element).
         target: the fine voxels (N, 4) to keep at every level (teacher forcing), else the
         prediction's (logit > threshold)."""
-        x = self.dec[0](z.replace(self.from_latent(z).feats))
+        x = self._dec_level(0, z.replace(self.from_latent(z).feats))
         out = []
         for i in range(self.levels - 1):
             logits = self.occ[i](x).feats.reshape(-1)  # (8 N,) in child order of each site
@@ -132,7 +260,7 @@ class SparseStructureVAE(nn.Module):
             else:
                 keep = logits > threshold
             kept = grid_of(cand[keep], x.batch_size, x.stride // 2)
-            x = self.dec[i + 1](self.up[i](x, kept))
+            x = self._dec_level(i + 1, self.up[i](x, kept))
         y = self.final(x).feats.reshape(len(x), 8, 1 + NUM_LABELS)
         cand = child_coords(x.coords).reshape(-1, 4)
         out.append((cand, y[..., 0].reshape(-1), y[..., 1:].reshape(-1, NUM_LABELS)))
@@ -178,43 +306,142 @@ def decoded_voxels(levels, threshold: float = 0.0) -> tuple[torch.Tensor, torch.
 
 class SparseDenoiser(nn.Module):
     """Sparse U-Net with a timestep embedding: (latent + condition on the latent sites, t (B,)) ->
-    v (N, latent). widths per level (halving between), `blocks` residual blocks per level."""
+    v (N, latent). widths per level (halving between), `blocks` residual blocks per level.
 
-    def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int):
+    `layout` ``plain`` (the original: `stem`, per level `blocks` encoder blocks, a strided 2x2x2
+    convolution changing the width between levels, a transposed one back onto the encoder's grid
+    and `blocks` decoder blocks, no middle, a linear `head`) or ``ldm``: the dense `Denoiser3d`'s
+    ldm layout block for block, with the same modules, names and parameter counts (XCube's /
+    LDM's UNet: `blocks` per encoder level and `blocks` + 1 per decoder level, residual blocks
+    that average-pool onto the strided grid / nearest-up-sample onto the encoder's grid between
+    levels, scale-shift timestep conditioning, a middle of two blocks, zero-initialised residual
+    branches). `attention_levels`: levels with multi-head self-attention over each batch
+    element's sites (`heads` heads) after each of their residual blocks, in the encoder and the
+    decoder, and (ldm) between the middle blocks when the deepest level is listed; the plain
+    layout has no middle, and no decoder blocks at the deepest level. Self-attention over a level
+    of N sites per element costs O(N^2): list only small levels. With layout plain and no
+    attention the modules and the state-dict keys are the original ones."""
+
+    def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int,
+                 attention_levels: tuple[int, ...] = (), heads: int = 8, layout: str = "plain"):
         super().__init__()
+        if layout not in DENOISER_LAYOUTS:
+            raise ValueError(f"layout: expected one of {', '.join(DENOISER_LAYOUTS)}, got {layout!r}")
+        levels = len(widths)
+        attn = set(attention_levels)
+        bad = sorted(a for a in attn if not 0 <= a < levels)
+        if bad:
+            raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
+        self.widths, self.blocks, self.layout = tuple(widths), blocks, layout
+        self.attention_levels = tuple(sorted(attn))
         self.emb_dim = widths[0]
         emb = 4 * widths[0]
+
+        def att(channels: int, level: int) -> nn.Module:
+            return SparseSelfAttention(channels, heads, groups) if level in attn else nn.Identity()
+
         self.time = nn.Sequential(nn.Linear(widths[0], emb), nn.SiLU(), nn.Linear(emb, emb))
+        if layout == "ldm":
+            self._build_ldm(latent, cond, widths, blocks, groups, emb, att)
+            return
         self.stem = SubmanifoldConv3d(latent + cond, widths[0], 3)
         self.enc, self.down, self.up, self.dec = nn.ModuleList(), nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        # one attention module per residual block (Identity where its level has none: no keys)
+        self.enc_attn, self.dec_attn = nn.ModuleList(), nn.ModuleList()
         for i, w in enumerate(widths):
             self.enc.append(nn.ModuleList([TimeResBlock(w, w, groups, emb) for _ in range(blocks)]))
+            self.enc_attn.append(nn.ModuleList([att(w, i) for _ in range(blocks)]))
             if i + 1 < len(widths):
                 self.down.append(SparseConv3d(w, widths[i + 1], 2, 2))
         for i in range(len(widths) - 2, -1, -1):
             self.up.append(SparseConvTranspose3d(widths[i + 1], widths[i], 2, 2))
             self.dec.append(nn.ModuleList([TimeResBlock(2 * widths[i], widths[i], groups, emb)] +
                                           [TimeResBlock(widths[i], widths[i], groups, emb) for _ in range(blocks - 1)]))
+            self.dec_attn.append(nn.ModuleList([att(widths[i], i) for _ in range(max(blocks, 1))]))
         self.head = SparseLinear(widths[0], latent)
         nn.init.zeros_(self.head.weight)
         nn.init.zeros_(self.head.bias)
 
+    def _build_ldm(self, latent, cond, widths, blocks, groups, emb, att) -> None:
+        """The modules of `Denoiser3d`'s ldm layout (the same names), sparse."""
+        levels = len(widths)
+
+        def res(cin: int, cout: int, resample: str | None = None) -> TimeResBlock:
+            return TimeResBlock(cin, cout, groups, emb, scale_shift=True, resample=resample)
+
+        self.inp = SubmanifoldConv3d(latent + cond, widths[0], 3)
+        self.enc, self.enc_attn, self.downs = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        c = widths[0]
+        skips = [c]  # the input convolution's output is a skip too
+        for i, wd in enumerate(widths):
+            for _ in range(blocks):
+                self.enc.append(res(c, wd))
+                c = wd
+                self.enc_attn.append(att(c, i))
+                skips.append(c)
+            if i + 1 < levels:
+                self.downs.append(res(c, c, "down"))
+                skips.append(c)
+        self.mid = res(c, c)
+        self.mid_attn = att(c, levels - 1)
+        self.mid2 = res(c, c)
+        self.dec, self.dec_attn, self.ups = nn.ModuleList(), nn.ModuleList(), nn.ModuleList()
+        self.dec_per_level = blocks + 1
+        for i, wd in reversed(list(enumerate(widths))):
+            for _ in range(self.dec_per_level):
+                self.dec.append(res(c + skips.pop(), wd))
+                c = wd
+                self.dec_attn.append(att(c, i))
+            if i > 0:
+                self.ups.append(res(c, c, "up"))
+        self.out = nn.Sequential(make_norm("group", c, groups), SparseSiLU(), SubmanifoldConv3d(c, latent, 3))
+        nn.init.zeros_(self.out[-1].weight)
+        nn.init.zeros_(self.out[-1].bias)
+        for m in self.modules():  # LDM zero-initialises every residual branch's last convolution
+            if isinstance(m, TimeResBlock):
+                nn.init.zeros_(m.c2.weight)
+                nn.init.zeros_(m.c2.bias)
+
     def forward(self, x: SparseTensor, t: torch.Tensor) -> SparseTensor:
         e = self.time(timestep_embedding(t, self.emb_dim))
+        if self.layout == "ldm":
+            return self._forward_ldm(x, e)
         h = self.stem(x)
         skips = []
-        for i, blocks in enumerate(self.enc):
-            for b in blocks:
-                h = b(h, e)
+        for i, (blocks, attns) in enumerate(zip(self.enc, self.enc_attn)):
+            for b, a in zip(blocks, attns):
+                h = a(b(h, e))
             if i < len(self.down):
                 skips.append(h)
                 h = self.down[i](h)
-        for up, blocks in zip(self.up, self.dec):
+        for up, blocks, attns in zip(self.up, self.dec, self.dec_attn):
             skip = skips.pop()
             h = cat_features(up(h, skip), skip)
-            for b in blocks:
-                h = b(h, e)
+            for b, a in zip(blocks, attns):
+                h = a(b(h, e))
         return self.head(h)
 
+    def _forward_ldm(self, x: SparseTensor, e: torch.Tensor) -> SparseTensor:
+        x = self.inp(x)
+        hs, k = [x], 0
+        for i in range(len(self.widths)):
+            for _ in range(self.blocks):
+                x = self.enc_attn[k](self.enc[k](x, e))
+                k += 1
+                hs.append(x)
+            if i < len(self.downs):
+                x = self.downs[i](x, e)  # onto x.grid.downsample(2, 2): the grid a strided conv makes
+                hs.append(x)
+        x = self.mid2(self.mid_attn(self.mid(x, e)), e)
+        k = 0
+        for j in range(len(self.widths)):
+            for _ in range(self.dec_per_level):
+                x = self.dec_attn[k](self.dec[k](cat_features(x, hs.pop()), e))
+                k += 1
+            if j < len(self.ups):
+                x = self.ups[j](x, e, target=hs[-1].grid)  # back onto the encoder's grid of that level
+        return self.out(x)
 
-__all__ = ["SparseDenoiser", "SparseStructureVAE", "TimeResBlock", "child_coords", "decoded_voxels", "member"]
+
+__all__ = ["SparseDenoiser", "SparseSelfAttention", "SparseStructureVAE", "TimeResBlock", "avg_pool2", "child_coords",
+           "decoded_voxels", "member", "upsample_nearest2"]

@@ -83,10 +83,11 @@ def _vae_batch(data):
     return stage, [ds[0]]
 
 
-def test_structure_vae_overfits_one_grid(data):
+@pytest.mark.parametrize("child_kernel", [None, 3])
+def test_structure_vae_overfits_one_grid(data, child_kernel):
     torch.manual_seed(0)
     stage, batch = _vae_batch(data)
-    model = stage.build_model(stage.model_config(vae=VAEConfig(**VAE)))
+    model = stage.build_model(stage.model_config(vae=VAEConfig(**VAE, child_kernel=child_kernel)))
     assert len(batch[0]["gt_ijk"]) > 50
     opt = torch.optim.Adam(model.parameters(), 1e-2)
     model.eval()

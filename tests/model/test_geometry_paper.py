@@ -9,6 +9,7 @@ import torch
 
 from scube_sim.model.config import configs_dir, load_config, stage_configs
 from scube_sim.model.geometry_nets import Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
+from scube_sim.model.geometry_sparse import SparseDenoiser, SparseSelfAttention, SparseStructureVAE
 from scube_sim.model.stages import get_stage
 
 META = torch.device("meta")
@@ -19,9 +20,6 @@ PAPER_SIZE = {"geometry-vae-coarse-paper": 14.9e6, "geometry-vae-fine-paper": 3.
 # XCube's UNet (GeometryModelConfig.layout)
 PAPER_LAYOUT = "ldm"
 
-
-FINE_XFAIL = pytest.mark.xfail(strict=True, reason="the fine level's sparse networks do not implement the paper's "
-                               "layout (attention, ldm, the VAE's input_width / decoder_blocks) yet")
 
 
 def _run(name: str):
@@ -106,7 +104,6 @@ def test_the_coarse_diffusion_as_geometry_builds_it_is_the_papers_size():
     assert _within("geometry-coarse-paper", _params(net.denoiser), " (GeometryNet's denoiser)")
 
 
-@FINE_XFAIL
 @pytest.mark.parametrize("name", ["geometry-vae-fine-paper", "geometry-fine-paper"])
 def test_the_fine_configs_validate_and_build(name):
     stage, model_cfg, data_cfg = _validated(name)
@@ -116,6 +113,21 @@ def test_the_fine_configs_validate_and_build(name):
         net = stage.build_model(model_cfg)
     parts = ", ".join(f"{k} {_params(v) / 1e6:.2f} M ({type(v).__name__})" for k, v in net.named_children())
     print(f"\n{name} as geometry.py builds it: {parts}")
+    assert isinstance(net.vae, SparseStructureVAE)
+    assert net.vae.stem is not None and all(len(m) == 1 for m in net.vae.dec_more)  # input_width, decoder_blocks 2
+    if name == "geometry-vae-fine-paper":
+        assert _within(name, _params(net.vae), " (the geometry-vae stage's SparseStructureVAE)")
+    else:
+        den = net.denoiser
+        assert isinstance(den, SparseDenoiser) and den.layout == "ldm" and den.attention_levels == (3,)
+        assert isinstance(den.mid_attn, SparseSelfAttention)
+        assert _within(name, _params(den), " (GeometryNet's SparseDenoiser)")
+        assert _params(den) == _params(_paper_denoiser(_run(name).model))  # the dense count, exactly
+        # the diffusion's frozen VAE is the VAE config's network
+        _, vae_cfg, _ = _validated("geometry-vae-fine-paper")
+        with META:
+            vae_net = get_stage("geometry-vae").build_model(vae_cfg)
+        assert _shapes(net.vae) == _shapes(vae_net.vae)
 
 
 # ---------------------------------------------------------------------------- attention, layouts
