@@ -8,10 +8,14 @@ Conventions used everywhere in scube_sim:
   child frame into the parent frame: ``p_parent = R @ p_child + t``.
 - Euler angles are roll, pitch, yaw about x, y, z applied as ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)``
   (intrinsic z-y'-x'', the usual vehicle convention); sensor frames are x forward, y left, z up.
+- Our frame is right-handed, metres, x forward, y left, z up (ROS REP-103 body frame). Other
+  tools' axis conventions (CARLA/Unreal, OpenCV, nuScenes LIDAR_TOP, USD, OpenSCENARIO angles)
+  are converted only through the "Frame conventions" section at the end of this module.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Callable
 
 import numpy as np
@@ -225,3 +229,231 @@ def check_pose(t, name: str = "pose") -> np.ndarray:
     if not np.allclose(t[3], [0, 0, 0, 1]):
         raise InputError(f"{name}: last row must be [0, 0, 0, 1]")
     return t
+
+
+# --- Frame conventions ------------------------------------------------------------------------
+# Every other tool's axes are described by one matrix: the convention's x, y, z unit axes written
+# in our frame (x forward, y left, z up, metres). Points convert by that matrix (and the unit);
+# a pose whose parent and child frames both follow a convention converts by conjugation, which
+# keeps the rotation proper even when the convention is left-handed (CARLA/Unreal).
+
+
+@dataclass(frozen=True)
+class FrameConvention:
+    """A named axis convention.
+
+    basis: (3, 3) float64, columns = the convention's x, y, z unit axes expressed in our frame
+    (x forward, y left, z up). meters_per_unit: metres per coordinate unit (Unreal: 0.01).
+    A point converts as ``p_ours = meters_per_unit * basis @ p_conv``."""
+
+    name: str
+    basis: np.ndarray = field(repr=False)
+    meters_per_unit: float = 1.0
+    description: str = ""
+
+    @property
+    def right_handed(self) -> bool:
+        return bool(np.linalg.det(self.basis) > 0)
+
+
+def _axes(*cols) -> np.ndarray:
+    b = np.array(cols, dtype=np.float64).T
+    b.setflags(write=False)
+    return b
+
+
+_F, _B, _L, _R, _U, _D = (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)
+
+FRAME_CONVENTIONS: dict[str, FrameConvention] = {c.name: c for c in [
+    FrameConvention("ours", _axes(_F, _L, _U), 1.0,
+                    "scube_sim: right-handed, x forward, y left, z up, metres (ROS REP-103 body frame)"),
+    FrameConvention("rep103", _axes(_F, _L, _U), 1.0,
+                    "ROS REP-103 body frame: x forward, y left, z up, metres (the same as ours)"),
+    FrameConvention("carla", _axes(_F, _R, _U), 1.0,
+                    "CARLA Python API (Unreal axes): LEFT-handed, x forward, y right, z up, metres"),
+    FrameConvention("unreal", _axes(_F, _R, _U), 0.01,
+                    "Unreal Engine: LEFT-handed, x forward, y right, z up, centimetres"),
+    FrameConvention("opencv", _axes(_R, _D, _F), 1.0,
+                    "OpenCV camera: x right, y down, z forward (optical axis), metres"),
+    FrameConvention("nuscenes_lidar", _axes(_R, _F, _U), 1.0,
+                    "nuScenes LIDAR_TOP sensor frame: x right, y forward, z up, metres"),
+    FrameConvention("usd_z_up", _axes(_F, _L, _U), 1.0,
+                    "USD stage with upAxis Z and metersPerUnit 1 (what scube_sim writes): our axes"),
+    # USD fixes only the up axis; Y-up pairs with our axes by the usual Z-up -> Y-up turn about x
+    # (as glTF and DCC exporters do): (x, y, z)_ours = (x, -z, y)_usd.
+    FrameConvention("usd_y_up", _axes(_F, _U, _R), 1.0,
+                    "USD stage with upAxis Y (metersPerUnit 1): x forward, y up, z right"),
+]}
+
+USD_FALLBACK_UP_AXIS = "Y"  # UsdGeom's fallback when a stage has no upAxis
+USD_FALLBACK_METERS_PER_UNIT = 0.01  # UsdGeom's fallback (centimetres) when metersPerUnit is unset
+
+
+def frame_convention(frame: "str | FrameConvention") -> FrameConvention:
+    """A convention by name (see `FRAME_CONVENTIONS`) or the object itself."""
+    if isinstance(frame, FrameConvention):
+        return frame
+    key = str(frame).lower().replace("-", "_")
+    if key not in FRAME_CONVENTIONS:
+        raise InputError(f"frame convention {frame!r}: unknown; expected one of {sorted(FRAME_CONVENTIONS)}")
+    return FRAME_CONVENTIONS[key]
+
+
+def usd_frame_convention(up_axis: str | None = None, meters_per_unit: float | None = None) -> FrameConvention:
+    """The convention of a USD stage from its authored metadata; None means unset, which USD
+    reads as upAxis "Y" and metersPerUnit 0.01 (centimetres), not as our Z-up metres."""
+    up = USD_FALLBACK_UP_AXIS if up_axis is None else str(up_axis).upper()
+    mpu = USD_FALLBACK_METERS_PER_UNIT if meters_per_unit is None else float(meters_per_unit)
+    if up not in ("Y", "Z"):
+        raise InputError(f"USD upAxis: expected 'Y' or 'Z', got {up_axis!r}")
+    if not (np.isfinite(mpu) and mpu > 0):
+        raise InputError(f"USD metersPerUnit: expected a finite number > 0, got {meters_per_unit!r}")
+    base = FRAME_CONVENTIONS["usd_z_up" if up == "Z" else "usd_y_up"]
+    return FrameConvention(f"usd_{up.lower()}_up@{mpu:g}m", base.basis, mpu,
+                           f"USD stage: upAxis {up}, metersPerUnit {mpu:g}")
+
+
+def check_rotation(r, name: str = "rotation") -> np.ndarray:
+    """Validate a (3, 3) or (N, 3, 3) proper rotation (orthonormal, det +1) -> float64.
+
+    A det -1 matrix is a reflection: a handedness mirror, typically a left-handed (CARLA/Unreal)
+    matrix taken as ours, or a y flip applied to one side of a pose only."""
+    r = np.asarray(r, dtype=np.float64)
+    if r.shape[-2:] != (3, 3):
+        raise InputError(f"{name}: expected (3, 3) rotation matrices, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise InputError(f"{name}: contains NaN or Inf")
+    rt = np.swapaxes(r, -1, -2)
+    if not np.allclose(np.einsum("...ij,...jk->...ik", r, rt), np.eye(3), atol=1e-5):
+        raise InputError(f"{name}: not orthonormal (R R^T != I)")
+    det = np.linalg.det(r)
+    if np.any(det < 0):
+        raise InputError(f"{name}: det {float(np.min(det)):+.3f}: a reflection, not a rotation (a handedness "
+                         f"mirror: convert left-handed CARLA/Unreal poses with pose_to_ours, which flips "
+                         f"both sides)")
+    return r
+
+
+def points_to_ours(points, frame: "str | FrameConvention") -> np.ndarray:
+    """(N, 3) points in `frame`'s axes and units -> (N, 3) float64 metres in our frame."""
+    c = frame_convention(frame)
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"points ({c.name}): expected shape (N, 3), got {p.shape}")
+    return np.einsum("ij,nj->ni", c.basis * c.meters_per_unit, p)
+
+
+def points_from_ours(points, frame: "str | FrameConvention") -> np.ndarray:
+    """(N, 3) metres in our frame -> (N, 3) float64 in `frame`'s axes and units."""
+    c = frame_convention(frame)
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise InputError(f"points ({c.name}): expected shape (N, 3), got {p.shape}")
+    return np.einsum("ji,nj->ni", c.basis / c.meters_per_unit, p)  # basis is orthonormal: inverse = transpose
+
+
+def _pose_frames(frame, child_frame) -> tuple[FrameConvention, FrameConvention]:
+    p = frame_convention(frame)
+    c = p if child_frame is None else frame_convention(child_frame)
+    if not np.isclose(p.meters_per_unit, c.meters_per_unit, rtol=1e-12):
+        raise InputError(f"pose: parent frame {p.name} ({p.meters_per_unit:g} m/unit) and child frame {c.name} "
+                         f"({c.meters_per_unit:g} m/unit) differ in units; a rigid pose cannot carry a scale")
+    return p, c
+
+
+def pose_to_ours(pose, frame: "str | FrameConvention", child_frame: "str | FrameConvention | None" = None,
+                 *, name: str = "pose") -> np.ndarray:
+    """(4, 4) or (N, 4, 4) pose `T_parent_child` written in `frame`'s conventions -> ours, float64.
+
+    frame: the parent's (world's) convention; child_frame: the child's (body's or sensor's),
+    default the same. ``R' = B_parent R B_child^T``, ``t' = meters_per_unit * B_parent t``.
+    The result is checked to be a proper rotation (`check_rotation`)."""
+    p, c = _pose_frames(frame, child_frame)
+    t = np.asarray(pose, dtype=np.float64)
+    if t.shape[-2:] != (4, 4):
+        raise InputError(f"{name} ({p.name}): expected shape (4, 4) or (N, 4, 4), got {t.shape}")
+    out = np.zeros_like(t)
+    out[..., :3, :3] = np.einsum("ij,...jk,lk->...il", p.basis, t[..., :3, :3], c.basis)
+    out[..., :3, 3] = np.einsum("ij,...j->...i", p.basis * p.meters_per_unit, t[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    check_rotation(out[..., :3, :3], f"{name} ({p.name} -> ours)")
+    return out
+
+
+def pose_from_ours(pose, frame: "str | FrameConvention", child_frame: "str | FrameConvention | None" = None,
+                   *, name: str = "pose") -> np.ndarray:
+    """The inverse of `pose_to_ours`: a (4, 4) or (N, 4, 4) pose in our frame -> `frame`'s
+    conventions (`child_frame` for the child, default the same), float64."""
+    p, c = _pose_frames(frame, child_frame)
+    t = np.asarray(pose, dtype=np.float64)
+    if t.shape[-2:] != (4, 4):
+        raise InputError(f"{name}: expected shape (4, 4) or (N, 4, 4), got {t.shape}")
+    check_rotation(t[..., :3, :3], f"{name} (ours)")
+    out = np.zeros_like(t)
+    out[..., :3, :3] = np.einsum("ji,...jk,kl->...il", p.basis, t[..., :3, :3], c.basis)
+    out[..., :3, 3] = np.einsum("ji,...j->...i", p.basis / p.meters_per_unit, t[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+# CARLA: carla.Location in metres on Unreal's left-handed axes (x forward, y right, z up);
+# carla.Rotation(pitch, yaw, roll) in degrees: yaw about z (positive turns x towards +y, i.e.
+# clockwise seen from above: a right turn), pitch about y (positive raises the nose), roll about
+# x (positive lowers the right side), applied yaw, then pitch, then roll about the turned axes.
+# The matrix is LibCarla's geom::Transform::GetMatrix; in our frame yaw and pitch change sign and
+# roll does not (as carla_ros_bridge converts).
+
+
+def carla_rotation_matrix(pitch: float, yaw: float, roll: float) -> np.ndarray:
+    """carla.Rotation angles (degrees, carla.Rotation's argument order) -> (3, 3) float64 in
+    CARLA's own left-handed axes, as LibCarla's Transform::GetMatrix builds it."""
+    p, y, r = np.deg2rad([pitch, yaw, roll])
+    cp, sp, cy, sy, cr, sr = np.cos(p), np.sin(p), np.cos(y), np.sin(y), np.cos(r), np.sin(r)
+    return np.array([
+        [cp * cy, cy * sp * sr - sy * cr, -cy * sp * cr - sy * sr],
+        [cp * sy, sy * sp * sr + cy * cr, -sy * sp * cr + cy * sr],
+        [sp, -cp * sr, cp * cr],
+    ])
+
+
+def carla_transform_to_pose(location, rotation) -> np.ndarray:
+    """A carla.Transform -> (4, 4) float64 pose in our frame (parent and child both CARLA-axed:
+    a world transform of an actor or sensor). location: (x, y, z) metres; rotation: (pitch, yaw,
+    roll) degrees, carla.Rotation's order."""
+    loc = np.asarray(location, dtype=np.float64)
+    rot = np.asarray(rotation, dtype=np.float64)
+    if loc.shape != (3,) or rot.shape != (3,) or not (np.all(np.isfinite(loc)) and np.all(np.isfinite(rot))):
+        raise InputError(f"CARLA transform: expected finite location (x, y, z) and rotation (pitch, yaw, roll), "
+                         f"got {loc.tolist()} and {rot.tolist()}")
+    return pose_to_ours(make_pose(carla_rotation_matrix(*rot), loc), "carla", name="CARLA transform")
+
+
+def pose_to_carla_transform(pose) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 4) pose in our frame -> (location (x, y, z) metres, rotation (pitch, yaw, roll) degrees)
+    for carla.Transform(carla.Location(*loc), carla.Rotation(*rot)). Inverse of
+    `carla_transform_to_pose`; at pitch +-90 deg roll is 0 and yaw carries the turn."""
+    m = pose_from_ours(check_pose(pose, "pose"), "carla")
+    r = m[:3, :3]
+    pitch = np.arcsin(np.clip(r[2, 0], -1.0, 1.0))
+    if np.hypot(r[2, 1], r[2, 2]) < 1e-12:  # gimbal lock: only yaw -+ roll is defined
+        roll, yaw = 0.0, np.arctan2(-r[0, 1], r[1, 1])
+    else:
+        roll, yaw = np.arctan2(-r[2, 1], r[2, 2]), np.arctan2(r[1, 0], r[0, 0])
+    return m[:3, 3].copy(), np.rad2deg([pitch, yaw, roll])
+
+
+# ASAM OpenSCENARIO 1.x (ISO 8855 axes, the same as ours): heading h about z, pitch p about y,
+# roll r about x, radians, right-hand rule, applied heading first, then pitch, then roll about
+# the turned axes: R = Rz(h) Ry(p) Rx(r) (as ASAM OSI writes it), i.e. `euler_to_rotmat`.
+
+
+def hpr_to_rotmat(h: float, p: float = 0.0, r: float = 0.0) -> np.ndarray:
+    """OpenSCENARIO heading, pitch, roll (radians) -> (3, 3) float64, R = Rz(h) Ry(p) Rx(r)."""
+    return euler_to_rotmat(r, p, h)
+
+
+def rotmat_to_hpr(rot) -> tuple[float, float, float]:
+    """(3, 3) rotation -> OpenSCENARIO (heading, pitch, roll) radians, the inverse of
+    `hpr_to_rotmat` (heading and roll in (-pi, pi], pitch in [-pi/2, pi/2])."""
+    roll, pitch, yaw = rotmat_to_euler(check_rotation(rot))
+    return yaw, pitch, roll

@@ -1,4 +1,4 @@
-"""Point-cloud files: PCD v0.7, PLY, KITTI .bin, .npz.
+"""Point-cloud files: PCD v0.7 (DATA ascii / binary / binary_compressed), PLY, KITTI .bin, .npz.
 
 A point cloud is a numpy *structured* array of shape (N,) with any scalar fields, e.g. the LiDAR
 output ``x y z intensity`` (float32) ``ring`` (uint16) ``time`` ``range`` ``azimuth`` (float32)
@@ -13,6 +13,7 @@ ValueError naming the file for malformed or truncated input.
 from __future__ import annotations
 
 import json
+import struct
 import zipfile
 from pathlib import Path
 
@@ -118,14 +119,18 @@ def _pcd_body(points: np.ndarray, packed: np.dtype) -> bytes:
     return out.tobytes()
 
 
-def write_pcd(path: str | Path, points: np.ndarray, *, viewpoint=None) -> Path:
+def write_pcd(path: str | Path, points: np.ndarray, *, viewpoint=None, data: str = "binary") -> Path:
     """Write binary PCD v0.7 with every field of `points`.
 
     points: structured (N,) (unorganised, HEIGHT 1) or (H, W) (organised, e.g. a range image).
     viewpoint: sensor pose in the points' frame, as 7 numbers ``tx ty tz qw qx qy qz`` or a
     (4, 4) matrix; default identity. bool is stored as U1, float16 as F4 (values exact).
+    data: ``binary`` (rows of packed fields) or ``binary_compressed`` (PCL's LZF layout: the
+    fields one after another, each for all points, LZF-compressed; needs the `lzf` module).
     """
     path = Path(path)
+    if data not in ("binary", "binary_compressed"):
+        raise InputError(f"write_pcd: data: expected 'binary' or 'binary_compressed', got {data!r}")
     points = np.asarray(points)
     if points.dtype.names is None:
         points = as_structured(points)
@@ -141,13 +146,37 @@ def write_pcd(path: str | Path, points: np.ndarray, *, viewpoint=None) -> Path:
         f"SIZE {' '.join(map(str, sizes))}\n"
         f"TYPE {' '.join(types)}\n"
         f"COUNT {' '.join(map(str, counts))}\n"
-        f"WIDTH {width}\nHEIGHT {height}\nVIEWPOINT {vp}\nPOINTS {width * height}\nDATA binary\n"
+        f"WIDTH {width}\nHEIGHT {height}\nVIEWPOINT {vp}\nPOINTS {width * height}\nDATA {data}\n"
     )
+    body = _pcd_body(points, packed) if data == "binary" else _pcd_compressed_body(points, packed)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
             fh.write(header.encode("ascii"))
-            fh.write(_pcd_body(points, packed))
+            fh.write(body)
     return path
+
+
+def _lzf():
+    try:
+        import lzf
+    except ImportError:
+        raise InputError("PCD 'DATA binary_compressed' needs the LZF codec: pip install python-neo-lzf") from None
+    return lzf
+
+
+def _pcd_compressed_body(points: np.ndarray, packed: np.dtype) -> bytes:
+    """PCL's binary_compressed block: uint32 compressed size, uint32 raw size, then LZF of the
+    fields laid out one after another (each field's values for all points, row-major)."""
+    flat = points.reshape(-1)
+    raw = b"".join(np.ascontiguousarray(flat[name], dtype=packed[name].base).tobytes() for name in packed.names)
+    if len(raw) >= 1 << 32:
+        raise InputError(f"write_pcd: {len(raw)} bytes of point data exceed binary_compressed's 4 GiB limit; "
+                         f"use data='binary'")
+    if not raw:
+        return struct.pack("<II", 0, 0)
+    # LZF output can be a little longer than its input (incompressible data): allow for it
+    comp = _lzf().compress(raw, len(raw) + len(raw) // 32 + 64)
+    return struct.pack("<II", len(comp), len(raw)) + comp
 
 
 def _parse_pcd_header(path: Path, raw: bytes) -> tuple[dict, int]:
@@ -221,7 +250,8 @@ def pcd_header(path: str | Path) -> dict:
 
 
 def read_pcd(path: str | Path) -> np.ndarray:
-    """Read a PCD file (DATA binary or ascii) into a structured (N,) array, fields as in the file.
+    """Read a PCD file (DATA ascii, binary or binary_compressed) into a structured (N,) array,
+    fields as in the file.
 
     Fields named ``_`` (PCL's alignment padding) are dropped; COUNT > 1 gives a sub-array field.
     Organised clouds come back flat (row-major); the header is available from `pcd_header`.
@@ -280,9 +310,40 @@ def read_pcd(path: str | Path) -> np.ndarray:
         return out
 
     if kind == "binary_compressed":
-        raise InputError(f"{path}: PCD 'DATA binary_compressed' (LZF) is not supported; "
-                         f"re-save it as binary or ascii (e.g. pcl_convert_pcd_ascii_binary)")
+        return _read_pcd_compressed(path, raw, start, names, dtypes, counts, n, out_dtype)
     raise InputError(f"{path}: malformed PCD header: unknown DATA kind {kind!r}")
+
+
+def _read_pcd_compressed(path, raw, start, names, dtypes, counts, n, out_dtype) -> np.ndarray:
+    what = "PCD 'DATA binary_compressed'"
+    if len(raw) - start < 8:
+        raise InputError(f"{path}: truncated {what}: no compressed/uncompressed size words after the header")
+    comp_size, raw_size = struct.unpack_from("<II", raw, start)
+    sizes = [dt.itemsize * c for dt, c in zip(dtypes, counts)]
+    need = n * sum(sizes)
+    if raw_size != need:
+        raise InputError(f"{path}: malformed {what}: the data block holds {raw_size} bytes, but {n} points of "
+                         f"{sum(sizes)} bytes need {need}")
+    have = len(raw) - start - 8
+    if have < comp_size:
+        raise InputError(f"{path}: truncated {what}: {comp_size} compressed bytes announced, {have} present")
+    if need == 0:
+        data = b""
+    else:
+        try:
+            data = _lzf().decompress(raw[start + 8:start + 8 + comp_size], raw_size)
+        except ValueError:
+            data = None
+        if data is None or len(data) != raw_size:
+            raise InputError(f"{path}: corrupt {what}: the LZF data does not decompress to {raw_size} bytes")
+    out = np.empty(n, out_dtype)
+    pos = 0
+    for nm, dt, c, size in zip(names, dtypes, counts, sizes):
+        if nm != "_":  # padding fields occupy their block too
+            vals = np.frombuffer(data, dtype=dt, count=n * c, offset=pos)
+            out[nm] = vals.reshape(n, c) if c != 1 else vals
+        pos += n * size
+    return out
 
 
 # --- PLY ------------------------------------------------------------------------------------

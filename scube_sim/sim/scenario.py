@@ -39,6 +39,7 @@ from .. import __version__
 from ..atomic import atomic_path
 from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
 from ..errors import ScubeSimWarning
+from ..io.openscenario import openscenario_source
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
 from ..run_manifest import RunManifest, sha256_file
@@ -50,6 +51,8 @@ from .contracts import PoseSource
 from .sim_scene import ChunkSet, ChunkSpec, Part, SimScene
 from .simulator import LidarSensor, Simulator
 from .sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
+from .sinks.rosbag import RosbagConfig, RosbagSink
+from .sinks.viewer import ViewerConfig, ViewerSink
 from .sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
 from .vehicle import DeadReckoner
 
@@ -104,16 +107,17 @@ class EditSpec(StrictModel):
 
 
 class TrajectorySpec(StrictModel):
-    source: Literal["world", "file", "can"] = "world"
+    source: Literal["world", "file", "can", "openscenario"] = "world"
     file: str | None = None
+    entity: str | None = None  # openscenario: the ego's ScenarioObject (default: 'Ego' or the first)
     rate_hz: float = Field(default=10.0, gt=0)
     can: CanSpec | None = None
     edit: EditSpec | None = None
 
     @model_validator(mode="after")
     def _needs(self):
-        if self.source == "file" and not self.file:
-            raise ValueError("source 'file' needs 'file'")
+        if self.source in ("file", "openscenario") and not self.file:
+            raise ValueError(f"source '{self.source}' needs 'file'")
         if self.source == "can" and self.can is None:
             raise ValueError("source 'can' needs a 'can' section")
         return self
@@ -142,13 +146,44 @@ class CanOutputSpec(StrictModel):
     arbitration_id: int = Field(default=0x5F0, ge=0, le=0x1FFFFFFF)
 
 
+class RosbagOutputSpec(RosbagConfig):
+    """`outputs.rosbag`: a rosbag2 folder (MCAP) inside -o, and what `RosbagSink` writes."""
+
+    folder: str = "bag"
+
+
+class ViewerOutputSpec(ViewerConfig):
+    """`outputs.viewer`: a Foxglove-schema MCAP file inside -o, and what `ViewerSink` writes."""
+
+    file: str = "viewer.mcap"
+
+
 class OutputsSpec(StrictModel):
-    files: list[Literal["pcd", "bin", "npz", "ply"]] = Field(default_factory=lambda: ["pcd"])
+    files: list[Literal["pcd", "bin", "npz", "ply", "las", "laz"]] = Field(default_factory=lambda: ["pcd"])
     usd: str | None = "replay.usdc"  # a file name inside the output folder (-o)
+    rosbag: RosbagOutputSpec | None = None
+    viewer: ViewerOutputSpec | None = None
     usd_clips: bool = False
     frames_per_clip: int = Field(default=100, ge=1)
     usd_scene: bool = True
     can: CanOutputSpec | None = None
+
+    @field_validator("rosbag", mode="before")
+    @classmethod
+    def _bag_folder(cls, v):
+        return {"folder": v} if isinstance(v, str) else v  # `rosbag: DIR` is the folder alone
+
+    @field_validator("viewer", mode="before")
+    @classmethod
+    def _viewer_file(cls, v):
+        return {"file": v} if isinstance(v, str) else v
+
+    @field_validator("rosbag", "viewer")
+    @classmethod
+    def _bag_inside(cls, v):
+        if v is not None:
+            cls._inside_the_output_folder(v.folder if isinstance(v, RosbagOutputSpec) else v.file)
+        return v
 
     @field_validator("usd")
     @classmethod
@@ -330,6 +365,11 @@ def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSour
         source = TrajectorySource(world.ego_times, world.ego_poses, "world ego path")
     elif tr.source == "file":
         source = TrajectorySource.from_file(resolve_path(tr.file, base), tr.rate_hz)
+    elif tr.source == "openscenario":
+        path = resolve_path(tr.file, base)
+        if not path.is_file():
+            raise ConfigError(f"trajectory.file: {path}: no such OpenSCENARIO file")
+        source = openscenario_source(path, tr.entity)
     else:
         source = _can_source(tr.can, base, world.ego_pose_at(0.0) if world is not None else np.eye(4))
     if tr.edit is not None:
@@ -348,13 +388,20 @@ def build_sensors(sc: Scenario, configs: list[LidarConfig]) -> list[LidarSensor]
 
 
 def build_sinks(outputs: OutputsSpec, out: Path) -> list[Sink]:
-    """The outputs' sinks, in this order: files (under `out/frames`), USD stage, CAN."""
+    """The outputs' sinks, in this order: files (under `out/frames`), USD stage, ROS 2 bag, viewer
+    recording, CAN."""
     sinks = []
     if outputs.files:
         sinks.append(FileSink(out / "frames", outputs.files))
     if outputs.usd:
         sinks.append(UsdSink(out / outputs.usd, clips=outputs.usd_clips, frames_per_clip=outputs.frames_per_clip,
                              write_scene=outputs.usd_scene))
+    if outputs.rosbag is not None:
+        o = outputs.rosbag
+        sinks.append(RosbagSink(out / o.folder, RosbagConfig(**o.model_dump(exclude={"folder"}))))
+    if outputs.viewer is not None:
+        o = outputs.viewer
+        sinks.append(ViewerSink(out / o.file, ViewerConfig(**o.model_dump(exclude={"file"}))))
     if outputs.can is not None:
         o = outputs.can
         sinks.append(CanFrameSink(interface=o.interface, channel=o.channel, arbitration_id=o.arbitration_id))

@@ -188,6 +188,125 @@ def test_pcd_roundtrip_property(tmp_path_factory, a):
     assert_same_points(read_pcd(path), a)
 
 
+# --- PCD binary_compressed (LZF) -----------------------------------------------------------------
+
+def test_pcd_compressed_roundtrip_and_header(tmp_path, lidar_points):
+    pytest.importorskip("lzf")
+    path = write_pcd(tmp_path / "c.pcd", lidar_points, data="binary_compressed")
+    assert pcd_header(path)["DATA"] == ["binary_compressed"]
+    assert_same_points(read_pcd(path), lidar_points)
+    assert path.stat().st_size < write_pcd(tmp_path / "b.pcd", lidar_points).stat().st_size
+
+
+def test_pcd_compressed_read_by_open3d(tmp_path, lidar_points):
+    pytest.importorskip("lzf")
+    o3d = pytest.importorskip("open3d")
+    path = write_pcd(tmp_path / "c.pcd", lidar_points, data="binary_compressed")
+    cloud = o3d.t.io.read_point_cloud(str(path))
+    xyz = np.stack([lidar_points[f] for f in "xyz"], 1)
+    np.testing.assert_array_equal(cloud.point.positions.numpy(), xyz)
+    for field in ("intensity", "ring", "label", "column", "return_id", "time"):
+        got = cloud.point[field].numpy().reshape(-1)
+        assert got.dtype == lidar_points[field].dtype, field
+        np.testing.assert_array_equal(got, lidar_points[field])
+
+
+def test_pcd_compressed_read_by_pypcd4(tmp_path, lidar_points):
+    pytest.importorskip("lzf")
+    pypcd4 = pytest.importorskip("pypcd4")
+    path = write_pcd(tmp_path / "c.pcd", lidar_points, data="binary_compressed")
+    cloud = pypcd4.PointCloud.from_path(path)
+    assert tuple(cloud.fields) == LIDAR_DTYPE.names
+    got = cloud.numpy()
+    for i, name in enumerate(LIDAR_DTYPE.names):
+        np.testing.assert_array_equal(got[:, i], lidar_points[name].astype(np.float64), err_msg=name)
+
+
+def test_pcd_compressed_written_by_others(tmp_path, lidar_points):
+    pytest.importorskip("lzf")
+    o3d = pytest.importorskip("open3d")
+    xyz = np.stack([lidar_points[f] for f in "xyz"], 1)
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(xyz))
+    cloud.point["intensity"] = o3d.core.Tensor(np.ascontiguousarray(lidar_points["intensity"][:, None]))
+    path = tmp_path / "o3d.pcd"
+    assert o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False, compressed=True)
+    assert pcd_header(path)["DATA"] == ["binary_compressed"]
+    a = read_pcd(path)
+    np.testing.assert_array_equal(np.stack([a[f] for f in "xyz"], 1), xyz)
+    np.testing.assert_array_equal(a["intensity"], lidar_points["intensity"])
+
+    pypcd4 = pytest.importorskip("pypcd4")
+    names = ("x", "y", "z", "intensity", "ring", "label")
+    pc4 = pypcd4.PointCloud.from_points([lidar_points[n] for n in names], names,
+                                        [lidar_points.dtype[n] for n in names])
+    pc4.save(tmp_path / "pypcd4.pcd", encoding=pypcd4.Encoding.BINARY_COMPRESSED)
+    b = read_pcd(tmp_path / "pypcd4.pcd")
+    for n in names:
+        np.testing.assert_array_equal(b[n], lidar_points[n], err_msg=n)
+
+
+def test_pcd_compressed_padding_organised_subarray_and_incompressible(tmp_path, rng):
+    pytest.importorskip("lzf")
+    a = np.zeros((8, 5), [("x", "<f8"), ("hist", "<u2", (3,)), ("ok", "?")])
+    a["x"] = rng.normal(size=(8, 5))  # random bits: LZF cannot shrink them
+    a["hist"] = rng.integers(0, 60000, (8, 5, 3))
+    a["ok"] = rng.random((8, 5)) > 0.5
+    path = write_pcd(tmp_path / "o.pcd", a, data="binary_compressed")
+    assert pcd_header(path)["HEIGHT"] == ["8"]
+    b = read_pcd(path)
+    np.testing.assert_array_equal(b["x"], a["x"].reshape(-1))
+    np.testing.assert_array_equal(b["hist"], a["hist"].reshape(-1, 3))
+    np.testing.assert_array_equal(b["ok"], a["ok"].reshape(-1))
+    # PCL's padding field "_" takes its own block in the field-by-field layout
+    import lzf
+
+    n = 3
+    blocks = np.array([1, 2, 3], "<f4").tobytes() + bytes(4 * n) + np.array([7, 8, 9], "<i2").tobytes()
+    comp = lzf.compress(blocks, len(blocks) + 64)
+    header = (b"VERSION .7\nFIELDS x _ label\nSIZE 4 1 2\nTYPE F U I\nCOUNT 1 4 1\n"
+              b"WIDTH 3\nHEIGHT 1\nPOINTS 3\nDATA binary_compressed\n")
+    (tmp_path / "p.pcd").write_bytes(header + len(comp).to_bytes(4, "little") + len(blocks).to_bytes(4, "little") + comp)
+    c = read_pcd(tmp_path / "p.pcd")
+    assert c.dtype.names == ("x", "label") and c["x"].tolist() == [1, 2, 3] and c["label"].tolist() == [7, 8, 9]
+
+
+def test_pcd_compressed_empty(tmp_path):
+    empty = np.zeros(0, [("x", "f4"), ("y", "f4"), ("z", "f4")])
+    path = write_pcd(tmp_path / "e.pcd", empty, data="binary_compressed")
+    assert read_pcd(path).shape == (0,)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda raw, start: raw[:start + 4], "truncated.*size words"),
+    (lambda raw, start: raw[:-10], "truncated.*compressed bytes announced"),
+    (lambda raw, start: raw[:start + 8] + bytes(len(raw) - start - 8), "corrupt.*LZF"),
+    (lambda raw, start: raw[:start + 4] + (1).to_bytes(4, "little") + raw[start + 8:], "holds 1 bytes"),
+])
+def test_pcd_compressed_damaged(tmp_path, lidar_points, damage, message):
+    pytest.importorskip("lzf")
+    path = write_pcd(tmp_path / "c.pcd", lidar_points, data="binary_compressed")
+    raw = path.read_bytes()
+    start = raw.index(b"DATA binary_compressed\n") + len(b"DATA binary_compressed\n")
+    path.write_bytes(damage(raw, start))
+    with pytest.raises(ValueError, match=message) as exc:
+        read_pcd(path)
+    assert str(path) in str(exc.value)
+
+
+def test_pcd_write_rejects_unknown_data_kind(tmp_path, lidar_points):
+    with pytest.raises(ValueError, match="'ascii'"):
+        write_pcd(tmp_path / "a.pcd", lidar_points, data="ascii")
+    assert not list(tmp_path.iterdir())
+
+
+@given(structured_arrays())
+def test_pcd_compressed_roundtrip_property(tmp_path_factory, a):
+    pytest.importorskip("lzf")
+    path = tmp_path_factory.mktemp("pcdc") / "r.pcd"
+    write_pcd(path, a, data="binary_compressed")
+    assert_same_points(read_pcd(path), a)
+
+
 # --- PLY -------------------------------------------------------------------------------------
 
 def test_ply_roundtrip_plyfile(tmp_path, lidar_points):

@@ -9,6 +9,7 @@ import numpy as np
 
 from ...atomic import atomic_path, with_path
 from ...errors import InputError
+from ...io.las import write_las
 from ...io.pointcloud import write_kitti_bin, write_npz, write_pcd, write_ply_points
 from ..frame import Frame
 from .base import RunInfo, Sink
@@ -16,16 +17,17 @@ from .base import RunInfo, Sink
 
 class FileSink(Sink):
     """Per-frame files under `folder`: for each LiDAR sweep `<sensor>/<tick:06d>_<k>.<fmt>` for
-    each format in `formats` ('pcd', 'bin' KITTI x y z intensity, 'npz' all fields + poses), and a
+    each format in `formats` ('pcd', 'bin' KITTI x y z intensity, 'npz' all fields + poses, 'ply',
+    'las' / 'laz' LAS 1.4 with ring, time, label, instance as extra dimensions), and a
     manifest `frames.jsonl` with one line per written sweep (tick, time, sensor, sweep span,
     poses, file names) and `boxes.jsonl` with each tick's actor boxes. Every file is written
     atomically and the manifest line only after its files: a manifest line means complete files."""
 
     def __init__(self, folder: str | Path, formats=("pcd",)):
         self.folder = Path(folder)
-        bad = set(formats) - {"pcd", "bin", "npz", "ply"}
+        bad = set(formats) - {"pcd", "bin", "npz", "ply", "las", "laz"}
         if bad:
-            raise InputError(f"FileSink formats: unknown {sorted(bad)}; use pcd, bin, npz or ply")
+            raise InputError(f"FileSink formats: unknown {sorted(bad)}; use pcd, bin, npz, ply, las or laz")
         self.formats = tuple(formats)
         self._manifest = None
         self._boxes = None
@@ -53,6 +55,8 @@ class FileSink(Sink):
                     write_kitti_bin(path, s.points)
                 elif fmt == "ply":
                     write_ply_points(path, s.points)
+                elif fmt in ("las", "laz"):
+                    write_las(path, s.points)
                 else:
                     write_npz(path, s.points, pose=s.pose, pose_start=s.pose_start, pose_end=s.pose_end,
                               t_start=s.t_start, t_end=s.t_end, t_ref=s.t_ref, tick=frame.index)
