@@ -295,13 +295,8 @@ class Denoiser3d(nn.Module):
     def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int,
                  attention_levels: tuple[int, ...] = (), heads: int = 8, layout: str = "plain"):
         super().__init__()
-        if layout not in DENOISER_LAYOUTS:
-            raise ValueError(f"layout: expected one of {', '.join(DENOISER_LAYOUTS)}, got {layout!r}")
         levels = len(widths)
-        attn = set(attention_levels)
-        bad = sorted(a for a in attn if not 0 <= a < levels)
-        if bad:
-            raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
+        attn = check_unet_options(widths, attention_levels, layout)
         ldm = layout == "ldm"
         emb = 4 * widths[0]
         self.emb_dim = widths[0]
@@ -388,3 +383,15 @@ def track_latent_rms(vae: nn.Module, mu: torch.Tensor) -> None:
     vae._latent_sq += mu.detach().pow(2).mean()
     vae._latent_n += 1
     vae.latent_std.copy_((vae._latent_sq / vae._latent_n).sqrt().clamp_min(1e-3))
+
+
+def check_unet_options(widths, attention_levels, layout: str) -> set[int]:
+    """The denoisers' (dense and sparse) layout and attention levels, checked: -> the set of levels."""
+    if layout not in DENOISER_LAYOUTS:
+        raise ValueError(f"layout: expected one of {', '.join(DENOISER_LAYOUTS)}, got {layout!r}")
+    levels = len(widths)
+    attn = set(attention_levels)
+    bad = sorted(a for a in attn if not 0 <= a < levels)
+    if bad:
+        raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
+    return attn

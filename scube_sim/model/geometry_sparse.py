@@ -30,7 +30,7 @@ from torch import nn
 
 from ..errors import InputError
 from ..labels import LABEL_NAMES
-from .geometry_nets import DENOISER_LAYOUTS, VAEConfig, timestep_embedding, track_latent_rms
+from .geometry_nets import VAEConfig, check_unet_options, timestep_embedding, track_latent_rms
 from .sparse import (Grid, SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseTensor, SubmanifoldConv3d,
                      cat_features, kernel_offsets, make_norm, site_order)
 
@@ -325,13 +325,7 @@ class SparseDenoiser(nn.Module):
     def __init__(self, latent: int, cond: int, widths: tuple[int, ...], blocks: int, groups: int,
                  attention_levels: tuple[int, ...] = (), heads: int = 8, layout: str = "plain"):
         super().__init__()
-        if layout not in DENOISER_LAYOUTS:
-            raise ValueError(f"layout: expected one of {', '.join(DENOISER_LAYOUTS)}, got {layout!r}")
-        levels = len(widths)
-        attn = set(attention_levels)
-        bad = sorted(a for a in attn if not 0 <= a < levels)
-        if bad:
-            raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
+        attn = check_unet_options(widths, attention_levels, layout)
         self.widths, self.blocks, self.layout = tuple(widths), blocks, layout
         self.attention_levels = tuple(sorted(attn))
         self.emb_dim = widths[0]

@@ -84,7 +84,32 @@ def check_frame(v: str, key: str) -> str:
     return v
 
 
-class RosbagConfig(StrictModel):
+class RosNamesConfig(StrictModel):
+    """Topic and frame names shared by the ROS-flavoured sinks: per-sensor topics and frame ids,
+    the world and ego frames, each checked against ROS 2's naming rules."""
+
+    topics: dict[str, str] = Field(default_factory=dict)
+    frame_ids: dict[str, str] = Field(default_factory=dict)
+    world_frame: str = "map"
+    ego_frame: str = "base_link"
+
+    @field_validator("topics")
+    @classmethod
+    def _topics(cls, v):
+        return {k: check_topic(t, f"topics[{k!r}]") for k, t in v.items()}
+
+    @field_validator("frame_ids")
+    @classmethod
+    def _frames(cls, v):
+        return {k: check_frame(f, f"frame_ids[{k!r}]") for k, f in v.items()}
+
+    @field_validator("world_frame", "ego_frame")
+    @classmethod
+    def _frame(cls, v, info):
+        return check_frame(v, info.field_name)
+
+
+class RosbagConfig(RosNamesConfig):
     """What a `RosbagSink` writes.
 
     layouts: sensor name -> point layout (a kind name or a `PointLayout`); others get
@@ -96,10 +121,6 @@ class RosbagConfig(StrictModel):
 
     layouts: dict[str, PointLayout | LayoutKind] = Field(default_factory=dict)
     default_layout: PointLayout | LayoutKind = "velodyne"
-    topics: dict[str, str] = Field(default_factory=dict)
-    frame_ids: dict[str, str] = Field(default_factory=dict)
-    world_frame: str = "map"
-    ego_frame: str = "base_link"
     stamp: Literal["start", "ref"] = "start"
     boxes: list[Literal["markers", "detections"]] = Field(default_factory=lambda: ["markers"])
     markers_topic: str = "/boxes"
@@ -107,25 +128,10 @@ class RosbagConfig(StrictModel):
     compression: Literal["none", "zstd"] = "none"
     time_offset_s: float = 0.0
 
-    @field_validator("topics")
-    @classmethod
-    def _topics(cls, v):
-        return {k: check_topic(t, f"topics[{k!r}]") for k, t in v.items()}
-
     @field_validator("markers_topic", "detections_topic")
     @classmethod
     def _topic(cls, v, info):
         return check_topic(v, info.field_name)
-
-    @field_validator("frame_ids")
-    @classmethod
-    def _frames(cls, v):
-        return {k: check_frame(f, f"frame_ids[{k!r}]") for k, f in v.items()}
-
-    @field_validator("world_frame", "ego_frame")
-    @classmethod
-    def _frame(cls, v, info):
-        return check_frame(v, info.field_name)
 
     def layout(self, sensor: str) -> PointLayout:
         return as_layout(self.layouts.get(sensor, self.default_layout), f"layouts[{sensor!r}]")

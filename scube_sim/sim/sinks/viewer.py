@@ -30,13 +30,12 @@ import numpy as np
 from pydantic import Field, ValidationError, field_validator
 
 from ...atomic import with_path
-from ...config import StrictModel
 from ...errors import InputError
 from ...labels import LABEL_COLORS, LABEL_NAMES
 from ...transforms import quat_to_rotmat, rotmat_to_quat
 from ..frame import Frame
 from .base import RunInfo, Sink
-from .rosbag import check_frame, check_topic, ros_name
+from .rosbag import RosNamesConfig, check_topic, ros_name
 
 UNKNOWN_COLOR = np.array([128, 128, 128], np.uint8)  # labels outside the table (e.g. -1)
 
@@ -51,40 +50,21 @@ VIEWER_DTYPE = np.dtype({"names": [n for n, _, _ in POINT_FIELDS], "offsets": [o
                          "formats": [_NUMPY[t] for _, _, t in POINT_FIELDS], "itemsize": POINT_STRIDE})
 
 
-class ViewerConfig(StrictModel):
+class ViewerConfig(RosNamesConfig):
     """What a `ViewerSink` writes. topics: sensor name -> topic (default ``/lidar/<token>``);
     frame_ids: sensor name -> frame id (default ``<token>``); box_alpha: the cubes' opacity;
     compression: MCAP chunk compression; time_offset_s: added to every time (s)."""
 
-    topics: dict[str, str] = Field(default_factory=dict)
-    frame_ids: dict[str, str] = Field(default_factory=dict)
-    world_frame: str = "map"
-    ego_frame: str = "base_link"
     boxes_topic: str = "/boxes"
     tf_topic: str = "/tf"
     box_alpha: float = Field(default=0.35, ge=0, le=1)
     compression: Literal["zstd", "lz4", "none"] = "zstd"
     time_offset_s: float = 0.0
 
-    @field_validator("topics")
-    @classmethod
-    def _topics(cls, v):
-        return {k: check_topic(t, f"topics[{k!r}]") for k, t in v.items()}
-
     @field_validator("boxes_topic", "tf_topic")
     @classmethod
     def _topic(cls, v, info):
         return check_topic(v, info.field_name)
-
-    @field_validator("frame_ids")
-    @classmethod
-    def _frames(cls, v):
-        return {k: check_frame(f, f"frame_ids[{k!r}]") for k, f in v.items()}
-
-    @field_validator("world_frame", "ego_frame")
-    @classmethod
-    def _frame(cls, v, info):
-        return check_frame(v, info.field_name)
 
 
 def label_colors(labels: np.ndarray) -> np.ndarray:
