@@ -100,3 +100,12 @@ def test_the_stage_sections_are_validated_by_the_stages_classes(tmp_path):
     lines = str(exc.value).splitlines()
     assert f"{bad.source}: model.width: Input should be greater than or equal to 1" in lines
     assert f"{bad.source}: model.depth: unknown key" in lines
+
+
+@pytest.mark.parametrize("name", config_names())
+def test_every_shipped_config_validates_against_its_stage(name):
+    from scube_sim.model.stages import get_stage
+
+    run = load_config(name)
+    stage = get_stage(run.stage)
+    stage_configs(run, stage.model_config, stage.data_config)
