@@ -388,6 +388,7 @@ class GeometryNet(nn.Module):
             self.denoiser = Denoiser3d(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
                                        attention_levels=cfg.attention_levels, heads=cfg.heads, layout=cfg.layout)
         self.schedule = NoiseSchedule(cfg.train_steps, cfg.beta_start, cfg.beta_end)
+        self._latents: dict = {}  # (sample, box) -> its clean latent (coarse level; the VAE is frozen)
 
     def _load_vae(self, name: str) -> None:
         from .checkpoint import CheckpointError, resolve_checkpoint
@@ -411,6 +412,10 @@ class GeometryNet(nn.Module):
         self.vae.eval()  # frozen: no running statistics move, no posterior sampling
         return self
 
+    def load_state_dict(self, *args, **kwargs):
+        self._latents.clear()  # new VAE weights: the cached latents are stale
+        return super().load_state_dict(*args, **kwargs)
+
     def _check_level(self, item: dict) -> None:
         if item.get("level", "coarse") != self.cfg.level:
             raise InputError(f"{item.get('sample', 'sample')}: a {item.get('level')} level item for the "
@@ -425,9 +430,13 @@ class GeometryNet(nn.Module):
                 coords = torch.cat([torch.zeros(len(item["gt_ijk"]), 1, dtype=torch.int64), item["gt_ijk"]], 1)
                 mu, _ = self.vae.encode(coords, item["gt_labels"], 1)
                 return mu.replace(mu.feats / self.vae.latent_std)
-            occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
-            mu, _ = self.vae.encode(occ[None], lab[None])
-            return mu / self.vae.latent_std
+            # the VAE is frozen: a sample's (whole-box) latent is the same every epoch, so keep it
+            key = (str(item.get("sample")), item["gt_grid"])
+            if key not in self._latents:
+                occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
+                mu, _ = self.vae.encode(occ[None], lab[None])
+                self._latents[key] = mu / self.vae.latent_std
+            return self._latents[key]
 
     def _site_labels(self, sites: torch.Tensor, ijk: torch.Tensor, labels: torch.Tensor) -> torch.Tensor:
         """The labels of `sites` (N, 3) from a grid (ijk, labels) that holds them (0 where not)."""
