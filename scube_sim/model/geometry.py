@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 import time
+import zlib
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -715,7 +716,7 @@ class GeometryStage(Stage):
 
 def _sample_seed(item: dict) -> int:
     """The sampler's seed of an item: from its sample name, so the same input gives the same grid."""
-    return int.from_bytes(str(item.get("sample", "")).encode()[-8:].rjust(8, b"\0"), "big") % (2 ** 31)
+    return zlib.crc32(str(item.get("sample", "")).encode())
 
 
 register_stage(GeometryVAEStage())
