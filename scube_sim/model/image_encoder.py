@@ -205,16 +205,17 @@ class _ResBlock(nn.Module):
 
 
 class SmallCNN(nn.Module):
-    """Stem (3x3 stride 2, 32 channels) and one residual block per further halving, widths 64, 96,
-    128 at strides 4, 8, 16. Group norm, not batch norm: a sample's few images are the batch.
+    """Stem (3x3 stride 2, 32 channels) and two residual blocks per further halving (the first
+    strided), widths 64, 96, 128 at strides 4, 8, 16. Nothing else runs at half resolution: there
+    a residual block of 32 channels cost more than the rest of the network (forward and backward).
+    Group norm, not batch norm: a sample's few images are the batch.
     (N, 3, H, W) normalised -> (N, out_channels, ceil(H / stride), ceil(W / stride))."""
 
     WIDTHS = {2: 32, 4: 64, 8: 96, 16: 128}
 
     def __init__(self, stride: int):
         super().__init__()
-        layers = [nn.Conv2d(3, 32, 3, 2, 1, bias=False), nn.GroupNorm(8, 32), nn.ReLU(inplace=True),
-                  _ResBlock(32, 32, 1)]
+        layers = [nn.Conv2d(3, 32, 3, 2, 1, bias=False), nn.GroupNorm(8, 32), nn.ReLU(inplace=True)]
         s = 2
         while s < stride:
             layers.append(_ResBlock(self.WIDTHS[s], self.WIDTHS[2 * s], 2))
