@@ -16,7 +16,10 @@ sensor saw nothing; there, agreement is the share of real returns the simulation
 Conventions: range error = simulated - real range (metres) on rays where both return; Chamfer
 distance = the mean of the two mean nearest-neighbour distances (metres, not squared); F-score at
 tau = harmonic mean of precision (simulated points within tau of a real point) and recall (real
-points within tau of a simulated point); intensity correlation = Pearson's r on rays both return.
+points within tau of a simulated point); intensity correlation = Pearson's r, and intensity RMSE
+the root mean square difference, on rays both return, both on the common 0-1 scale (the real
+intensity / the set's `intensity_max`; the simulated one at `output_scale` 1: the sensor's response
+to the scene's measured reflectance, or class reflectivity x cos incidence where it has none).
 """
 
 from __future__ import annotations
@@ -32,11 +35,11 @@ from .datasets.base import LidarSweep
 from .errors import InputError
 from .lidar.config import LidarConfig
 from .lidar.model import Lidar
-from .lidar.pattern import replay_pattern
+from .lidar.pattern import channels_by_elevation, replay_pattern
 from .mesh import TriangleMesh
 from .raytrace.tracer import Tracer
 from .reconstruct import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
-from .viz import fidelity_png
+from .viz import fidelity_png, intensity_png
 from .voxsplat import unique_voxels
 
 
@@ -45,7 +48,9 @@ class RealRays:
     """The rays of a real sweep. directions (N, 3) unit, sensor frame (at each ray's fire time for
     raw sweeps); range (N,) metres, inf for a no-return; time (N,) seconds after the sweep
     timestamp; intensity (N,) in [0, 1] (NaN on no-returns); row, col (N,) int range-image cell;
-    no_returns_known: whether the no-return rays are in the set."""
+    no_returns_known: whether the no-return rays are in the set; ring (N,) int the set's ring id
+    (-1 where it has none); ego_body (N,) bool: returns under `min_range` off the sensor's
+    horizontal plane (EGO_BODY_Z_M): the sensor saw its own vehicle (full grids only)."""
 
     directions: np.ndarray
     range: np.ndarray
@@ -57,13 +62,30 @@ class RealRays:
     cols: int
     no_returns_known: bool
     notes: list[str] = field(default_factory=list)
+    ring: np.ndarray | None = None
+    ego_body: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.ring is None:
+            self.ring = np.full(self.range.shape[0], -1, np.int64)
+        if self.ego_body is None:
+            self.ego_body = np.zeros(self.range.shape[0], bool)
 
     def __len__(self) -> int:
         return self.range.shape[0]
 
+    def subset(self, mask: np.ndarray) -> "RealRays":
+        """The rays where `mask` (N,) bool."""
+        return RealRays(self.directions[mask], self.range[mask], self.time[mask], self.intensity[mask],
+                        self.row[mask], self.col[mask], self.rows, self.cols, self.no_returns_known, self.notes,
+                        self.ring[mask], self.ego_body[mask])
+
     @property
     def hit(self) -> np.ndarray:
         return np.isfinite(self.range)
+
+
+EGO_BODY_Z_M = 0.05  # a no-return stored further above or below the sensor is the ego body
 
 
 def _is_full_grid(sweep: LidarSweep) -> int:
@@ -116,11 +138,17 @@ def real_rays(sweep: LidarSweep, *, min_range: float = 1.0, azimuth_bins: int = 
             col_az = np.interp(cidx, cidx[seen], unwrapped)
         miss = ~ret & np.isfinite(ring_el[row])
         e, a = ring_el[row[miss]], col_az[col[miss]]
-        d[miss] = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+        rebuilt = np.stack([np.cos(e) * np.cos(a), np.cos(e) * np.sin(a), np.sin(e)], axis=1)
+        # A placeholder sits at the origin, moved by motion compensation along the ego's level
+        # path; a point off that plane is a return from the vehicle's own body (the roof under a
+        # roof-mounted sensor), which compensation moves too, so its direction cannot tell.
+        body = ~ret & (np.abs(p[:, 2]) > EGO_BODY_Z_M)
+        d[miss] = rebuilt
         keep = ret | miss
         notes.append(f"full {rings} x {cols} firing grid: {int((~ret).sum())} of {n} rays "
                      f"({100.0 * (~ret).mean():.1f} %) are no-returns (stored under {min_range} m); "
-                     f"their directions are the ring's median elevation and the column's mean azimuth")
+                     f"their directions are the ring's median elevation and the column's mean azimuth; "
+                     f"{int(body.sum())} of them lie over {EGO_BODY_Z_M} m off the sensor's plane: the ego body")
         order = np.argsort(-np.nan_to_num(ring_el, nan=-9))  # top beam first
         rank = np.empty(rings, np.int64)
         rank[order] = np.arange(rings)
@@ -128,6 +156,7 @@ def real_rays(sweep: LidarSweep, *, min_range: float = 1.0, azimuth_bins: int = 
         known = True
     else:
         keep = ret
+        body = np.zeros(n, bool)
         az = np.arctan2(d[:, 1], d[:, 0])
         el = np.arcsin(np.clip(d[:, 2], -1, 1))
         rings = elevation_bins
@@ -149,8 +178,9 @@ def real_rays(sweep: LidarSweep, *, min_range: float = 1.0, azimuth_bins: int = 
                      "returns the simulation also returns")
         known = False
     rng = np.where(ret, r, np.inf)
+    laser = np.full(n, -1, np.int64) if sweep.ring is None else np.asarray(sweep.ring, np.int64)
     return RealRays(d[keep], rng[keep], t[keep], np.where(ret, inten, np.nan)[keep], row[keep], col[keep],
-                    int(rings), int(cols), known, notes)
+                    int(rings), int(cols), known, notes, laser[keep], body[keep])
 
 
 @dataclass
@@ -166,12 +196,15 @@ class SimRays:
         return np.isfinite(self.range)
 
 
-def fidelity_config(config: LidarConfig, *, noise: bool = False) -> LidarConfig:
-    """The sensor model used to replay real rays: the preset's range limits, drops and intensity;
-    one return per ray (strongest), no ego-body box (the real rays already stop short of it) and,
-    unless asked, no range noise."""
+def fidelity_config(config: LidarConfig, *, noise: bool = False, drop=None) -> LidarConfig:
+    """The sensor model used to replay real rays: the preset's range limits, drops and intensity
+    (at output_scale 1: the common 0-1 scale); one return per ray (strongest), no ego-body box
+    (the real rays already stop short of it) and, unless asked, no range noise. drop: the drop
+    section to replay with (default: the preset's without its grazing cut, which real sensors
+    do not have)."""
     upd = {"ego_body": None, "beam": config.beam.model_copy(update={"return_mode": "strongest"}),
-           "drop": config.drop.model_copy(update={"max_incidence_deg": 90.0})}
+           "drop": config.drop.model_copy(update={"max_incidence_deg": 90.0}) if drop is None else drop,
+           "intensity": config.intensity.model_copy(update={"output_scale": 1.0})}
     if not noise:
         upd["noise"] = config.noise.model_copy(update={"range_sigma_m": 0.0, "range_sigma_rel": 0.0,
                                                         "quantization_m": 0.0})
@@ -179,17 +212,22 @@ def fidelity_config(config: LidarConfig, *, noise: bool = False) -> LidarConfig:
 
 
 def simulate_rays(scene, config: LidarConfig, rays: RealRays, sweep: LidarSweep, *, distortion: bool = True,
-                  noise: bool = False, seed: int = 0) -> SimRays:
-    """Fire the real rays at `scene` (a Tracer, list of Tracers or a time-aware scene).
+                  noise: bool = False, seed: int = 0, drop=None) -> SimRays:
+    """Fire the real rays at `scene` (a Tracer, list of Tracers or a time-aware scene); `drop`
+    as in `fidelity_config`.
 
     distortion: for a raw sweep (points in the sensor frame at their own fire time), move the
     sensor along `sweep.pose_fn` while it fires; False fires every ray from the pose at the sweep
     timestamp (what a simulator without a motion model does). Compensated sweeps always replay
     from the sweep pose."""
     t0 = float(rays.time.min(initial=0.0))
-    pattern = replay_pattern(rays.directions, rays.time - t0, period_s=max(float(np.ptp(rays.time)), 1e-3)
+    # The sensor's own channel numbering; an unknown one gets an index past every per-channel
+    # table (gain 1, no correction).
+    channel = channels_by_elevation(rays.directions, rays.ring, config, valid=rays.hit)
+    ring = np.where(channel >= 0, channel, np.iinfo(np.uint16).max)
+    pattern = replay_pattern(rays.directions, rays.time - t0, ring, period_s=max(float(np.ptp(rays.time)), 1e-3)
                              if len(rays) else 0.1)
-    lidar = Lidar(fidelity_config(config, noise=noise), pattern)
+    lidar = Lidar(fidelity_config(config, noise=noise, drop=drop), pattern)
     if distortion and not sweep.motion_compensated:
         out = lidar.scan(scene, sweep.sensor_to_world, pose_fn=sweep.pose_fn, t_start=sweep.timestamp + t0,
                          seed=seed)
@@ -218,8 +256,7 @@ def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20), mask: np.ndarray
     """Ray-for-ray and cloud metrics (see the module docstring for the conventions); `mask`
     (N,) bool restricts them to some rays."""
     if mask is not None:
-        rays = RealRays(rays.directions[mask], rays.range[mask], rays.time[mask], rays.intensity[mask],
-                        rays.row[mask], rays.col[mask], rays.rows, rays.cols, rays.no_returns_known, rays.notes)
+        rays = rays.subset(mask)
         sim = SimRays(sim.range[mask], sim.intensity[mask], sim.label[mask])
     real_hit, sim_hit = rays.hit, sim.hit
     both = real_hit & sim_hit
@@ -251,6 +288,7 @@ def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20), mask: np.ndarray
         out["intensity_r"] = float(np.corrcoef(ri[ok], si[ok])[0, 1])
     else:
         out["intensity_r"] = float("nan")
+    out["intensity_rmse"] = float(np.sqrt(np.mean((si[ok] - ri[ok]) ** 2))) if ok.any() else float("nan")
     return out
 
 
@@ -296,21 +334,26 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 10, or
 
 # --- the report ------------------------------------------------------------------------------
 
+CLASS_ROW = "voxsplat, class reflectivity"
+
 METRIC_COLUMNS = (("median_abs_m", "median |dr| [cm]", 100), ("p90_abs_m", "p90 |dr| [cm]", 100),
                   ("hit_agreement", "hit agreement [%]", 100), ("chamfer_m", "Chamfer [cm]", 100),
-                  ("fscore_5cm", "F@5cm", 1), ("fscore_20cm", "F@20cm", 1), ("intensity_r", "intensity r", 1))
+                  ("fscore_5cm", "F@5cm", 1), ("fscore_20cm", "F@20cm", 1), ("intensity_r", "intensity r", 1),
+                  ("intensity_rmse", "intensity RMSE", 1))
 
 
 @dataclass
 class FidelityResult:
     """rows: model name -> metrics (see `compare`); images: name -> range image (metres);
-    notes: how rays were chosen and what was left out."""
+    intensity_images: 'real' and row name -> intensity range image (0-1 scale); notes: how rays
+    were chosen and what was left out."""
 
     rows: dict[str, dict]
     images: dict[str, np.ndarray]
     notes: list[str]
     context: dict
     mismatch: np.ndarray | None = None
+    intensity_images: dict[str, np.ndarray] = field(default_factory=dict)
 
     def markdown(self) -> str:
         head = "| scene | " + " | ".join(c[1] for c in METRIC_COLUMNS) + " | rays | both return |"
@@ -364,6 +407,22 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     sim = simulate_rays(tracer, config, rays, sweep, noise=noise, seed=seed)
     sims = {"voxsplat": sim}
     images["voxsplat"] = range_image(rays, sim.range)
+    intensity_images = {"real": range_image(rays, np.where(rays.hit, rays.intensity, np.nan))}
+    if tracer.reflectance is not None:
+        # Before/after in one run: the same tracer without the measured reflectance.
+        measured, tracer.reflectance = tracer.reflectance, None
+        try:
+            sims[CLASS_ROW] = simulate_rays(tracer, config, rays, sweep, noise=noise, seed=seed)
+        finally:
+            tracer.reflectance = measured
+        intensity_images["voxsplat"] = range_image(rays, sim.intensity)
+        intensity_images[CLASS_ROW] = range_image(rays, sims[CLASS_ROW].intensity)
+        known = np.isfinite(scene.channel("reflectance")[scene.valid])
+        notes.append(f"intensity: the scene carries measured reflectance ({int(known.sum())} of {known.size} "
+                     f"Gaussians); '{CLASS_ROW}' traces it without (geometry rows equal 'voxsplat')")
+    else:
+        intensity_images["voxsplat"] = range_image(rays, sim.intensity)
+        notes.append("intensity: the scene carries no measured reflectance: class reflectivity x cos incidence")
     if not sweep.motion_compensated:
         sims["voxsplat, no motion model"] = simulate_rays(tracer, config, rays, sweep, distortion=False,
                                                           noise=noise, seed=seed)
@@ -403,20 +462,32 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     context = {"dataset": ds.name, "sample": sample, "sensor": sweep.sensor}
     if scene.metadata.get("build"):
         context["built from"] = scene.metadata["build"].get("samples")
-    return FidelityResult(rows, images, notes, context, mismatch)
+    return FidelityResult(rows, images, notes, context, mismatch, intensity_images)
 
 
 def write_report(result: FidelityResult, out_dir) -> dict:
-    """report.md, report.json and range_images.png in `out_dir` (each written atomically)."""
-
-
+    """report.md, report.json, range_images.png and intensity_images.png in `out_dir` (each
+    written atomically)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    paths = {"markdown": out / "report.md", "json": out / "report.json", "png": out / "range_images.png"}
+    paths = {"markdown": out / "report.md", "json": out / "report.json", "png": out / "range_images.png",
+             "intensity_png": out / "intensity_images.png"}
     with atomic_path(paths["markdown"]) as tmp:
         Path(tmp).write_text(result.markdown())
     with atomic_path(paths["json"]) as tmp:
         Path(tmp).write_text(json.dumps({"context": result.context, "rows": result.rows, "notes": result.notes},
                                         indent=2, default=str))
-    fidelity_png(paths["png"], result.images, mismatch=result.mismatch, title=", ".join(f"{k}: {v}" for k, v in result.context.items()))
+    title = ", ".join(f"{k}: {v}" for k, v in result.context.items())
+    fidelity_png(paths["png"], result.images, mismatch=result.mismatch, title=title)
+    if result.intensity_images:
+        captions = {}
+        for name in result.intensity_images:
+            static = f"{name} [static rays]"
+            m = result.rows.get(static, result.rows.get(name))
+            if m is not None:
+                captions[name] = (f"intensity r {m['intensity_r']:.2f}, RMSE {m['intensity_rmse']:.3f}"
+                                  + (" on static rays" if static in result.rows else ""))
+        intensity_png(paths["intensity_png"], result.intensity_images, title=title, captions=captions)
+    else:
+        paths.pop("intensity_png")
     return paths

@@ -58,6 +58,7 @@ def fit_voxsplat(
     max_normal_scale: float | None = None,
     opacity: float = 0.99,
     min_points: int = 1,
+    values: dict[str, np.ndarray] | None = None,
 ) -> VoxSplat:
     """Fit Gaussians to surface points.
 
@@ -66,7 +67,10 @@ def fit_voxsplat(
     gaussians_per_voxel: M, a power of two. min_scale: floor on every standard deviation
     (default 1 % of the voxel); max_normal_scale: optional cap on the smallest one (flattens
     noisy LiDAR surfaces). Voxels with fewer than `min_points` points are dropped; clusters left
-    empty become invalid slots. Returns a VoxSplat whose local frame is that of `points`.
+    empty become invalid slots. values: per-point scalars (N,) by channel name (e.g.
+    'reflectance'), averaged per Gaussian with the points' weights, NaN values left out, and
+    stored as per-Gaussian channels (NaN where a Gaussian has none). Returns a VoxSplat whose
+    local frame is that of `points`.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
     m = int(gaussians_per_voxel)
@@ -90,6 +94,7 @@ def fit_voxsplat(
             patch_cov = (patch_cov[0], patch_cov[1][keep_p])
         colors = None if colors is None else np.asarray(colors)[keep_p]
         labels = None if labels is None else np.asarray(labels)[keep_p]
+        values = None if values is None else {k: np.asarray(v)[keep_p] for k, v in values.items()}
         uniq = uniq[keep_v]
     nv = uniq.shape[0]
 
@@ -144,4 +149,15 @@ def fit_voxsplat(
         first = np.r_[True, pv[best][1:] != pv[best][:-1]]
         vox_labels = np.zeros(nv, np.int16)
         vox_labels[pv[best][first]] = pl[best][first]
-    return VoxSplat(uniq.astype(np.int32), params, vs, origin, valid, vox_labels)
+    out = VoxSplat(uniq.astype(np.int32), params, vs, origin, valid, vox_labels)
+    for name, val in (values or {}).items():
+        v = np.asarray(val, np.float64).reshape(-1)
+        if v.shape[0] != p.shape[0]:
+            raise InputError(f"values[{name!r}]: expected ({p.shape[0]},) per-point values, got {v.shape}")
+        known = np.isfinite(v)
+        wk = np.where(known, w, 0.0)
+        num = np.bincount(key, weights=wk * np.where(known, v, 0.0), minlength=nv * m)
+        den = np.bincount(key, weights=wk, minlength=nv * m)
+        mean = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
+        out.set_channel(name, mean.reshape(nv, m).astype(np.float32), per="gaussian")
+    return out

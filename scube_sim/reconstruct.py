@@ -4,7 +4,10 @@ Accumulate sweeps in the world frame, optionally remove the points of moving obj
 boxes, or free-space carving with another sweep), connect each sweep's neighbouring returns into
 triangles in its range image, and fit M Gaussians per voxel with `fit.fit_voxsplat` to samples of
 those triangles (returns in no triangle bring a small patch of their neighbourhood); colour from
-the cameras where images exist, labels from the labelled boxes where the set has them.
+the cameras where images exist, labels from the labelled boxes where the set has them, and
+reflectance from the returns' intensities (each sweep's own sensor response inverted: range
+fall-off, incidence cosine, per-laser corrections; `lidar.response`), averaged per Gaussian into
+the VoxSplat's `reflectance` channel.
 
 A LiDAR sweep samples a surface densely along each ring but sparsely across rings (an HDL-32E's
 rings are 0.46 m apart on a wall 20 m away, 5 m apart on the ground there): a voxel often holds a
@@ -23,9 +26,11 @@ from .camera.frames import Frames
 from .datasets.base import LidarSweep, Sample
 from .errors import InputError
 from .fit import fit_voxsplat
+from .lidar.pattern import channels_by_elevation
+from .lidar.response import Response
 from .mesh import TriangleMesh
 from .transforms import invert_pose, transform_points
-from .voxsplat import VoxSplat
+from .voxsplat import KNOWN_CHANNELS, VoxSplat
 
 
 @dataclass
@@ -33,7 +38,10 @@ class Accumulated:
     """Points of several sweeps in one frame. points (N, 3) float64 metres, relative to `origin`
     (float64 world; world = points + origin, so float64 stays exact far from the map origin);
     sensor (N, 3) the sensor position each point was seen from (same frame); intensity (N,)
-    float32 in [0, 1]; labels (N,) int16 label ids (0 where unknown); sweep (N,) int32 index."""
+    float32 in [0, 1]; labels (N,) int16 label ids (0 where unknown); sweep (N,) int32 index;
+    ring (N,) int16 the sensor's channel (index into its per-channel tables; -1 where unknown);
+    responses: per sweep index, the sensor's intensity response (None where the sweep has no
+    intensity or no sensor model)."""
 
     points: np.ndarray
     sensor: np.ndarray
@@ -44,6 +52,12 @@ class Accumulated:
     removed: int = 0
     notes: list[str] = field(default_factory=list)
     faces: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.int64))
+    ring: np.ndarray | None = None
+    responses: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.ring is None:
+            self.ring = np.full(self.points.shape[0], -1, np.int16)
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -55,7 +69,7 @@ class Accumulated:
         faces = self.faces[np.all(keep[self.faces], axis=1)] if len(self.faces) else self.faces
         return Accumulated(self.points[keep], self.sensor[keep], self.intensity[keep], self.labels[keep],
                            self.sweep[keep], self.origin, self.removed + int((~keep).sum()), list(self.notes),
-                           new[faces] if len(faces) else faces)
+                           new[faces] if len(faces) else faces, self.ring[keep], list(self.responses))
 
 
 def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_range: float = 1.0,
@@ -75,15 +89,20 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
     if remove not in ("none", "dynamic", "all"):
         raise InputError(f"remove: expected 'none', 'dynamic' or 'all', got {remove!r}")
     sweeps: list[tuple[LidarSweep, list[Box]]] = []
+    configs = []  # each sweep's sensor model, where the sample has one
     for s in samples:
         for sw in s.sweeps:
             if sensors is None or sw.sensor in sensors:
                 sweeps.append((sw, s.boxes))
+                spec = s.lidars.get(sw.sensor)
+                configs.append(None if spec is None else spec.config)
+    responses = [None if c is None or sw.intensity is None else Response(c.intensity)
+                 for c, (sw, _) in zip(configs, sweeps)]
     if not sweeps:
         raise InputError(f"accumulate: no LiDAR sweeps{'' if sensors is None else ' of ' + ', '.join(sensors)} "
                          f"in {len(samples)} sample(s)")
     origin = sweeps[0][0].sensor_to_world[:3, 3].copy() if origin is None else np.asarray(origin, np.float64)
-    parts = {k: [] for k in ("points", "sensor", "intensity", "labels", "sweep", "faces")}
+    parts = {k: [] for k in ("points", "sensor", "intensity", "labels", "sweep", "ring", "faces")}
     removed = 0
     base = 0
     for k, (sw, boxes) in enumerate(sweeps):
@@ -123,11 +142,16 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
         parts["intensity"].append(inten)
         parts["labels"].append(labels)
         parts["sweep"].append(np.full(len(sw), k, np.int32))
+        channel = np.full(len(sw), -1, np.int16)
+        if sw.ring is not None and configs[k] is not None:
+            dirs = sw.points / np.maximum(np.linalg.norm(sw.points, axis=1), 1e-9)[:, None]
+            channel = channels_by_elevation(dirs, sw.ring, configs[k]).astype(np.int16)
+        parts["ring"].append(channel)
     face_parts = parts.pop("faces")
     faces = np.concatenate(face_parts) if face_parts else np.zeros((0, 3), np.int64)
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     return Accumulated(cat["points"], cat["sensor"], cat["intensity"], cat["labels"], cat["sweep"], origin, removed,
-                       [], faces)
+                       [], faces, cat["ring"], responses)
 
 
 def range_image_mesh(points: np.ndarray, *, max_edge: float = 0.5, max_edge_rel: float = 0.2,
@@ -247,6 +271,39 @@ def color_from_frames(points_world: np.ndarray, frames: Frames, *, block: int = 
     return color, np.isfinite(best)
 
 
+def return_reflectance(acc: Accumulated, index: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Reflectance estimates of the returns acc[index] (K,) seen on surfaces of unit `normals`
+    (K, 3): each one's sweep's sensor response inverted at the return's range, incidence and
+    laser. (K,) float64, NaN where the sweep has no intensity or no sensor model; capped at the
+    channel's bound."""
+    index = np.asarray(index, np.int64)
+    v = acc.points[index] - acc.sensor[index]
+    r = np.linalg.norm(v, axis=1)
+    cos = np.abs(np.einsum("ij,ij->i", normals, v)) / np.maximum(r, 1e-9)
+    out = np.full(index.shape[0], np.nan)
+    sweep = acc.sweep[index]
+    for k, resp in enumerate(acc.responses):
+        if resp is not None:
+            sel = sweep == k
+            out[sel] = resp.inverse(acc.intensity[index[sel]], cos[sel], r[sel], acc.ring[index[sel]])
+    return np.minimum(out, KNOWN_CHANNELS["reflectance"].bounds[1])
+
+
+def face_reflectance(acc: Accumulated) -> np.ndarray:
+    """(F,) reflectance of each triangle of `acc.faces`: the mean of its corners' estimates, each
+    inverted with the triangle's own normal (so a corner on a crease, a wall's foot, is read
+    with the incidence of each face it belongs to, not an average normal); NaN where no corner
+    has an estimate."""
+    f = acc.faces
+    p = acc.points
+    n = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    corners = return_reflectance(acc, f.ravel(), np.repeat(n, 3, axis=0)).reshape(-1, 3)
+    known = np.isfinite(corners)
+    with np.errstate(invalid="ignore"):
+        return np.where(known, corners, 0.0).sum(1) / known.sum(1)
+
+
 @dataclass
 class BuildReport:
     """What `build_voxsplat` did, for the CLI and the notes."""
@@ -258,12 +315,14 @@ class BuildReport:
     gaussians: int
     voxel_size: float
     gaussians_per_voxel: int
+    reflectance: int = 0  # returns whose sweep has intensity and a sensor model (reflectance estimated)
 
 
 def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_voxel: int = 4,
                    frames: list[Frames] | None = None, neighbours: int = 16, patch_scale: float = 0.5,
                    max_patch_sigma: float | None = 0.03, max_normal_scale: float = 0.02, min_scale: float | None = None,
-                   opacity: float = 0.99, all_points: bool = False) -> tuple[VoxSplat, BuildReport]:
+                   opacity: float = 0.99, all_points: bool = False,
+                   reflectance: bool = True) -> tuple[VoxSplat, BuildReport]:
     """Fit a VoxSplat (origin = acc.origin) to accumulated points.
 
     Where the sweeps were meshed (`acc.faces`), the triangles are sampled at the voxel size and
@@ -272,7 +331,11 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
     truth); returns in no triangle (thin poles, isolated hits) are fitted as points with their
     neighbourhood patch (`surface_patches`); with `all_points` every return adds its patch too,
     which carries the surface a little past the mesh's borders. max_normal_scale caps each Gaussian's thickness
-    (metres, std) so range noise does not inflate surfaces."""
+    (metres, std) so range noise does not inflate surfaces. reflectance: estimate the returns'
+    reflectance (`return_reflectance`; a return in no triangle with its neighbourhood's normal)
+    and store its mean per Gaussian as the `reflectance` channel (a
+    sample of a triangle takes the mean of its corners', each read with the triangle's normal:
+    `face_reflectance`)."""
     n = len(acc)
     colors = None
     colored = 0
@@ -287,9 +350,10 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
     used = np.zeros(n, bool)
     used[acc.faces.ravel()] = True
     lonely = np.arange(n) if all_points else np.flatnonzero(~used)
-    _, cov_pts = surface_patches(acc.points, acc.sensor, neighbours=neighbours, patch_scale=patch_scale,
-                                 max_patch_sigma=max_patch_sigma)
-    pts, wts, labs, cols, table, index = [], [], [], [], [], []
+    pca_normals, cov_pts = surface_patches(acc.points, acc.sensor, neighbours=neighbours, patch_scale=patch_scale,
+                                           max_patch_sigma=max_patch_sigma)
+    measure = reflectance and any(r is not None for r in acc.responses)
+    pts, wts, labs, cols, table, index, refl = [], [], [], [], [], [], []
     nf = len(acc.faces)
     if nf:
         f = acc.faces
@@ -300,17 +364,24 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
         pts.append(smp["points"]), wts.append(smp["weights"]), labs.append(smp["labels"])
         cols.append(smp["colors"])
         table.append(smp["patch_cov"]), index.append(smp["face"])
+        if measure:
+            refl.append(face_reflectance(acc)[smp["face"]])
     # A lone return stands for about as much surface as a sample (its patch sets the shape).
     pts.append(acc.points[lonely]), wts.append(np.full(lonely.size, (0.5 * voxel_size) ** 2))
     labs.append(acc.labels[lonely])
     cols.append(np.full((lonely.size, 3), 0.5, np.float32) if colors is None else colors[lonely])
     table.append(cov_pts[lonely]), index.append(nf + np.arange(lonely.size))
+    if measure:
+        refl.append(return_reflectance(acc, lonely, pca_normals[lonely]))
     vs = fit_voxsplat(np.concatenate(pts), voxel_size, gaussians_per_voxel=gaussians_per_voxel,
                       colors=None if colors is None else np.concatenate(cols), labels=np.concatenate(labs),
                       weights=np.concatenate(wts), patch_cov=(np.concatenate(table), np.concatenate(index)),
-                      origin=acc.origin, min_scale=min_scale, max_normal_scale=max_normal_scale, opacity=opacity)
+                      origin=acc.origin, min_scale=min_scale, max_normal_scale=max_normal_scale, opacity=opacity,
+                      values={"reflectance": np.concatenate(refl)} if measure else None)
+    with_model = np.array([r is not None for r in acc.responses] + [False], bool)
+    measured = int(with_model[acc.sweep].sum()) if measure else 0
     report = BuildReport(n, acc.removed, colored, vs.num_voxels, int(vs.valid.sum()), float(voxel_size),
-                         int(gaussians_per_voxel))
+                         int(gaussians_per_voxel), measured)
     return vs, report
 
 
@@ -356,6 +427,7 @@ class BuildOptions:
     max_normal_scale: float = 0.02
     all_points: bool = False
     color: bool = True
+    reflectance: bool = True
 
 
 def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[Sample]]:
@@ -385,7 +457,8 @@ def build_from_dataset(ds, opts: BuildOptions) -> tuple[VoxSplat, BuildReport, A
     frames = [s.frames for s in samples if s.frames is not None] if opts.color else None
     vs, report = build_voxsplat(acc, voxel_size=opts.voxel_size, gaussians_per_voxel=opts.gaussians_per_voxel,
                                 frames=frames, patch_scale=opts.patch_scale, max_patch_sigma=opts.max_patch_sigma,
-                                max_normal_scale=opts.max_normal_scale, all_points=opts.all_points)
+                                max_normal_scale=opts.max_normal_scale, all_points=opts.all_points,
+                                reflectance=opts.reflectance)
     vs.metadata = {"source": "lidar", "dataset": ds.name, "root": str(ds.root), "build": asdict(opts),
                    "poses_from_icp": bool(getattr(ds, "poses_from_icp", False)), "notes": acc.notes,
                    "report": asdict(report)}

@@ -166,3 +166,30 @@ def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str 
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return _save(fig, path)
+
+
+def intensity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "",
+                  captions: dict[str, str] | None = None) -> Path:
+    """Intensity range images one above the other ('real' first, then each simulation), on one
+    shared 0-1 scale (the 99th percentile of the real image tops the colour map; black = no
+    return), with an optional caption per image (its metrics)."""
+    plt = _plt()
+    n = len(images)
+    fig, axes = plt.subplots(n, 1, figsize=(14, 1.9 * n + 0.8), dpi=110, squeeze=False)
+    real = images.get("real")
+    finite = real[np.isfinite(real)] if real is not None else np.zeros(0)
+    vmax = float(np.percentile(finite, 99)) if finite.size else 1.0
+    cmap = plt.get_cmap("inferno").with_extremes(bad="black")
+    for ax, (name, img) in zip(axes[:, 0], images.items()):
+        im = ax.imshow(img, aspect="auto", interpolation="nearest", cmap=cmap, vmin=0, vmax=max(vmax, 1e-6))
+        fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01, label="intensity (0-1)")
+        label = name if name == "real" else f"simulated: {name}"
+        if captions and name in captions:
+            label += f"  ({captions[name]})"
+        ax.set_title(label, fontsize=9, loc="left")
+        ax.set_yticks([])
+    axes[-1, 0].set_xlabel("column (azimuth)")
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

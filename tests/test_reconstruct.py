@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from scube_sim.boxes import Box, points_in_boxes
-from scube_sim.datasets.base import LidarSweep, Sample
+from scube_sim.datasets.base import LidarSpec, LidarSweep, Sample
 from scube_sim.fidelity import RealRays, SimRays, compare, poisson_mesh, real_rays, simulate_rays, voxel_cube_mesh
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
@@ -107,6 +107,52 @@ def test_voxsplat_from_one_sweep_reproduces_the_ground_and_a_wall_at_a_novel_pos
     assert m["p90_abs_m"] < 0.05
 
 
+# --- reflectance ---------------------------------------------------------------------------------
+
+def test_reflectance_measured_by_one_sensor_gives_another_its_own_intensities_at_a_novel_pose():
+    """A wall at x = 12 m whose left half (y > 0) has reflectance 0.8 and right half 0.2, over a
+    ground of 0.1. The "real" HDL-32E reports, by its manual and measured exponent, 100/255 x rho x
+    cos^0.22 (written here by hand from the planes' normals); the build must recover rho, and a
+    VLS-128 (110/255 x rho x cos) sweeping the scene from elsewhere must read its own scale."""
+    wall_x = 12.0
+    scene = TriangleMesh.concatenate([ground(), pr.quad([[wall_x, -15, -H], [wall_x, 15, -H], [wall_x, 15, 5],
+                                                         [wall_x, -15, 5]])])
+    cfg = quiet("HDL-32E").model_copy(update={"mount": load_lidar_config("VLP-16").mount})  # level mount
+    sw = synthetic_sweep(scene, make_pose(), cfg)
+    p = sw.points
+    r = np.linalg.norm(p, axis=1)
+    on_wall = np.abs(p[:, 0] - wall_x) < 1e-4
+    cos = np.where(on_wall, np.abs(p[:, 0]), np.abs(p[:, 2])) / r  # normals +x and +z
+    rho = np.where(on_wall, np.where(p[:, 1] > 0, 0.8, 0.2), 0.1)
+    sw.intensity = (100 / 255 * rho * cos ** 0.22).astype(np.float32)
+    sample = Sample("s", 0.0, make_pose(), sweeps=[sw], lidars={sw.sensor: LidarSpec(sw.sensor, cfg, np.eye(4))})
+    vs, rep = build_voxsplat(accumulate([sample]), voxel_size=0.1)
+    assert rep.reflectance == len(sw)
+    g = vs.means()[vs.valid]
+    est = vs.channel("reflectance")[vs.valid]
+    # Away from the seam (triangles there average both halves), the wall's ends and the corner
+    # at its foot (the range-image mesh bridges the last ground ring and the wall's lowest), and
+    # within the meshed ground (beyond ~15 m the rings are too far apart: lone returns there are
+    # read with their neighbourhood's normal, which one ring leaves uncertain).
+    wall_g = (np.abs(g[:, 0] - wall_x) < 0.05) & (np.abs(g[:, 1]) > 0.5) & (g[:, 2] > -H + 0.5) & (np.abs(g[:, 1]) < 14)
+    ground_g = (np.abs(g[:, 2] + H) < 0.05) & (g[:, 0] < wall_x - 2.0) & (np.hypot(g[:, 0], g[:, 1]) < 14)
+    assert wall_g.sum() > 500 and ground_g.sum() > 500
+    # float32 intensities and points: a few 1e-4 of relative error.
+    np.testing.assert_allclose(est[wall_g], np.where(g[wall_g, 1] > 0, 0.8, 0.2), rtol=2e-3)
+    assert np.mean(np.abs(est[ground_g] / 0.1 - 1) < 2e-3) > 0.999  # but a few lone returns
+    # A VLS-128 1 m ahead and 2 m to the left: its own gain and the Lambertian cosine.
+    pose_b = make_pose(translation=[1.0, 2.0, 0.0])
+    vls = quiet("VLS-128").model_copy(update={"mount": cfg.mount})
+    out = Lidar(vls).scan(Tracer(vs, mode="max_response"), pose_b).points
+    q = np.stack([out["x"], out["y"], out["z"]], 1).astype(np.float64)
+    rq = np.linalg.norm(q, axis=1)
+    world_y = q[:, 1] + 2.0
+    sel = (np.abs(q[:, 0] - (wall_x - 1.0)) < 0.01) & (np.abs(world_y) > 0.5) & (q[:, 2] > -H + 0.5) & (np.abs(world_y) < 14)
+    assert sel.sum() > 1000
+    want = 110 / 255 * np.where(world_y[sel] > 0, 0.8, 0.2) * np.abs(q[sel, 0]) / rq[sel]
+    np.testing.assert_allclose(out["intensity"][sel], want, rtol=5e-3)
+
+
 # --- moving objects ----------------------------------------------------------------------------
 
 def test_free_space_carving_grows_to_the_whole_car_and_spares_the_scene():
@@ -190,6 +236,7 @@ def test_compare_metrics_by_hand():
     assert np.isclose(m["fscore_5cm"], 1 / 3)  # precision 1/3, recall 1/3
     assert np.isclose(m["fscore_20cm"], 2 / 3)
     assert np.isnan(m["intensity_r"])  # two rays: no correlation to speak of
+    assert np.isclose(m["intensity_rmse"], 0.1)  # |0.3 - 0.2| and |0.5 - 0.4| on the two both return
     n = 20
     rays5 = RealRays(np.tile([1.0, 0, 0], (n, 1)), np.full(n, 10.0), np.zeros(n), np.linspace(0.1, 0.9, n),
                      np.zeros(n, int), np.arange(n), 1, n, True)

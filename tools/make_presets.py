@@ -50,6 +50,49 @@ COMMON = {
     "beam": {"return_mode": "strongest"},
     "drop": {"max_incidence_deg": 85.0},
 }
+# The response to measured reflectance (`intensity.response`, lidar/response.py). gain: the
+# reading of a white (100 %) diffuse target as a share of the 0-255 full scale, from the vendor's
+# manual; incidence_exponent: measured on the shared logs by tools/fit_intensity_response.py
+# (across surfaces: HDL-32E 0.220 on nuScenes; HDL-64E 0.208 and 0.251 on KITTI raw frames 0 and
+# 2; VLP-32C 0.157 and 0.180 on Argoverse 2's up and down sensors); sensors without a log here
+# keep the Lambertian cosine (1).
+CALIBRATED = "reports calibrated reflectivity, distance-independent (fall-off exponent 0)"
+RESPONSES = {
+    "vlp16": ({"gain": round(100 / 255, 6)},
+              "Response to measured reflectance: gain 100/255 (VLP-16 manual, 'Calibrated Reflectivity': "
+              f"diffuse 0-100 for 0-100 %; {CALIBRATED}); incidence: Lambertian cosine (not measured here)."),
+    "hdl32e": ({"gain": round(100 / 255, 6), "incidence_exponent": 0.22},
+               "Response to measured reflectance: gain 100/255 (Velodyne 'HDL32E Software Version 2.0 "
+               f"Description' (2012): diffuse 0-100 for 0-100 %, {CALIBRATED}); intensity ~ cos(incidence)^0.22, "
+               "measured on the nuScenes sweep (tools/fit_intensity_response.py: 0.220 across surfaces)."),
+    "hdl64e": ({"gain": 1.0, "incidence_exponent": 0.23},
+               "Response to measured reflectance: gain 1 (the HDL-64E reports uncalibrated intensity and no "
+               "reflectivity scale is published: KITTI's 0-1 reflectance is taken at face value); intensity ~ "
+               "cos(incidence)^0.23, measured on KITTI raw frames 0 and 2 (tools/fit_intensity_response.py: "
+               "0.208 and 0.251 across surfaces); this unit's file has no per-laser intensity correction "
+               "(focal_slope 0, limits 0-255)."),
+    "vlp32c": ({"gain": round(100 / 255, 6), "incidence_exponent": 0.17},
+               "Response to measured reflectance: gain 100/255 (the VLP-16 and HDL-32E manuals' calibrated "
+               "reflectivity, diffuse 0-100 for 0-100 %; the VLP-32C manual was not available to confirm); "
+               "intensity ~ cos(incidence)^0.17, measured on Argoverse 2 (tools/fit_intensity_response.py: "
+               "0.157 and 0.180 across surfaces, up and down sensor)."),
+    "vls128": ({"gain": round(110 / 255, 6)},
+               "Response to measured reflectance: gain 110/255 (VLS-128 manual, 'Calibrated Reflectivity': "
+               f"diffuse 0-110 for 0-100 %; {CALIBRATED}); incidence: Lambertian cosine (not measured here)."),
+}
+DEFAULT_RESPONSE_NOTE = ("Response to measured reflectance: the defaults (gain 1, Lambertian cosine): no "
+                         "published reflectivity scale was at hand and no log here to measure it on.")
+
+
+def with_response(pid: str, overrides: dict) -> dict:
+    """`overrides` with the preset's intensity response and its note appended to `notes`."""
+    resp, note = RESPONSES.get(pid, ({}, DEFAULT_RESPONSE_NOTE))
+    out = dict(overrides)
+    out["intensity"] = {**out.get("intensity", {}), "response": resp}
+    out["notes"] = " ".join(x for x in (out.get("notes", ""), note) if x)
+    return out
+
+
 ROOF = {"xyz": [0.0, 0.0, 1.8], "rpy_deg": [0.0, 0.0, 0.0]}
 ROOF_NOTE = "Mount: a placeholder roof mount (1.8 m above the ego origin, level, facing forward)."
 COMMON_NOTE = ("Intensity from class reflectivity, strongest return, returns beyond 85 degrees "
@@ -121,17 +164,19 @@ def build(data: Path) -> dict[str, object]:
     presets = {}
 
     velodyne_common = ("Per laser from the calibration: elevation (vert_correction), azimuth offset "
-                       "(+rot_correction), beam-origin offsets (vert/horiz_offset_correction). Not "
-                       "modelled: dist_correction, two-point and focal/intensity corrections.")
+                       "(+rot_correction), beam-origin offsets (vert/horiz_offset_correction), and the "
+                       "per-laser intensity correction where the file has one (focal_distance/slope, "
+                       "min/max_intensity -> intensity.response.velodyne). Not modelled: dist_correction "
+                       "and two-point corrections.")
 
     def velodyne(pid, name, f, columns, hz, fire, fire_note, rng, sigma, quant, quant_note, mount, mount_note):
         cfg = from_velodyne_yaml(
             vel / f, columns=columns, rotation_hz=hz, name=name, fire_time_us=fire, id=pid,
-            source=VELODYNE.format(f=f),
-            notes=" ".join([velodyne_common, fire_note, quant_note, mount_note, COMMON_NOTE]),
-            range={"min_m": rng[0], "max_m": rng[1]},
-            noise={"range_sigma_m": sigma, "quantization_m": quant},
-            mount=mount, **COMMON)
+            source=VELODYNE.format(f=f), **with_response(pid, dict(
+                notes=" ".join([velodyne_common, fire_note, quant_note, mount_note, COMMON_NOTE]),
+                range={"min_m": rng[0], "max_m": rng[1]},
+                noise={"range_sigma_m": sigma, "quantization_m": quant},
+                mount=mount, **COMMON)))
         presets[pid] = cfg
 
     res = velodyne_distance_resolution(vel / "VLP16db.yaml")
@@ -205,11 +250,11 @@ def build(data: Path) -> dict[str, object]:
         n_mm = meta.get("lidar_origin_to_beam_origin_mm",
                         meta.get("beam_intrinsics", {}).get("lidar_origin_to_beam_origin_mm"))
         presets[pid] = from_ouster_json(
-            ous / local, name=name, id=pid, source=OUSTER.format(p=rel, local=local),
-            notes=" ".join([ouster_note.format(n=n_mm), ROOF_NOTE, COMMON_NOTE]),
-            range={"min_m": 0.5, "max_m": 120.0},
-            noise={"range_sigma_m": 0.01, "quantization_m": 0.001},
-            mount=ROOF, **COMMON)
+            ous / local, name=name, id=pid, source=OUSTER.format(p=rel, local=local), **with_response(pid, dict(
+                notes=" ".join([ouster_note.format(n=n_mm), ROOF_NOTE, COMMON_NOTE]),
+                range={"min_m": 0.5, "max_m": 120.0},
+                noise={"range_sigma_m": 0.01, "quantization_m": 0.001},
+                mount=ROOF, **COMMON)))
 
     hesai_note = ("Per channel from the angle file: elevation, azimuth offset = -Azimuth (Hesai's "
                   "azimuth is clockwise-positive, HesaiLidar_SDK_2.0 x = xy sin(az), y = xy cos(az)). "
@@ -218,36 +263,36 @@ def build(data: Path) -> dict[str, object]:
     presets["pandar64"] = from_hesai_csv(
         hes / "Pandar64_Angle_Correction_File.csv", hes / "Pandar64_Firetime_Correction_File.csv",
         columns=1800, rotation_hz=10.0, name="Pandar64", channels=64, id="pandar64",
-        source=HESAI.format(m="Pandar64"),
-        notes=" ".join([hesai_note, "Fire times: the vendor's fire-time file as is (-54.67 .. -3.62 us: "
-                        "relative to the block's encoder instant, which the SDK shifts each channel's "
-                        "azimuth from by t * rpm * 6e-6 degrees).", ROOF_NOTE, COMMON_NOTE]),
-        range={"min_m": 0.3, "max_m": 200.0}, noise={"range_sigma_m": 0.01, "quantization_m": 0.004},
-        mount=ROOF, **COMMON)
+        source=HESAI.format(m="Pandar64"), **with_response("pandar64", dict(
+            notes=" ".join([hesai_note, "Fire times: the vendor's fire-time file as is (-54.67 .. -3.62 us: "
+                            "relative to the block's encoder instant, which the SDK shifts each channel's "
+                            "azimuth from by t * rpm * 6e-6 degrees).", ROOF_NOTE, COMMON_NOTE]),
+            range={"min_m": 0.3, "max_m": 200.0}, noise={"range_sigma_m": 0.01, "quantization_m": 0.004},
+            mount=ROOF, **COMMON)))
     presets["pandar128"] = from_hesai_csv(
         hes / "Pandar128E3X_Angle_Correction_File.csv", hes / "Pandar128E3X_Firetime_Correction_File.csv",
         columns=1800, rotation_hz=10.0, name="Pandar128E3X", channels=128, id="pandar128",
-        operation_mode=2, angle_state=0, source=HESAI.format(m="Pandar128E3X"),
-        notes=" ".join([hesai_note, "Fire times: the vendor's mode-dependent table, operation mode 2 "
-                        "(standard: every channel fires in every 0.2 degree column; mode 0 is high "
-                        "resolution, where channels alternate between angle states), angle state 0, "
-                        "distance >= A1 (2.85 m) column; nanoseconds in the file, microseconds here.",
-                        ROOF_NOTE, COMMON_NOTE]),
-        range={"min_m": 0.3, "max_m": 200.0}, noise={"range_sigma_m": 0.01, "quantization_m": 0.004},
-        mount=ROOF, **COMMON)
+        operation_mode=2, angle_state=0, source=HESAI.format(m="Pandar128E3X"), **with_response("pandar128", dict(
+            notes=" ".join([hesai_note, "Fire times: the vendor's mode-dependent table, operation mode 2 "
+                            "(standard: every channel fires in every 0.2 degree column; mode 0 is high "
+                            "resolution, where channels alternate between angle states), angle state 0, "
+                            "distance >= A1 (2.85 m) column; nanoseconds in the file, microseconds here.",
+                            ROOF_NOTE, COMMON_NOTE]),
+            range={"min_m": 0.3, "max_m": 200.0}, noise={"range_sigma_m": 0.01, "quantization_m": 0.004},
+            mount=ROOF, **COMMON)))
 
     presets["waymo-top"] = from_waymo_frame(
         data / "waymo-open-dataset-frame" / "frame_metadata.json", "TOP", columns=2650, rotation_hz=10.0,
-        name="Waymo TOP", id="waymo-top", source=WAYMO,
-        notes=("64 beam inclinations from the frame's TOP laser calibration, in the file's ascending "
-               "order (channel 0 = bottom beam; Waymo range-image row r = channel 63 - r). 2650 "
-               "columns at 10 Hz, 75 m maximum range (Waymo Open Dataset paper). Not published: per-beam "
-               "azimuth offsets, fire timing (fire_time 0), range noise (1 cm placeholder), minimum "
-               "range (0.5 m placeholder). Mount: the frame's extrinsic_laser_to_vehicle_4x4 (segment "
-               "1024360143612057520_3580_000_3600_000). start_azimuth_deg puts column 0 at vehicle "
-               "azimuth 180 - 180/2650 degrees and the columns clockwise, as in Waymo's range images "
-               "(range_image_utils.compute_range_image_polar). " + COMMON_NOTE),
-        range={"min_m": 0.5, "max_m": 75.0}, noise={"range_sigma_m": 0.01}, **COMMON)
+        name="Waymo TOP", id="waymo-top", source=WAYMO, **with_response("waymo-top", dict(
+            notes=("64 beam inclinations from the frame's TOP laser calibration, in the file's ascending "
+                   "order (channel 0 = bottom beam; Waymo range-image row r = channel 63 - r). 2650 "
+                   "columns at 10 Hz, 75 m maximum range (Waymo Open Dataset paper). Not published: per-beam "
+                   "azimuth offsets, fire timing (fire_time 0), range noise (1 cm placeholder), minimum "
+                   "range (0.5 m placeholder). Mount: the frame's extrinsic_laser_to_vehicle_4x4 (segment "
+                   "1024360143612057520_3580_000_3600_000). start_azimuth_deg puts column 0 at vehicle "
+                   "azimuth 180 - 180/2650 degrees and the columns clockwise, as in Waymo's range images "
+                   "(range_image_utils.compute_range_image_polar). " + COMMON_NOTE),
+            range={"min_m": 0.5, "max_m": 75.0}, noise={"range_sigma_m": 0.01}, **COMMON)))
     return presets
 
 

@@ -1,6 +1,6 @@
 """ASAM OpenSCENARIO 1.x (.xosc): the ego's timed trajectory in, a replayed ego trajectory out.
 
-Read (`read_openscenario`, `openscenario_source`): the ego entity's Init ``TeleportAction``
+Read (`read_openscenario`; `sim.sources.TrajectorySource.from_openscenario` is the pose source): the ego entity's Init ``TeleportAction``
 (a ``WorldPosition``) and its ``FollowTrajectoryAction``s whose ``Trajectory`` is a timed
 ``Polyline`` of ``WorldPosition`` vertices, given inline (1.0), through a ``TrajectoryRef`` (1.1+)
 or through a ``CatalogReference`` into a trajectory catalog (``CatalogLocations/
@@ -46,7 +46,7 @@ from ..atomic import atomic_path
 from ..errors import InputError, NotFoundError
 from ..transforms import check_pose, hpr_to_rotmat, make_pose, rotmat_to_hpr
 
-__all__ = ["OpenScenarioTrajectory", "read_openscenario", "openscenario_source", "write_openscenario"]
+__all__ = ["OpenScenarioTrajectory", "read_openscenario", "write_openscenario"]
 
 EGO_NAMES = ("Ego", "ego")
 FOLLOWING_MODES = ("position", "follow")
@@ -476,15 +476,6 @@ def _has_trajectory(sb: ET.Element, scope: _Scope, name: str) -> bool:
         if name in refs and next(group.iter("FollowTrajectoryAction"), None) is not None:
             return True
     return False
-
-
-def openscenario_source(path: str | Path, entity: str | None = None):
-    """A pose source (`sim.sources.TrajectorySource`) over the ego's trajectory in an .xosc file:
-    linear in position, SLERP in rotation between vertices, held at the ends."""
-    from ..sim.sources import TrajectorySource  # here, not at the top: sim imports io
-
-    tr = read_openscenario(path, entity)
-    return TrajectorySource(tr.times, tr.poses, f"{tr.path} (entity {tr.entity})")
 
 
 # --- writing -----------------------------------------------------------------------------------

@@ -160,19 +160,77 @@ class Drop(StrictModel):
     min_intensity: returns weaker than this (model units, before output_scale) are lost;
     reflectivity_range: if set, a surface of effective reflectivity rho (reflectivity x cos
     incidence) is detected only up to ``max_m * sqrt(rho / reflectivity_range)`` (the lidar
-    equation: received power ~ rho / r^2), i.e. max_m is the range at that reflectivity."""
+    equation: received power ~ rho / r^2), i.e. max_m is the range at that reflectivity.
+    model: a fitted drop model file (`lidar/drop.py`; relative to the sensor YAML): each echo is
+    then also dropped with its modelled probability, drawn from the sweep's seeded generator."""
 
     random_rate: float = Field(default=0.0, ge=0, le=1)
     max_incidence_deg: float = Field(default=90.0, gt=0, le=90)
     min_intensity: float = Field(default=0.0, ge=0)
     reflectivity_range: float | None = Field(default=None, gt=0, le=1)
+    model: str | None = None
+
+
+class VelodyneIntensity(StrictModel):
+    """The ROS velodyne driver's per-laser intensity correction (velodyne_pointcloud rawdata.cc;
+    HDL-64E S2/S3 calibration files carry it), in the sensor's 0-255 byte scale:
+    ``reported = clamp(raw + focal_slope * |focal_offset - 256 (1 - d / 65535)^2|, min_intensity,
+    max_intensity)`` with ``focal_offset = 256 (1 - focal_distance / 13100)^2`` and d the range in
+    units of `distance_resolution_m`. The file's numbers are used as the driver uses them. Lists
+    per channel, in the pattern's channel order."""
+
+    focal_distance: list[float]
+    focal_slope: list[float]
+    min_intensity: list[float] | None = None
+    max_intensity: list[float] | None = None
+    distance_resolution_m: float = Field(default=0.002, gt=0)
+
+    _check = field_validator("focal_distance", "focal_slope", "min_intensity", "max_intensity")(
+        classmethod(lambda cls, v: v if v is None else _finite(v)))
+
+    @model_validator(mode="after")
+    def _same_length(self):
+        n = len(self.focal_distance)
+        for name in ("focal_slope", "min_intensity", "max_intensity"):
+            v = getattr(self, name)
+            if v is not None and len(v) != n:
+                raise ValueError(f"{name} has {len(v)} entries but focal_distance has {n}")
+        return self
+
+
+class IntensityResponse(StrictModel):
+    """How the sensor reports a surface of *measured* reflectance rho (a VoxSplat's `reflectance`
+    channel: Lambertian-equivalent, 1 = a white diffuse target), on the common 0-1 scale (a
+    fraction of the sensor's full-scale reading; `output_scale` then gives the sensor's units):
+
+        I = clip(gain * channel_gain[c] * rho * cos(incidence) ** incidence_exponent
+                 * min(1, (reference_range_m / r) ** falloff_exponent), 0, 1)
+
+    then, with `velodyne`, the driver's per-laser correction on the byte scale (I * 255). The
+    fall-off terms are the section's. The build inverts the same function to turn real returns
+    into reflectance (`lidar.response`). The defaults (gain 1, cosine) give the class formula's
+    scale. Each preset's `notes` say where its numbers come from."""
+
+    gain: float = Field(default=1.0, gt=0, le=100)
+    incidence_exponent: float = Field(default=1.0, ge=0, le=4)
+    channel_gain: list[float] | None = None
+    velodyne: VelodyneIntensity | None = None
+
+    @field_validator("channel_gain")
+    @classmethod
+    def _positive(cls, v):
+        if v is not None and not all(np.isfinite(g) and g > 0 for g in v):
+            raise ValueError("channel gains must be positive finite numbers")
+        return v
 
 
 class Intensity(StrictModel):
     """intensity = reflectivity * cos(incidence) * min(1, (reference_range_m / r) ** falloff_exponent)
     * output_scale. reflectivity from the semantic class (labels.py, overridable per class name),
     from the surface colour's luminance, or a constant. falloff_exponent 0 gives the calibrated
-    reflectivity that Velodyne/Ouster drivers report; 2 the raw inverse-square power."""
+    reflectivity that Velodyne/Ouster drivers report; 2 the raw inverse-square power.
+    Where the scene carries measured reflectance (the VoxSplat `reflectance` channel) `response`
+    is used instead: the sensor's own scale (see `IntensityResponse`)."""
 
     source: Literal["class", "color", "constant"] = "class"
     constant: float = Field(default=0.3, ge=0, le=1)
@@ -180,6 +238,7 @@ class Intensity(StrictModel):
     falloff_exponent: float = Field(default=0.0, ge=0, le=4)
     reference_range_m: float = Field(default=10.0, gt=0)
     output_scale: float = Field(default=1.0, gt=0)
+    response: IntensityResponse = IntensityResponse()
 
     @field_validator("class_reflectivity")
     @classmethod
@@ -259,6 +318,18 @@ class LidarConfig(StrictModel):
         return len(set(p.channel)) if p.channel else 1
 
     @model_validator(mode="after")
+    def _per_channel_response(self):
+        r, p = self.intensity.response, self.pattern
+        if isinstance(p, SpinningPattern):
+            n = p.channels.count
+            tables = {"intensity.response.channel_gain": r.channel_gain,
+                      "intensity.response.velodyne": None if r.velodyne is None else r.velodyne.focal_distance}
+            for name, v in tables.items():
+                if v is not None and len(v) != n:
+                    raise ValueError(f"{name} has {len(v)} entries but the pattern has {n} channels")
+        return self
+
+    @model_validator(mode="after")
     def _rays_fit_in_memory(self):
         p = self.pattern
         if isinstance(p, SpinningPattern):
@@ -297,12 +368,16 @@ def load_config_file(path: str | Path) -> LidarConfig:
     p = cfg.pattern
     if isinstance(p, EmitterPattern) and p.file and not Path(p.file).is_absolute():
         p.file = str((path.parent / p.file).resolve())  # relative to the YAML file
+    if cfg.drop.model and not Path(cfg.drop.model).is_absolute():
+        cfg.drop.model = str((path.parent / cfg.drop.model).resolve())
     return cfg
 
 
 def preset_paths() -> dict[str, Path]:
-    """Normalised id -> YAML path of every shipped preset."""
-    return {normalize_name(p.stem): p for p in sorted((sensors_dir() / "lidar").glob("*.yaml"))}
+    """Normalised id -> YAML path of every shipped preset: `sensors/lidar/<id>.yaml`. Files named
+    `<id>.<kind>.yaml` beside a preset are that sensor's profiles (e.g. `hdl32e.drop.yaml`, a
+    fitted drop model), not presets."""
+    return {normalize_name(p.stem): p for p in sorted((sensors_dir() / "lidar").glob("*.yaml")) if "." not in p.stem}
 
 
 def list_presets() -> list[LidarConfig]:

@@ -101,8 +101,11 @@ def from_velodyne_yaml(path: str | Path, *, columns: int, rotation_hz: float, na
     Channels in `laser_id` order. elevation = degrees(vert_correction); azimuth offset =
     +degrees(rot_correction) (see the module docstring); origin offsets are the file's
     vert/horiz_offset_correction in metres (a missing key counts as 0, as in the driver).
-    The distance corrections (dist_correction*, focal_*) are not modelled. The file has no timing:
-    pass `fire_time_us` (per channel, microseconds after the column's encoder instant).
+    The per-laser intensity correction (focal_distance, focal_slope, min/max_intensity, with the
+    file's distance_resolution) becomes `intensity.response.velodyne` where the file has one (any
+    focal_slope != 0 or intensity limits narrower than 0-255; a missing key counts as the driver's
+    default: 0, 0, 0, 255). The distance corrections (dist_correction*) are not modelled. The file
+    has no timing: pass `fire_time_us` (per channel, microseconds after the column's encoder instant).
     """
     path = _require_file(path)
     data = load_yaml(path)
@@ -146,6 +149,16 @@ def from_velodyne_yaml(path: str | Path, *, columns: int, rotation_hz: float, na
         raise ConfigError(f"{path}: fire_time_us has {len(fire_time_us)} entries but the file has {n} lasers")
     pattern = {"type": "spinning", "columns": columns, "rotation_hz": rotation_hz, "direction": "cw",
                "channels": {k: v for k, v in channels.items() if v is not None}}
+    # The driver's defaults and rounding (calibration.cc: absent limits are 0 and 255, floored).
+    focal = {"focal_distance": table("focal_distance", 0.0), "focal_slope": table("focal_slope", 0.0),
+             "min_intensity": [float(math.floor(v)) for v in table("min_intensity", 0.0)],
+             "max_intensity": [float(math.floor(v)) for v in table("max_intensity", 255.0)]}
+    if (any(focal["focal_slope"]) or min(focal["min_intensity"]) > 0 or max(focal["max_intensity"]) < 255):
+        res = data.get("distance_resolution", 0.002)
+        focal["distance_resolution_m"] = _float(res, path, "distance_resolution")
+        intensity = dict(overrides.get("intensity", {}))
+        intensity["response"] = {**intensity.get("response", {}), "velodyne": focal}
+        overrides = {**overrides, "intensity": intensity}
     return _build(path, name, pattern, overrides)
 
 

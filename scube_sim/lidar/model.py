@@ -5,9 +5,12 @@ One sweep, step by step (each effect only when its config asks for it):
 2. the sensor pose at each ray's fire time (motion distortion: SLERP/lerp between the sweep's
    start and end poses, or a pose function), rays to the world frame;
 3. the ego-body box blocks rays; the tracer finds the nearest surface within the max range;
-4. intensity = reflectivity x cos(incidence) x range fall-off; sub-ray hits form echoes, and the
-   return mode picks one or two per pulse;
-5. drops (min range, random, grazing, weak, dark-and-far), range noise, quantisation;
+4. intensity = reflectivity x cos(incidence) x range fall-off; on surfaces with measured
+   reflectance (the VoxSplat `reflectance` channel) the sensor's own response instead
+   (`intensity.response`, `lidar/response.py`); sub-ray hits form echoes, and the return mode
+   picks one or two per pulse;
+5. drops (min range, random, grazing, weak, dark-and-far, a fitted drop model), range noise,
+   quantisation;
 6. points in the sensor frame at their own fire time ('raw') or at the sweep's reference
    instant ('compensated').
 Randomness comes from one seeded generator: the same seed gives the same sweep, bit for bit.
@@ -26,7 +29,9 @@ from ..raytrace.compose import nearest_hits
 from ..raytrace.tracer import Tracer
 from ..transforms import PoseFn, check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
 from .config import LidarConfig, check_rays_per_sweep
+from .drop import DropModel
 from .pattern import ScanPattern, make_pattern
+from .response import Response
 
 POINT_DTYPE = np.dtype([
     ("x", np.float32), ("y", np.float32), ("z", np.float32), ("intensity", np.float32),
@@ -34,7 +39,7 @@ POINT_DTYPE = np.dtype([
     ("label", np.int16), ("instance", np.int32), ("column", np.int32), ("return_id", np.uint8),
 ])
 """One LiDAR return. x y z metres in the output frame (sensor frame, see Motion); intensity in
-model units x output_scale; ring: channel index; time: seconds after the sweep start; range:
+model units x output_scale (on surfaces with measured reflectance: the sensor's 0-1 scale); ring: channel index; time: seconds after the sweep start; range:
 metres from the beam origin; azimuth: radians, beam direction CCW from +x; label: semantic id;
 instance: actor id (0 = static scene); column: firing column; return_id: 0 first/only, 1 second."""
 
@@ -122,6 +127,15 @@ def _ray_box(o: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np
     return np.where(hit, np.maximum(tlo, 0.0), np.inf)
 
 
+def class_reflectivity_table(config: LidarConfig) -> np.ndarray:
+    """(NUM_LABELS,) float64 reflectivity per label id: labels.py's, with the config's
+    `intensity.class_reflectivity` overrides."""
+    refl = LABEL_REFLECTIVITY.astype(np.float64).copy()
+    for name, rho in config.intensity.class_reflectivity.items():
+        refl[LABEL_IDS[name]] = rho
+    return refl
+
+
 class Lidar:
     """A configured LiDAR. `scan` traces one sweep; the pattern is computed once."""
 
@@ -135,10 +149,12 @@ class Lidar:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         self._sub_rho, self._sub_phi, self._sub_w = _subray_offsets(b.samples, b.divergence_mrad * 1e-3)
-        refl = LABEL_REFLECTIVITY.astype(np.float64).copy()
-        for name, rho in config.intensity.class_reflectivity.items():
-            refl[LABEL_IDS[name]] = rho
-        self._class_reflectivity = refl
+        self._class_reflectivity = class_reflectivity_table(config)
+        self._response = Response(config.intensity)
+        try:
+            self._drop_model = None if config.drop.model is None else DropModel.load(config.drop.model)
+        except ConfigError as exc:
+            raise ConfigError(f"{config.name}: drop.model: {exc}") from None
 
     @property
     def mount(self) -> np.ndarray:
@@ -176,15 +192,16 @@ class Lidar:
         d_sub, o_sub, t_sub = self._sub_rays()
         static = pose_fn is None and np.array_equal(pose_start, pose_end)
         o_w, d_w, poses = self._world_rays(d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start)
-        hit, rng_sub, label, instance, cos_inc, color = self._trace(tracer, o_w, d_w, o_sub, d_sub, t_start + t_sub)
-        refl, inten = self._intensity(hit, rng_sub, label, cos_inc, color)
+        hit, rng_sub, label, instance, cos_inc, color, measured = self._trace(tracer, o_w, d_w, o_sub, d_sub,
+                                                                              t_start + t_sub)
+        refl, inten = self._intensity(hit, rng_sub, label, cos_inc, color, measured)
         n_pulse, s = len(pat), self._sub_w.shape[0]
         pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
         rid = np.zeros(pulse.shape[0], np.uint8)
         if cfg.beam.return_mode == "dual":
             pulse, echo_range, strength, rep, rid = self._dual(pulse, echo_range, strength, rep)
         pulse, echo_range, strength, rep, rid = self._drop(rng, pulse, echo_range, strength, rep, rid,
-                                                           cos_inc[rep], refl[rep])
+                                                           cos_inc[rep], refl[rep], label[rep])
         echo_range = self._range_noise(rng, echo_range)
         ref = pose_start if cfg.motion.reference == "start" else pose_end
         out = self._points(pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses)
@@ -236,7 +253,7 @@ class Lidar:
 
     def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times):
         """The ego body and the scene: per sub-ray hit, range (m), label, instance, |cos| of the
-        incidence angle, and colour."""
+        incidence angle, colour and measured reflectance (NaN: none)."""
         cfg = self.config
         t_far = np.full(o_w.shape[0], cfg.range.max_m, np.float64)
         t_body = np.full(o_w.shape[0], np.inf)
@@ -257,6 +274,7 @@ class Lidar:
         label = hits.label.astype(np.int16)
         instance = hits.instance.copy()
         cos_inc = np.abs(np.einsum("ij,ij->i", hits.normals.astype(np.float64), d_w))
+        measured = hits.reflectance.astype(np.float64)
         if cfg.ego_body is not None and cfg.ego_body.returns:
             body = np.isfinite(t_body) & (~hit | (t_body < rng_sub))
             hit |= body
@@ -264,10 +282,12 @@ class Lidar:
             label = np.where(body, 0, label).astype(np.int16)
             instance = np.where(body, 0, instance)
             cos_inc = np.where(body, 1.0, cos_inc)
-        return hit, rng_sub, label, instance, cos_inc, hits.color
+            measured = np.where(body, np.nan, measured)
+        return hit, rng_sub, label, instance, cos_inc, hits.color, measured
 
-    def _intensity(self, hit, rng_sub, label, cos_inc, color):
-        """Per sub-ray reflectivity and return strength (reflectivity x cos incidence x fall-off)."""
+    def _intensity(self, hit, rng_sub, label, cos_inc, color, measured):
+        """Per sub-ray reflectivity and return strength: the sensor's response to the measured
+        reflectance where the surface has one, else reflectivity x cos incidence x fall-off."""
         ic = self.config.intensity
         if ic.source == "class":
             refl = self._class_reflectivity[label]
@@ -277,11 +297,17 @@ class Lidar:
             refl = np.full(label.shape, ic.constant)
         with np.errstate(divide="ignore", invalid="ignore"):
             fall = np.minimum(1.0, (ic.reference_range_m / np.maximum(rng_sub, 1e-6)) ** ic.falloff_exponent)
-        return refl, np.where(hit, refl * cos_inc * fall, 0.0)
+        strength = np.where(hit, refl * cos_inc * fall, 0.0)
+        m = hit & np.isfinite(measured)
+        if m.any():
+            channel = np.repeat(self.pattern.ring.astype(np.int64), self._sub_w.shape[0])
+            refl = np.where(m, measured, refl)
+            strength[m] = self._response.forward(measured[m], cos_inc[m], rng_sub[m], channel[m])
+        return refl, strength
 
-    def _drop(self, rng, pulse, echo_range, strength, rep, rid, cos_rep, refl_rep):
+    def _drop(self, rng, pulse, echo_range, strength, rep, rid, cos_rep, refl_rep, label_rep):
         """Keep the echoes inside the range limits that no drop rule removes (one random draw
-        per echo when the random rate is set)."""
+        per echo when the random rate is set, then one when a drop model is)."""
         cfg = self.config
         keep = echo_range >= cfg.range.min_m
         keep &= echo_range <= cfg.range.max_m
@@ -294,6 +320,9 @@ class Lidar:
         if cfg.drop.reflectivity_range is not None:
             eff = np.clip(refl_rep * cos_rep / cfg.drop.reflectivity_range, 0.0, 1.0)
             keep &= echo_range <= cfg.range.max_m * np.sqrt(eff)
+        if self._drop_model is not None:
+            p = self._drop_model.probability(cos_rep, echo_range, refl_rep, label_rep, self.pattern.ring[pulse])
+            keep &= rng.random(pulse.shape[0]) >= p
         return tuple(a[keep] for a in (pulse, echo_range, strength, rep, rid))
 
     def _range_noise(self, rng, echo_range):

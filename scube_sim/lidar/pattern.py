@@ -176,3 +176,24 @@ def make_pattern(cfg: LidarConfig) -> ScanPattern:
     if isinstance(cfg.pattern, SpinningPattern):
         return spinning_pattern(cfg.pattern)
     return emitter_pattern(cfg.pattern)
+
+
+def channels_by_elevation(directions: np.ndarray, ring: np.ndarray, cfg: LidarConfig,
+                          valid: np.ndarray | None = None) -> np.ndarray:
+    """The sensor channel (index into `cfg`'s per-channel tables) of each ray of a recorded sweep.
+
+    Datasets number rings their own way (nuScenes by elevation, the vendor by laser id), so each
+    recorded ring id is matched to the channel whose elevation is nearest the median elevation of
+    that ring's rays. directions (N, 3) unit, sensor frame; ring (N,) int (< 0: unknown); valid
+    (N,) bool: the rays whose directions are measured (default all). Returns (N,) int64, -1 where
+    the ring is unknown or `cfg` has no channel table (emitter patterns)."""
+    ring = np.asarray(ring, np.int64)
+    out = np.full(ring.shape[0], -1, np.int64)
+    if not isinstance(cfg.pattern, SpinningPattern) or ring.size == 0:
+        return out
+    table = np.deg2rad(np.asarray(cfg.pattern.channels.elevation_deg, np.float64))
+    el = np.arcsin(np.clip(np.asarray(directions, np.float64)[:, 2], -1.0, 1.0))
+    ok = ring >= 0 if valid is None else (ring >= 0) & np.asarray(valid, bool)
+    for k in np.unique(ring[ok]):
+        out[ring == k] = int(np.argmin(np.abs(table - np.median(el[ok & (ring == k)]))))
+    return out

@@ -14,7 +14,9 @@ class Hits:
     hit bool; t float64 range along the ray (inf on a miss); points float64 local frame;
     normals float32 unit, facing the ray; gaussian int64 (-1: none or a mesh); voxel int64
     (-1: none); face int64 (mesh triangle, -1 otherwise); label int16; instance int32;
-    color float32 (N, 3) in [0, 1]; alpha float32 accumulated opacity (1 for hard hits).
+    color float32 (N, 3) in [0, 1]; alpha float32 accumulated opacity (1 for hard hits);
+    reflectance float32 measured reflectance of the surface hit (the VoxSplat `reflectance`
+    channel), NaN where the scene has none.
     """
 
     hit: np.ndarray
@@ -28,6 +30,7 @@ class Hits:
     instance: np.ndarray
     color: np.ndarray
     alpha: np.ndarray
+    reflectance: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> "Hits":
@@ -37,6 +40,7 @@ class Hits:
             voxel=np.full(n, -1, np.int64), face=np.full(n, -1, np.int64),
             label=np.zeros(n, np.int16), instance=np.zeros(n, np.int32),
             color=np.zeros((n, 3), np.float32), alpha=np.zeros(n, np.float32),
+            reflectance=np.full(n, np.nan, np.float32),
         )
 
 

@@ -55,6 +55,9 @@ class Tracer:
     the nearest exact hit; False stops each ray at the first exact hit found in proxy order
     (faster; its range error on overlapping Gaussians is measured by `make bench`).
     labels: (N,) per-Gaussian labels for a bare `Gaussians` scene.
+    A VoxSplat's `reflectance` channel (measured reflectance per Gaussian) is copied into each
+    hit's `reflectance` (NaN where the scene has none); the attribute `reflectance` holds it per
+    kept Gaussian ((G,) float32, None without the channel; set None to trace without it).
     """
 
     accepts_times = False  # a static scene: per-ray fire times change nothing
@@ -129,6 +132,7 @@ class Tracer:
     def _build_mesh(self, mesh: TriangleMesh) -> None:
         self.origin = mesh.origin.copy()
         self.mesh = mesh
+        self.reflectance = None
         self._face_normals = mesh.face_normals()
         self._face_offset = np.einsum("ij,ij->i", self._face_normals, mesh.vertices[mesh.faces[:, 0]])
         v = mesh.vertices
@@ -138,12 +142,15 @@ class Tracer:
         self._backend = make_backend(self.backend_name, mesh.vertices.astype(np.float32), mesh.faces)
 
     def _build_gaussians(self, scene, labels) -> None:
+        refl = None
         if isinstance(scene, VoxSplat):
             scene.check_finite()
             g = scene.gaussians()
             vox_labels = scene.labels
             g_labels = vox_labels[g.voxel] if len(g) else np.zeros(0, np.int16)
             self.num_voxels = scene.num_voxels
+            if "reflectance" in scene.channels:
+                refl = scene.channel("reflectance")[scene.valid].astype(np.float32)  # gaussians() order
         else:
             g = scene
             g.check_finite()
@@ -162,6 +169,7 @@ class Tracer:
         g.scales = np.maximum(np.abs(g.scales), MIN_SCALE)
         self.gaussians = g
         self.labels = g_labels[keep]
+        self.reflectance = None if refl is None else refl[keep]
         n = len(g)
         # The float32 tolerance follows the scene's extent, bounded per Gaussian by |mean| + k
         # times its largest scale (no rotation needed; a larger bound only widens the margins).
@@ -223,7 +231,11 @@ class Tracer:
         # The settings are read now: a tracer's mode or exact_order may change between calls.
         opts = TraceOptions(self.mode, self.exact_order, self.max_iterations, self.soft_min_transmittance,
                             self.soft_alpha_min, self.soft_hit_alpha, self.soft_k_buffer, self.threads)
-        return self.core.trace(self.prepared, opts, o, d, tmin, tmax, self.stats)
+        out = self.core.trace(self.prepared, opts, o, d, tmin, tmax, self.stats)
+        if self.reflectance is not None:
+            on = out.hit & (out.gaussian >= 0)
+            out.reflectance[on] = self.reflectance[out.gaussian[on]]
+        return out
 
     # --- meshes ------------------------------------------------------------------------------
     def _trace_mesh(self, o, d, tmin, tmax) -> Hits:

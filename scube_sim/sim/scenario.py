@@ -39,7 +39,6 @@ from .. import __version__
 from ..atomic import atomic_path
 from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
 from ..errors import ScubeSimWarning
-from ..io.openscenario import openscenario_source
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
 from ..run_manifest import RunManifest, sha256_file
@@ -369,7 +368,7 @@ def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSour
         path = resolve_path(tr.file, base)
         if not path.is_file():
             raise ConfigError(f"trajectory.file: {path}: no such OpenSCENARIO file")
-        source = openscenario_source(path, tr.entity)
+        source = TrajectorySource.from_openscenario(path, tr.entity)
     else:
         source = _can_source(tr.can, base, world.ego_pose_at(0.0) if world is not None else np.eye(4))
     if tr.edit is not None:

@@ -169,6 +169,7 @@ class SimScene:
         best.instance[sel] = np.where(h.instance[take] != 0, h.instance[take], part.instance)
         best.color[sel] = h.color[take]
         best.alpha[sel] = h.alpha[take]
+        best.reflectance[sel] = h.reflectance[take]
 
 
 @dataclass

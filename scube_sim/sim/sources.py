@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.openscenario import read_openscenario
 from ..transforms import PoseFn, check_pose, interpolate_poses
 from .contracts import PoseSource
 
@@ -96,6 +97,13 @@ class TrajectorySource:
         poses = np.tile(np.eye(4), (rows.shape[0], 1, 1))
         poses[:, :3, :] = rows.reshape(-1, 3, 4)
         return cls(np.arange(rows.shape[0]) / rate_hz, poses, str(path))
+
+    @classmethod
+    def from_openscenario(cls, path: str | Path, entity: str | None = None) -> "TrajectorySource":
+        """The ego's trajectory in an OpenSCENARIO (.xosc) file (`io.openscenario.read_openscenario`):
+        linear in position, SLERP in rotation between vertices, held at the ends."""
+        tr = read_openscenario(path, entity)
+        return cls(tr.times, tr.poses, f"{tr.path} (entity {tr.entity})")
 
 
 def _smoothstep(x):

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation, Slerp
 
-from scube_sim.io.openscenario import openscenario_source, read_openscenario, write_openscenario
+from scube_sim.io.openscenario import read_openscenario, write_openscenario
 from scube_sim.sim.sources import TrajectorySource
 from scube_sim.transforms import hpr_to_rotmat, make_pose, transform_points
 
@@ -110,7 +110,7 @@ def assert_poses_within_1mm(got, want):
 @pytest.mark.parametrize("minor", [0, 1, 2, 3])  # 1.0: Trajectory inline; 1.1+: inside TrajectoryRef
 def test_scenariogeneration_file_drives_our_pose_source(tmp_path, osc_version, minor):
     path = build_scenario(tmp_path / "s.xosc", minor)
-    source = openscenario_source(path)
+    source = TrajectorySource.from_openscenario(path)
     assert (source.t_start, source.t_end) == (0.0, 4.0)
     times = np.linspace(-0.5, 4.5, 101)  # held at both ends
     assert_poses_within_1mm(source.poses_at(times), expected_poses(VERTS, times))
@@ -134,7 +134,7 @@ def test_trajectory_from_a_catalog_with_parameters(tmp_path, osc_version):
     ref = xosc.CatalogReference("TrajCatalog", "catalog_traj")
     ref.add_parameter_assignment("EndX", 26.0)
     path = build_scenario(tmp_path / "s.xosc", trajectory=ref, catalog=cat)
-    src = openscenario_source(path)
+    src = TrajectorySource.from_openscenario(path)
     times = np.linspace(0, 4, 41)
     assert_poses_within_1mm(src.poses_at(times), expected_poses(VERTS, times))
     # without the assignment the catalog's default applies
@@ -238,7 +238,7 @@ def test_our_file_round_trips_through_our_source(tmp_path):
     np.testing.assert_array_equal(tr.times, times)
     np.testing.assert_allclose(tr.poses, poses, atol=1e-12)
     q = np.random.default_rng(0).uniform(-1, 4, 200)
-    np.testing.assert_allclose(openscenario_source(path).poses_at(q), TrajectorySource(times, poses).poses_at(q),
+    np.testing.assert_allclose(TrajectorySource.from_openscenario(path).poses_at(q), TrajectorySource(times, poses).poses_at(q),
                                atol=1e-12)
     assert write_openscenario(tmp_path / "again.xosc", times, poses).read_bytes() == path.read_bytes()
 

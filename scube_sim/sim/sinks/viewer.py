@@ -29,7 +29,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, ValidationError, field_validator
 
-from ...atomic import with_path
+from ...atomic import atomic_path, with_path
 from ...errors import InputError
 from ...labels import LABEL_COLORS, LABEL_NAMES
 from ...transforms import quat_to_rotmat, rotmat_to_quat
@@ -320,8 +320,6 @@ def plot_bev(path: str | Path, out_png: str | Path, *, tick: int = -1,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.patches import Patch, Polygon
-
-    from ...atomic import atomic_path
 
     rec = read_recording(path)
     if not rec.scenes:
