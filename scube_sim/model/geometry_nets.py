@@ -189,14 +189,7 @@ class StructureVAE(nn.Module):
         """-> (mu, logvar) (B, latent, X / 2^L, Y / 2^L, Z / 2^L)."""
         onehot = F.one_hot(labels.clamp_min(0), NUM_LABELS).permute(0, 4, 1, 2, 3).to(occ.dtype) * occ[:, None]
         x = torch.cat([occ[:, None], onehot], 1)
-        if self.stem is not None:
-            x = self.stem[0](x)
-            for b in self.stem[1:]:
-                x = b(x)
-        for conv, *blocks in self.down:
-            x = conv(x)
-            for b in blocks:
-                x = b(x)
+        x = run_encoder(x, self.stem, self.down)
         mu, logvar = self.to_latent(x).chunk(2, 1)
         return mu, logvar.clamp(-30.0, 20.0)
 
@@ -395,3 +388,16 @@ def check_unet_options(widths, attention_levels, layout: str) -> set[int]:
     if bad:
         raise ValueError(f"attention_levels {bad}: a U-Net of {levels} widths has levels 0 to {levels - 1}")
     return attn
+
+
+def run_encoder(x, stem, down):
+    """A structure VAE's encoder, dense or sparse: the optional stem (its first module, then its
+    blocks), then each level's strided convolution and blocks."""
+    if stem is not None:
+        for m in stem:
+            x = m(x)
+    for conv, *blocks in down:
+        x = conv(x)
+        for b in blocks:
+            x = b(x)
+    return x

@@ -30,7 +30,7 @@ from torch import nn
 
 from ..errors import InputError
 from ..labels import LABEL_NAMES
-from .geometry_nets import VAEConfig, check_unet_options, timestep_embedding, track_latent_rms
+from .geometry_nets import VAEConfig, check_unet_options, run_encoder, timestep_embedding, track_latent_rms
 from .sparse import (Grid, SparseConv3d, SparseConvTranspose3d, SparseLinear, SparseTensor, SubmanifoldConv3d,
                      cat_features, kernel_offsets, make_norm, site_order)
 
@@ -226,14 +226,7 @@ class SparseStructureVAE(nn.Module):
         """Fine voxels -> (mu on the latent sites (stride 2^L), logvar (N, latent))."""
         feats = torch.cat([torch.ones(len(coords), 1), F.one_hot(labels, NUM_LABELS).float()], 1)
         x = SparseTensor.from_coords(coords, feats, batch_size=batch_size)
-        if self.stem is not None:
-            x = self.stem[0](x)
-            for b in self.stem[1:]:
-                x = b(x)
-        for conv, *blocks in self.down:
-            x = conv(x)
-            for b in blocks:
-                x = b(x)
+        x = run_encoder(x, self.stem, self.down)
         mu, logvar = self.to_latent(x).feats.chunk(2, 1)
         return x.replace(mu), logvar.clamp(-30.0, 20.0)
 
