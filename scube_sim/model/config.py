@@ -14,7 +14,7 @@ punctuation ignored, as sensor presets do ('Geometry-Waymo' == 'geometry_waymo')
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field, PrivateAttr, create_model, field_validator, model_validator
 
@@ -35,6 +35,12 @@ class TrainConfig(StrictModel):
     steps: int | None = Field(default=None, ge=1)
     batch_size: int = Field(default=1, ge=1)
     lr: float = Field(default=1e-4, gt=0)
+    # The learning rate at each step: `constant`, or a linear warm-up over `warmup_steps` then a
+    # cosine decay to lr * lr_final_ratio at the run's last step (a function of the step alone, so a
+    # resumed run follows the same curve; extending `steps` on resume stretches what is left of it).
+    lr_schedule: Literal["constant", "cosine"] = "constant"
+    warmup_steps: int = Field(default=0, ge=0)
+    lr_final_ratio: float = Field(default=0.0, ge=0, le=1)
     # Adam as in the SCube paper: beta1 = 0.9, beta2 = 0.999.
     betas: tuple[float, float] = (0.9, 0.999)
     eps: float = Field(default=1e-8, gt=0)

@@ -59,6 +59,17 @@ class TrainingError(ScubeSimError):
     """Training that cannot go on (a non-finite loss, a failed rank)."""
 
 
+def learning_rate(tc: TrainConfig, step: int, total_steps: int) -> float:
+    """The learning rate of update `step` (0-based) of a run of `total_steps` updates."""
+    if step < tc.warmup_steps:
+        return tc.lr * (step + 1) / tc.warmup_steps
+    if tc.lr_schedule == "constant":
+        return tc.lr
+    span = max(1, total_steps - tc.warmup_steps - 1)
+    p = min(1.0, (step - tc.warmup_steps) / span)
+    return tc.lr * (tc.lr_final_ratio + (1.0 - tc.lr_final_ratio) * 0.5 * (1.0 + math.cos(math.pi * p)))
+
+
 # --- deterministic data order ------------------------------------------------------------------
 
 
@@ -380,6 +391,9 @@ class _Loop:
                                 f"checkpoint is {self.job.out_dir / LAST}")
         if self.tc.grad_clip is not None:
             nn.utils.clip_grad_norm_(self.params, self.tc.grad_clip)
+        lr = learning_rate(self.tc, self.state.step, self.job.total_steps)
+        for group in self.opt.param_groups:
+            group["lr"] = lr
         self.opt.step()
         if self.world > 1:  # e.g. batch-norm statistics: keep rank 0's everywhere, as DDP does
             for b in self.model.buffers():

@@ -325,3 +325,53 @@ def test_a_run_killed_at_any_moment_resumes_to_the_same_weights_bit_for_bit(tmp_
     assert_same_weights(a["history"]["train"], b["history"]["train"])
     assert (run / "metrics.jsonl").read_text() == (tmp_path / "ref" / "metrics.jsonl").read_text()
     assert_same_weights(load_checkpoint(run / "best.pt")["model"], load_checkpoint(ref.best)["model"])
+
+
+def test_the_cosine_schedule_warms_up_linearly_and_ends_at_its_final_ratio():
+    from scube_sim.model.config import TrainConfig
+    from scube_sim.model.trainer import learning_rate
+
+    tc = TrainConfig(steps=11, lr=1.0, lr_schedule="cosine", warmup_steps=2, lr_final_ratio=0.1)
+    got = [learning_rate(tc, k, 11) for k in range(11)]
+    assert got[:2] == pytest.approx([0.5, 1.0])  # warm-up: (k + 1) / 2
+    assert got[2] == pytest.approx(1.0)  # the decay starts at the full rate ...
+    assert got[-1] == pytest.approx(0.1)  # ... and ends at lr * lr_final_ratio
+    assert got[2 + 4] == pytest.approx(0.55)  # half-way down the cosine: the mean of the two
+    assert all(a >= b for a, b in zip(got[1:], got[2:]))
+    constant = TrainConfig(steps=11, lr=0.3)
+    assert {learning_rate(constant, k, 11) for k in range(11)} == {0.3}
+
+
+def test_a_scheduled_run_takes_the_scheduled_steps_and_resumes_bit_for_bit(tmp_path, data_dir):
+    """With a gradient clipped far below Adam's eps every Adam update is about lr * sign(grad):
+    the first update of a 4-step warm-up moves the weights a quarter as far as a constant run's."""
+    sched = dict(epochs=None, steps=6, lr_schedule="cosine", warmup_steps=1, lr_final_ratio=0.0)
+    moved = {}
+    seed_everything(0)
+    start = TOY.build_model(ToyModelConfig()).state_dict()["1.weight"]
+    for name, extra in [("const", {}), ("warm", {"lr_schedule": "cosine", "warmup_steps": 4})]:
+        cfg = load_config(write_config(tmp_path / f"{name}.yaml", epochs=None, steps=1, grad_clip=1e-12, **extra))
+        train(TOY, cfg, data_dir, tmp_path / name, progress=False)
+        moved[name] = (weights(tmp_path / name)["1.weight"] - start).abs()
+    assert torch.allclose(moved["warm"], 0.25 * moved["const"], rtol=1e-3)
+
+    full = load_config(write_config(tmp_path / "full.yaml", **sched))
+    train(TOY, full, data_dir, tmp_path / "full", progress=False)
+    half = load_config(write_config(tmp_path / "half.yaml", **{**sched, "steps": 3}))
+    train(TOY, half, data_dir, tmp_path / "split", progress=False)
+    # Stopped at step 3 of a 3-step run then extended to 6: the rest of the curve is the 6-step one,
+    # but the first 3 steps followed a 3-step curve, so the weights differ from `full` ...
+    train(TOY, full, data_dir, tmp_path / "split", resume=True, progress=False)
+    assert not torch.equal(weights(tmp_path / "split")["1.weight"], weights(tmp_path / "full")["1.weight"])
+    # ... while a run interrupted and resumed with the same length reaches the same weights.
+    class Stop(Exception):
+        pass
+
+    def stop(step, logs):
+        if step == 3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        train(TOY, full, data_dir, tmp_path / "cut", progress=False, on_step=stop)
+    train(TOY, full, data_dir, tmp_path / "cut", resume=True, progress=False)
+    assert_same_weights(weights(tmp_path / "cut"), weights(tmp_path / "full"))
