@@ -492,6 +492,51 @@ def test_interpolate_poses_across_plus_minus_180_yaw_takes_the_short_way():
     np.testing.assert_allclose(mid[:3, :3], Rotation.from_euler("z", 180, degrees=True).as_matrix(), atol=1e-12)
 
 
+def _interpolate_poses_per_quaternion(t0, t1, s):
+    """The straightforward formula: one SLERP quaternion per fraction, then its matrix."""
+    q = slerp(rotmat_to_quat(t0[:3, :3]), rotmat_to_quat(t1[:3, :3]), s)
+    out = np.zeros((len(s), 4, 4))
+    out[:, :3, :3] = quat_to_rotmat(q)
+    out[:, :3, 3] = t0[:3, 3] + s[:, None] * (t1[:3, 3] - t0[:3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+@pytest.mark.parametrize("turn_deg", [0.0, 1e-7, 0.05, 3.0, 3.7, 30.0, 120.0, 179.9, 180.0])
+def test_interpolate_poses_equals_one_slerp_quaternion_per_pose(turn_deg):
+    # The closed form (a quadratic form in slerp's blend weights) against slerp + quat_to_rotmat,
+    # on both of slerp's branches (normalised lerp below about 3.6 degrees), extrapolation
+    # included: the same poses to a few float64 ulps.
+    rng = np.random.default_rng(int(turn_deg * 1000) + 1)
+    for _ in range(5):
+        r0 = Rotation.from_rotvec(rng.normal(size=3))
+        axis = rng.normal(size=3)
+        r1 = Rotation.from_rotvec(np.radians(turn_deg) * axis / np.linalg.norm(axis)) * r0
+        t0, t1 = rigid(r0, rng.normal(scale=50.0, size=3)), rigid(r1, rng.normal(scale=50.0, size=3))
+        s = np.r_[rng.uniform(-0.5, 1.5, 200), 0.0, 1.0]
+        got, want = interpolate_poses(t0, t1, s), _interpolate_poses_per_quaternion(t0, t1, s)
+        np.testing.assert_allclose(got[:, :3, :3], want[:, :3, :3], rtol=0, atol=4e-15)
+        np.testing.assert_array_equal(got[:, 3:], want[:, 3:])
+        np.testing.assert_array_equal(got[:, :3, 3], want[:, :3, 3])
+        rr = got[:, :3, :3]
+        np.testing.assert_allclose(np.einsum("nij,nkj->nik", rr, rr), np.broadcast_to(np.eye(3), rr.shape),
+                                   atol=4e-15)
+
+
+@pytest.mark.parametrize("turn_deg", [20.0, 90.0, 170.0])
+def test_interpolate_poses_turns_at_a_constant_rate_about_one_axis(turn_deg):
+    # Analytic: between R0 and Rot(axis, phi) R0 the pose at s is Rot(axis, s phi) R0.
+    rng = np.random.default_rng(7)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    r0 = Rotation.from_rotvec(rng.normal(size=3))
+    phi = np.radians(turn_deg)
+    t0, t1 = rigid(r0, [0.0, 0.0, 0.0]), rigid(Rotation.from_rotvec(phi * axis) * r0, [1.0, 0.0, 0.0])
+    s = np.linspace(-0.25, 1.25, 31)
+    want = np.stack([(Rotation.from_rotvec(si * phi * axis) * r0).as_matrix() for si in s])
+    np.testing.assert_allclose(interpolate_poses(t0, t1, s)[:, :3, :3], want, atol=1e-14)
+
+
 # --- check_pose -------------------------------------------------------------------------------
 
 def test_check_pose_accepts_rigid_and_returns_float64():
