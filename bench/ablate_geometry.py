@@ -4,8 +4,9 @@
    config (`scube_sim/model/configs/geometry-coarse.yaml`), seed 0, on the same frozen structure
    VAE (`--vae`), then evaluated on `--eval-split`: the latent diffusion with depth-weighted
    lifting (Eq. 1), the same with the broadcast lifting (the paper's ablation), the
-   deterministic single-step predictor, the diffusion at a lower image resolution, and the 2D-prior
-   baseline (the diffusion variant's own depth head unprojected into voxels, no 3D prior).
+   deterministic single-step predictor, the diffusion at a lower image resolution, the 2D-prior
+   baseline (the diffusion variant's own depth head unprojected into voxels, no 3D prior) and a
+   floor without images (the mean training scene).
 2. **DDIM steps** (1, 5, 10, 25, 50) of the diffusion variant (or `--checkpoint`): IoU against
    seconds and peak memory per sample, a table and a Pareto plot (docs/geometry_trade.png).
 
@@ -93,6 +94,49 @@ def depth_prior_row(checkpoint: Path, args) -> dict:
                                                           "chamfer_q90")}}
 
 
+def mean_scene_row(args) -> dict:
+    """A floor without images: every voxel occupied in at least a share q of the first
+    `--mean-scene-samples` training chunks (q picked for the best IoU on the val split) with its
+    most frequent training label."""
+    import numpy as np
+    import torch
+
+    from scube_sim.model.geometry import NUM_LABELS, GeometryDataConfig, _grid_metrics
+    from scube_sim.model.stages import get_stage
+
+    stage = get_stage("geometry")
+    cfg = GeometryDataConfig(level="coarse", voxel_size=0.8)
+    train = stage.dataset(Path(args.data), cfg, "train", 0)
+    dims = None
+    n = min(len(train), args.mean_scene_samples)
+    for i in range(n):
+        item = train[i]
+        if dims is None:
+            dims = tuple(int(d) for d in item["gt_grid"].dims)
+            counts = np.zeros((*dims, NUM_LABELS), np.int32)
+        ijk, lab = item["gt_ijk"].numpy(), item["gt_labels"].numpy()
+        np.add.at(counts, (ijk[:, 0], ijk[:, 1], ijk[:, 2], lab), 1)
+    share = counts.sum(-1) / n
+    mode = counts.argmax(-1)
+
+    def grid(q):
+        ijk = np.argwhere(share >= q)
+        return torch.from_numpy(ijk).long(), torch.from_numpy(mode[tuple(ijk.T)]).long()
+
+    def items(split):
+        ds = stage.dataset(Path(args.data), cfg, split, 0)
+        return [ds[i] for i in range(len(ds))]
+
+    val = items("val")
+    qs = [0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]
+    best_q = max(qs, key=lambda q: _grid_metrics([grid(q)] * len(val), val, split=False)["iou"])
+    ev = items(args.eval_split)
+    m = _grid_metrics([grid(best_q)] * len(ev), ev, split=True)
+    return {"variant": f"mean training scene (no images, share >= {best_q})", "steps": "", "train_min": "",
+            **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
+                                                          "chamfer_q50", "chamfer_q90")}}
+
+
 def ddim_trade(checkpoint: Path, args) -> list[dict]:
     """IoU, seconds and peak memory per sample against the number of DDIM steps."""
     from scube_sim.model.stages import get_stage
@@ -146,12 +190,15 @@ def main(argv=None) -> None:
     ap.add_argument("--work", default=str(BENCH_DIR / ".cache" / "ablate_geometry"))
     ap.add_argument("--eval-split", default="test")
     ap.add_argument("--only", nargs="*", default=None, help="variants to run (default: all)")
+    ap.add_argument("--mean-scene-samples", type=int, default=100, help="training chunks the no-image floor averages")
     ap.add_argument("--checkpoint", default=None, help="the DDIM trade on this checkpoint instead of the diffusion variant's")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
     base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse.yaml").read_text())
     Path(args.work).mkdir(parents=True, exist_ok=True)
     rows, diffusion_ck = [], None
+    if not args.only or "mean training scene" in args.only:
+        rows.append(mean_scene_row(args))
     for name, variant in VARIANTS.items():
         if args.only and name not in args.only:
             continue
