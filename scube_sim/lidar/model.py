@@ -181,7 +181,9 @@ class Lidar:
         the rays' absolute fire times (`accepts_times`, e.g. `sim.SimScene` with actors).
         pose_start / pose_end: (4, 4) float64 sensor-to-world poses at the sweep's start and end
         (end defaults to start: a static sensor). pose_fn: alternatively, absolute times (N,) ->
-        (N, 4, 4) sensor-to-world poses. t_start: absolute seconds of the first fire.
+        (N, 4, 4) sensor-to-world poses; asked once for the sweep's ends, then once with the
+        distinct fire times (ascending; pulses fired together share a pose). t_start: absolute
+        seconds of the first fire.
         """
         cfg, pat = self.config, self.pattern
         t_end = t_start + pat.period_s
@@ -235,21 +237,47 @@ class Lidar:
             d_sub = d_s
         return d_sub, np.repeat(pat.offsets, s, axis=0), np.repeat(pat.time, s)
 
+    def _distinct_fire_times(self):
+        """The pattern's distinct fire times (U,) seconds from the sweep's start, ascending, and
+        each pulse's index into them (P,). Pulses that fire together (a spinning LiDAR's blocks)
+        share one pose: the pose function is asked once per distinct time."""
+        pat = self.pattern
+        if getattr(self, "_fire_times_of", None) is not pat:  # computed once per pattern
+            t = pat.time
+            if t.size and np.all(t[1:] >= t[:-1]):  # patterns come in firing order: no sort needed
+                first = np.r_[True, t[1:] != t[:-1]]
+                self._fire_times, self._fire_index = t[first], np.cumsum(first) - 1
+            else:
+                self._fire_times, self._fire_index = np.unique(t, return_inverse=True)
+                self._fire_index = self._fire_index.reshape(-1)
+            self._offsets_zero = not np.any(pat.offsets)
+            self._fire_times_of = pat
+        return self._fire_times, self._fire_index
+
     def _world_rays(self, d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start):
-        """Sub-rays in the world frame at their own fire times: origins, dirs (P*S, 3) and the
-        per-pulse sensor poses (P, 4, 4) (None for a static sensor)."""
+        """Sub-rays in the world frame at their own fire times: origins, dirs (P*S, 3), and the
+        sensor poses (U, 4, 4) at the distinct fire times with each pulse's index into them (P,)
+        (None for a static sensor)."""
         pat, s = self.pattern, self._sub_w.shape[0]
         if static:
             return transform_points(pose_start, o_sub), rotate_vectors(pose_start, d_sub), None
-        n_pulse = len(pat)
+        times, of_pulse = self._distinct_fire_times()
         if pose_fn is not None:
-            poses = np.asarray(pose_fn(t_start + pat.time), np.float64)
-            if poses.shape != (n_pulse, 4, 4) or not np.all(np.isfinite(poses)):
-                raise InputError(f"pose_fn: expected finite ({n_pulse}, 4, 4) poses, got {poses.shape}")
+            poses = np.asarray(pose_fn(t_start + times), np.float64)
+            if poses.shape != (times.shape[0], 4, 4) or not np.all(np.isfinite(poses)):
+                raise InputError(f"pose_fn: expected finite ({times.shape[0]}, 4, 4) poses (one per distinct fire "
+                                 f"time), got {poses.shape}")
         else:
-            poses = interpolate_poses(pose_start, pose_end, pat.time / pat.period_s)
-        poses_sub = np.repeat(poses, s, axis=0) if s > 1 else poses
-        return transform_points(poses_sub, o_sub), rotate_vectors(poses_sub, d_sub), poses
+            poses = interpolate_poses(pose_start, pose_end, times / pat.period_s)
+        # Each sub-ray's pose: a gather of the (3, 4) part only, skipped when every time is distinct.
+        of_ray = np.repeat(of_pulse, s) if s > 1 else of_pulse
+        per_ray = poses[:, :3, :] if times.shape[0] == of_ray.shape[0] else poses[of_ray, :3, :]
+        d_w = np.einsum("nij,nj->ni", per_ray[:, :, :3], d_sub)
+        if self._offsets_zero:  # every beam starts at the sensor's origin: o_w is the translation
+            o_w = np.ascontiguousarray(per_ray[:, :, 3])
+        else:
+            o_w = np.einsum("nij,nj->ni", per_ray[:, :, :3], o_sub) + per_ray[:, :, 3]
+        return o_w, d_w, (poses, of_pulse)
 
     def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times):
         """The ego body and the scene: per sub-ray hit, range (m), label, instance, |cos| of the
@@ -340,7 +368,9 @@ class Lidar:
         cfg, pat = self.config, self.pattern
         p_sensor = pat.offsets[pulse] + echo_range[:, None] * pat.directions[pulse]
         if cfg.motion.output == "compensated" and not static:
-            p_out = transform_points(invert_pose(ref) @ poses[pulse], p_sensor)
+            at_times, of_pulse = poses  # sensor poses at the distinct fire times, each pulse's index
+            rel = np.einsum("ij,njk->nik", invert_pose(ref), at_times)  # einsum: no BLAS threads
+            p_out = transform_points(rel[of_pulse[pulse]], p_sensor)
         else:
             p_out = p_sensor
         out = np.zeros(pulse.shape[0], POINT_DTYPE)

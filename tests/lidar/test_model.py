@@ -151,6 +151,46 @@ def test_pose_function_equals_start_end_interpolation():
     np.testing.assert_allclose(b.xyz(), a.xyz(), atol=1e-6)
 
 
+def _wavy_pose(t):
+    """An analytic sensor path that is no SLERP: (N,) absolute seconds -> (N, 4, 4)."""
+    t = np.atleast_1d(np.asarray(t, np.float64))
+    yaw = 0.3 * np.sin(20.0 * t)
+    out = np.zeros((t.shape[0], 4, 4))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    out[:, 2, 2] = out[:, 3, 3] = 1.0
+    out[:, 0, 3], out[:, 1, 3], out[:, 2, 3] = 4.0 * t - 12.0, 0.5 * np.cos(30.0 * t), 0.2
+    return out
+
+
+@pytest.mark.parametrize("output", ["raw", "compensated"])
+def test_pulses_fired_together_share_one_pose_and_every_point_is_where_its_own_pose_puts_it(output):
+    # Channels fire in pairs (0 and 5 us): the pose function is asked once per distinct fire
+    # time. Independent check: each raw point, moved to the world by the analytic pose at its own
+    # fire time, lies on the wall x = 15; each compensated one, by the reference pose.
+    cfg = spinning([-6.0, -2.0, 2.0, 6.0], columns=400, motion={"output": output, "reference": "start"},
+                   pattern={"channels": {"elevation_deg": [-6.0, -2.0, 2.0, 6.0],
+                                         "fire_time_us": [0.0, 5.0, 0.0, 5.0]}})
+    lidar = Lidar(cfg)
+    asked = []
+
+    def fn(times):
+        asked.append(np.array(times))
+        return _wavy_pose(times)
+
+    t0 = 3.0
+    sweep = lidar.scan(Tracer(wall_x(15.0, half=60.0)), None, pose_fn=fn, t_start=t0)
+    fire = t0 + lidar.pattern.time
+    assert len(asked) == 2 and np.array_equal(asked[1], np.unique(fire))  # the ends, then each time once
+    assert len(asked[1]) == len(fire) // 2
+    p = sweep.points
+    assert len(p) > 300
+    xyz = sweep.xyz().astype(np.float64)
+    poses = _wavy_pose(t0 + p["time"].astype(np.float64)) if output == "raw" else _wavy_pose([t0])
+    world = np.einsum("nij,nj->ni", poses[:, :3, :3], xyz) + poses[:, :3, 3]
+    # float32 fire times and coordinates: 4 m/s x 1e-8 s and ~1e-6 m of rounding
+    np.testing.assert_allclose(world[:, 0], 15.0, atol=2e-5)
+
+
 # --- pattern ---------------------------------------------------------------------------------
 
 
