@@ -222,28 +222,42 @@ def interpolate_poses(t0: np.ndarray, t1: np.ndarray, s: np.ndarray) -> np.ndarr
     squared norm, so R(s) = (a^2 H0 + a b H01 + b^2 H1) / |q(s)|^2 with three constant (3, 3)
     matrices. It equals `quat_to_rotmat(slerp(...))` to a few float64 ulps at 3x-5x its speed:
     a sweep asks for one pose per distinct fire time (tens of thousands)."""
-    s = np.atleast_1d(np.asarray(s, dtype=np.float64))
-    q0 = normalize_quat(rotmat_to_quat(t0[:3, :3]))
-    q1 = normalize_quat(rotmat_to_quat(t1[:3, :3]))
-    dot = float(np.dot(q0, q1))
-    if dot < 0.0:
-        q1, dot = -q1, -dot
-    if dot > 0.9995:  # slerp's normalised lerp: q0 + s (q1 - q0)
-        a, b = 1.0 - s, s
-    else:
-        theta = np.arccos(min(dot, 1.0))
-        sin_t = np.sin(theta)
-        a, b = np.sin((1.0 - s) * theta) / sin_t, np.sin(s * theta) / sin_t
-    h0, h1 = _quat_quadric(q0), _quat_quadric(q1)
-    k = np.stack([h0, _quat_quadric(q0 + q1) - h0 - h1, h1])  # the cross term: H(q0 + q1) - H0 - H1
-    # |a q0 + b q1|^2 >= 1 - (1 - dot) / 2 > 0 on the lerp branch (a + b = 1), 1 on the SLERP one
-    inv_n = 1.0 / (a * a + (2.0 * dot) * (a * b) + b * b)
-    w = np.stack([a * a * inv_n, a * b * inv_n, b * b * inv_n], axis=1)
-    out = np.zeros((s.shape[0], 4, 4))
-    out[:, :3, :3] = np.einsum("nk,kij->nij", w, k)  # einsum, not `@`: see the note above
-    out[:, :3, 3] = t0[:3, 3] + s[:, None] * (t1[:3, 3] - t0[:3, 3])
-    out[:, 3, 3] = 1.0
-    return out
+    return SlerpSegment(t0, t1)(s)
+
+
+class SlerpSegment:
+    """`interpolate_poses` between two fixed (4, 4) poses, with what depends only on them
+    computed once: calling it with fractions s (N,) gives the (N, 4, 4) poses. Tracks keep one
+    per segment, so a query pays only for its own fractions."""
+
+    def __init__(self, t0: np.ndarray, t1: np.ndarray):
+        t0, t1 = np.asarray(t0, np.float64), np.asarray(t1, np.float64)
+        q0 = normalize_quat(rotmat_to_quat(t0[:3, :3]))
+        q1 = normalize_quat(rotmat_to_quat(t1[:3, :3]))
+        dot = float(np.dot(q0, q1))
+        if dot < 0.0:
+            q1, dot = -q1, -dot
+        self.dot = dot
+        self.theta = None if dot > 0.9995 else float(np.arccos(min(dot, 1.0)))  # None: slerp's lerp branch
+        h0, h1 = _quat_quadric(q0), _quat_quadric(q1)
+        self.k = np.stack([h0, _quat_quadric(q0 + q1) - h0 - h1, h1])  # cross term: H(q0 + q1) - H0 - H1
+        self.p0, self.dp = t0[:3, 3].copy(), t1[:3, 3] - t0[:3, 3]
+
+    def __call__(self, s: np.ndarray) -> np.ndarray:
+        s = np.atleast_1d(np.asarray(s, dtype=np.float64))
+        if self.theta is None:  # slerp's normalised lerp: q0 + s (q1 - q0)
+            a, b = 1.0 - s, s
+        else:
+            sin_t = np.sin(self.theta)
+            a, b = np.sin((1.0 - s) * self.theta) / sin_t, np.sin(s * self.theta) / sin_t
+        # |a q0 + b q1|^2 >= 1 - (1 - dot) / 2 > 0 on the lerp branch (a + b = 1), 1 on the SLERP one
+        inv_n = 1.0 / (a * a + (2.0 * self.dot) * (a * b) + b * b)
+        w = np.stack([a * a * inv_n, a * b * inv_n, b * b * inv_n], axis=1)
+        out = np.zeros((s.shape[0], 4, 4))
+        out[:, :3, :3] = np.einsum("nk,kij->nij", w, self.k)  # einsum, not `@`: see the note above
+        out[:, :3, 3] = self.p0 + s[:, None] * self.dp
+        out[:, 3, 3] = 1.0
+        return out
 
 
 def check_pose(t, name: str = "pose") -> np.ndarray:

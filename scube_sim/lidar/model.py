@@ -235,6 +235,8 @@ class Lidar:
             d_sub = (d_sub / np.linalg.norm(d_sub, axis=2, keepdims=True)).reshape(-1, 3)
         else:
             d_sub = d_s
+        if s == 1:  # the pattern's own arrays (read only): no per-sweep copies
+            return d_sub, pat.offsets, pat.time
         return d_sub, np.repeat(pat.offsets, s, axis=0), np.repeat(pat.time, s)
 
     def _distinct_fire_times(self):
@@ -271,7 +273,9 @@ class Lidar:
             poses = interpolate_poses(pose_start, pose_end, times / pat.period_s)
         # Each sub-ray's pose: a gather of the (3, 4) part only, skipped when every time is distinct.
         of_ray = np.repeat(of_pulse, s) if s > 1 else of_pulse
-        per_ray = poses[:, :3, :] if times.shape[0] == of_ray.shape[0] else poses[of_ray, :3, :]
+        per_ray = poses[:, :3, :]
+        if times.shape[0] != of_ray.shape[0]:
+            per_ray = np.take(np.ascontiguousarray(per_ray), of_ray, axis=0)
         d_w = np.einsum("nij,nj->ni", per_ray[:, :, :3], d_sub)
         if self._offsets_zero:  # every beam starts at the sensor's origin: o_w is the translation
             o_w = np.ascontiguousarray(per_ray[:, :, 3])
@@ -366,14 +370,19 @@ class Lidar:
     def _points(self, pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses):
         """The sweep's POINT_DTYPE records, in the output frame of `motion`."""
         cfg, pat = self.config, self.pattern
-        p_sensor = pat.offsets[pulse] + echo_range[:, None] * pat.directions[pulse]
+        self._distinct_fire_times()  # knows whether the pattern has beam offsets
+        # offsets + range * direction, in place; np.take: a row gather at a fraction of `[pulse]`'s
+        # time. Adding 0.0 where there are no offsets keeps the bytes of the sum (-0.0 + 0.0 = 0.0).
+        p_sensor = np.take(pat.directions, pulse, axis=0)
+        p_sensor *= echo_range[:, None]
+        p_sensor += 0.0 if self._offsets_zero else np.take(pat.offsets, pulse, axis=0)
         if cfg.motion.output == "compensated" and not static:
             at_times, of_pulse = poses  # sensor poses at the distinct fire times, each pulse's index
             rel = np.einsum("ij,njk->nik", invert_pose(ref), at_times)  # einsum: no BLAS threads
             p_out = transform_points(rel[of_pulse[pulse]], p_sensor)
         else:
             p_out = p_sensor
-        out = np.zeros(pulse.shape[0], POINT_DTYPE)
+        out = np.empty(pulse.shape[0], POINT_DTYPE)  # every field is written below (the dtype has no padding)
         out["x"], out["y"], out["z"] = p_out[:, 0], p_out[:, 1], p_out[:, 2]
         out["intensity"] = strength * cfg.intensity.output_scale
         out["ring"] = pat.ring[pulse]

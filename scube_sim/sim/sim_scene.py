@@ -112,64 +112,177 @@ class SimScene:
     def trace_world(self, origins, dirs, t_min=0.0, t_max=np.inf, times=None) -> Hits:
         o = np.asarray(origins, np.float64).reshape(-1, 3)
         d = np.asarray(dirs, np.float64).reshape(-1, 3)
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        d = d / np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
         n = o.shape[0]
         tmin = np.broadcast_to(np.asarray(t_min, np.float64), (n,))
         tmax = np.broadcast_to(np.asarray(t_max, np.float64), (n,))
         times = np.full(n, self.time) if times is None else np.asarray(times, np.float64)
         best = Hits.empty(n)
-        best.points = np.full((n, 3), np.nan)
+        if n == 0:
+            return best
+        rays = _RayBatch(o, d, tmin, tmax, times)
         for part in self.parts():
-            self._trace_part(part, o, d, tmin, np.minimum(tmax, best.t), times, best)
+            self._trace_part(part, rays, best)
+        # One world point per hit, whichever part it came from: rigid motions keep ranges. All
+        # rays at once, then NaN where nothing was hit (t = inf there): no gathers.
+        with np.errstate(invalid="ignore"):
+            np.add(o, best.t[:, None] * d, out=best.points)
+        np.copyto(best.points, np.nan, where=~best.hit[:, None])
         return best
 
     @staticmethod
-    def _trace_part(part: Part, o, d, tmin, tmax, times, best: Hits) -> None:
-        centre, radius = part.sphere()
-        if part.moving:
-            t0, t1 = float(times.min()), float(times.max())
-            ends = part.poses_at(np.array([t0, t1]))
-            c_ends = ends[:, :3, :3] @ centre + ends[:, :3, 3]
-            c = c_ends.mean(axis=0)
-            r = radius + 0.5 * float(np.linalg.norm(c_ends[1] - c_ends[0]))
-        else:
-            p = np.eye(4) if part.pose is None else part.pose
-            c, r = p[:3, :3] @ centre + p[:3, 3], radius
-        # Rays that pass within the sphere before their current limit.
-        oc = c - o
-        along = np.einsum("ij,ij->i", oc, d)
-        perp2 = np.einsum("ij,ij->i", oc, oc) - along**2
-        near = (perp2 <= r * r) & (along + r >= tmin) & (along - r <= tmax)
-        idx = np.nonzero(near)[0]
-        if not idx.size:
+    def _trace_part(part: Part, rays: "_RayBatch", best: Hits) -> None:
+        """Trace the rays that can reach `part` in its frame and keep its hits nearer than `best`'s."""
+        o, d, times = rays.o, rays.d, rays.times
+        idx = rays.near(part, best.t)
+        if idx is None or not idx.size:
             return
-        poses = part.poses_at(times[idx]) if part.moving else part.poses_at(np.zeros(1))
-        inv_r = np.swapaxes(poses[:, :3, :3], 1, 2)
+        dense = idx.size == o.shape[0]  # every ray: no gathers, masks instead of index lists
+        o_i, d_i = (o, d) if dense else (np.take(o, idx, axis=0), np.take(d, idx, axis=0))
+        tmin_i = rays.tmin if dense else rays.tmin[idx]
+        best_i = best.t if dense else best.t[idx]
+        tmax_i = np.minimum(rays.tmax if dense else rays.tmax[idx], best_i)
+        rot = None  # part-to-world rotation: None (identity), (3, 3), or (M, 3, 3) per ray
         if part.moving:
-            o_l = np.einsum("nij,nj->ni", inv_r, o[idx] - poses[:, :3, 3])
-            d_l = np.einsum("nij,nj->ni", inv_r, d[idx])
-        else:
-            o_l = (o[idx] - poses[0, :3, 3]) @ poses[0, :3, :3]
-            d_l = d[idx] @ poses[0, :3, :3]
-        h = part.tracer.trace_world(o_l, d_l, tmin[idx], tmax[idx])
-        take = h.hit & (h.t < best.t[idx])
+            poses = part.poses_at(times if dense else times[idx])
+            rot = poses[:, :3, :3]
+            # R^T (o - t), R^T d per ray: einsum "nji" reads R transposed without a copy
+            o_l = np.einsum("nji,nj->ni", rot, o_i - poses[:, :3, 3])
+            d_l = np.einsum("nji,nj->ni", rot, d_i)
+        elif part.pose is not None and not _is_identity(part.pose):
+            rot, tr = part.pose[:3, :3], part.pose[:3, 3]
+            o_l = np.einsum("ji,nj->ni", rot, o_i - tr)  # einsum, not `@`: no BLAS threads
+            d_l = np.einsum("ji,nj->ni", rot, d_i)
+        else:  # a part in world coordinates (chunks, the static world): its rays as they are
+            o_l, d_l = o_i, d_i
+        h = part.tracer.trace_world(o_l, d_l, tmin_i, tmax_i)
+        take = h.hit & (h.t < best_i)  # ties keep the earlier part's hit, as the order of parts says
         if not np.any(take):
             return
-        sel = idx[take]
-        rot = poses[:, :3, :3][take] if part.moving else poses[0, :3, :3]
-        best.hit[sel] = True
-        best.t[sel] = h.t[take]
-        best.points[sel] = o[sel] + h.t[take][:, None] * d[sel]
-        nrm = h.normals[take].astype(np.float64)
-        best.normals[sel] = (np.einsum("nij,nj->ni", rot, nrm) if part.moving else nrm @ rot.T).astype(np.float32)
-        best.gaussian[sel] = h.gaussian[take]
-        best.voxel[sel] = h.voxel[take]
-        best.face[sel] = h.face[take]
-        best.label[sel] = h.label[take]
-        best.instance[sel] = np.where(h.instance[take] != 0, h.instance[take], part.instance)
-        best.color[sel] = h.color[take]
-        best.alpha[sel] = h.alpha[take]
-        best.reflectance[sel] = h.reflectance[take]
+        nrm = h.normals
+        if rot is not None:  # normals back to the world, in float64 as before
+            spec = "ij,nj->ni" if rot.ndim == 2 else "nij,nj->ni"
+            nrm = np.einsum(spec, rot, nrm.astype(np.float64)).astype(np.float32)
+        inst = np.where(h.instance != 0, h.instance, np.int32(part.instance)).astype(best.instance.dtype)
+        fields = (("hit", h.hit), ("t", h.t), ("normals", nrm), ("gaussian", h.gaussian), ("voxel", h.voxel),
+                  ("face", h.face), ("label", h.label), ("instance", inst), ("color", h.color),
+                  ("alpha", h.alpha), ("reflectance", h.reflectance))
+        if dense:  # masked copies over all rays: no index arrays
+            for name, src in fields:
+                dst = getattr(best, name)
+                np.copyto(dst, src, where=take if dst.ndim == 1 else take[:, None])
+        else:
+            sel = idx[take]
+            for name, src in fields:
+                getattr(best, name)[sel] = src[take]
+
+
+def _is_identity(pose: np.ndarray) -> bool:
+    return bool(np.array_equal(pose, np.eye(4)))
+
+
+class _RayBatch:
+    """One `SimScene.trace_world` batch: world rays o, d (N, 3) (d unit), tmin, tmax, fire times
+    (N,), and what every part's cull shares. `near(part, best_t)` lists the rays that may hit a
+    part, in three conservative steps (each keeps every ray the next one would keep):
+
+    1. Blocks: consecutive rays in blocks of `BLOCK` (a LiDAR's rays come in firing order, so a
+       block is a narrow fan), each with a cone about its mean direction that holds all its
+       directions. A ray that passes near the part is within the part's angular radius of the
+       direction to it, so its block's cone is within that plus the cone's half-angle.
+    2. Coarse, per ray: the origins lie in a ball (centre `c_o`, radius `r_o`). A ray o + t d that
+       passes within r of a sphere's centre c at some t in [tmin, tmax] has a twin from c_o (o's
+       ray moved by |o - c_o| <= r_o) that passes within r + r_o of c at a t within r_o of it:
+       distances to a line and positions along it change by at most the move. One dot product
+       per ray.
+    3. Exact, per ray: the old sphere test (`_sphere_test`) with each ray's own origin, on the
+       candidates, for moving parts (whose sphere covers the part over the batch's time span) and
+       where the origins spread wider than the part. A static part's sphere holds its geometry,
+       so a ray kept by step 2 that step 3 would drop misses the part anyway."""
+
+    BLOCK = 128
+
+    def __init__(self, o, d, tmin, tmax, times):
+        self.o, self.d, self.tmin, self.tmax, self.times = o, d, tmin, tmax, times
+        lo, hi = o.min(axis=0), o.max(axis=0)
+        self.c_o = 0.5 * (lo + hi)
+        self.r_o = float(0.5 * np.linalg.norm(hi - lo))
+        self.t_span = (float(times.min()), float(times.max()))
+        self.tmin_lo = float(tmin.min())
+        self.tmax_hi = float(tmax.max())
+        self._cones()
+
+    def _cones(self) -> None:
+        """Per block of rays: unit axis (B, 3) and half-angle (B,) radians of a cone holding its dirs."""
+        n, k = self.d.shape[0], self.BLOCK
+        nb = -(-n // k)
+        d = self.d if nb * k == n else np.concatenate([self.d, np.repeat(self.d[-1:], nb * k - n, axis=0)])
+        d = d.reshape(nb, k, 3)  # the last block padded with copies of the last ray: no wider cone
+        axis = d.sum(axis=1)
+        norm = np.sqrt(np.einsum("ij,ij->i", axis, axis))
+        flat = norm < 1e-6 * k  # directions that cancel out: no useful axis, a cone of every direction
+        axis = axis / np.where(flat, 1.0, norm)[:, None]
+        cos_min = np.einsum("nkj,nj->nk", d, axis).min(axis=1)
+        self.cone_axis = axis
+        self.cone_half = np.where(flat, np.pi, np.arccos(np.clip(cos_min, -1.0, 1.0)))
+
+    def sphere(self, part: Part) -> tuple[np.ndarray, float]:
+        """The part's bounding sphere in the world over this batch's time span: centre (3,), radius m."""
+        centre, radius = part.sphere()
+        if part.moving:
+            ends = part.poses_at(np.array(self.t_span))
+            c_ends = np.einsum("nij,j->ni", ends[:, :3, :3], centre) + ends[:, :3, 3]
+            return c_ends.mean(axis=0), radius + 0.5 * float(np.linalg.norm(c_ends[1] - c_ends[0]))
+        if part.pose is None:
+            return centre, radius
+        return part.pose[:3, :3] @ centre + part.pose[:3, 3], radius
+
+    def near(self, part: Part, best_t: np.ndarray) -> np.ndarray | None:
+        """Indices (ascending) of the rays that may hit `part` before their limits; None: none."""
+        c, r = self.sphere(part)
+        cw = c - self.c_o
+        dist = float(np.sqrt(cw @ cw))
+        # the coarse radius, padded far beyond float64 rounding of both tests
+        big_r = (r + self.r_o) * (1.0 + 1e-9) + 1e-9 * dist + 1e-12
+        if dist - big_r > self.tmax_hi or dist + big_r < self.tmin_lo:
+            return None  # the part is out of every ray's reach
+        n = self.d.shape[0]
+        sub = None  # None: every ray
+        # Step 1 holds when no ray can pass the part backwards: a ray whose line passes within
+        # big_r of c behind its origin then has along <= -sqrt(dist^2 - big_r^2) < -big_r <= tmin - big_r.
+        if self.tmin_lo >= 0.0 and dist * dist > 2.0 * big_r * big_r:
+            alpha = np.arcsin(big_r / dist)  # the part's angular radius seen from c_o
+            ang = np.arccos(np.clip(self.cone_axis @ (cw / dist), -1.0, 1.0))
+            blocks = np.nonzero(ang <= alpha + self.cone_half + 1e-6)[0]  # 1e-6 rad: arccos rounding near 1
+            if not blocks.size:
+                return None
+            if blocks.size < self.cone_half.shape[0]:
+                sub = (blocks[:, None] * self.BLOCK + np.arange(self.BLOCK)).ravel()
+                sub = sub[sub < n]
+        d = self.d if sub is None else np.take(self.d, sub, axis=0)
+        tmin = self.tmin if sub is None else self.tmin[sub]
+        limit = np.minimum(self.tmax, best_t) if sub is None else np.minimum(self.tmax[sub], best_t[sub])
+        along = np.einsum("ij,j->i", d, cw)
+        keep = along * along >= dist * dist - big_r * big_r  # within big_r of the line ...
+        keep &= along + big_r >= tmin  # ... and of the segment [tmin, min(tmax, best)]
+        keep &= along - big_r <= limit
+        idx = np.nonzero(keep)[0]
+        if sub is not None:
+            idx = sub[idx]
+        if idx.size and (part.moving or self.r_o > r):
+            limit = np.minimum(self.tmax[idx], best_t[idx])
+            o, d = np.take(self.o, idx, axis=0), np.take(self.d, idx, axis=0)
+            idx = idx[_sphere_test(o, d, self.tmin[idx], limit, c, r)]
+        return idx
+
+
+def _sphere_test(o, d, tmin, tmax, c, r) -> np.ndarray:
+    """Per ray (N,) bool: the line o + t d (d unit) passes within r of c, at a t within r of
+    [tmin, tmax] (a superset of the rays whose segment meets the ball)."""
+    oc = c - o
+    along = np.einsum("ij,ij->i", oc, d)
+    perp2 = np.einsum("ij,ij->i", oc, oc) - along**2
+    return (perp2 <= r * r) & (along + r >= tmin) & (along - r <= tmax)
 
 
 @dataclass

@@ -16,15 +16,16 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.openscenario import read_openscenario
-from ..transforms import PoseFn, check_pose, interpolate_poses
+from ..transforms import PoseFn, SlerpSegment, check_pose
 from .contracts import PoseSource
 
 
 def track_pose_fn(times: np.ndarray, poses: np.ndarray) -> PoseFn:
     """A pose function from a sampled track: times (T,) increasing seconds, poses (T, 4, 4);
-    linear in position, SLERP in rotation, held at the ends."""
+    linear in position, SLERP in rotation (`transforms.interpolate_poses`), held at the ends."""
     times = np.asarray(times, np.float64)
     poses = np.asarray(poses, np.float64)
+    segments: dict[int, SlerpSegment] = {}  # built on first use: a sweep touches one or two
 
     def fn(t: np.ndarray) -> np.ndarray:
         t = np.clip(np.atleast_1d(np.asarray(t, np.float64)), times[0], times[-1])
@@ -33,9 +34,18 @@ def track_pose_fn(times: np.ndarray, poses: np.ndarray) -> PoseFn:
         i = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
         s = (t - times[i]) / (times[i + 1] - times[i])
         out = np.empty((t.shape[0], 4, 4))
-        for k in np.unique(i):  # SLERP per segment (few segments per sweep)
-            sel = i == k
-            out[sel] = interpolate_poses(poses[k], poses[k + 1], s[sel])
+        if np.all(i[1:] >= i[:-1]):  # times in order (a sweep's fire times): one slice per segment
+            cuts = np.r_[0, np.nonzero(i[1:] != i[:-1])[0] + 1]
+            ks = i[cuts]
+            sels = [slice(a, b) for a, b in zip(cuts, np.r_[cuts[1:], len(i)])]
+        else:
+            ks = np.unique(i)
+            sels = [i == k for k in ks]
+        for k, sel in zip(ks.tolist(), sels):
+            seg = segments.get(k)
+            if seg is None:
+                seg = segments[k] = SlerpSegment(poses[k], poses[k + 1])
+            out[sel] = seg(s[sel])
         return out
 
     return fn

@@ -10,7 +10,7 @@ from scube_sim.sim.can import CanTrajectory
 from scube_sim.sim.contracts import PoseSource
 from scube_sim.sim.sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
 from scube_sim.sim.vehicle import DeadReckoner
-from scube_sim.transforms import pose_from_xyz_rpy
+from scube_sim.transforms import interpolate_poses, pose_from_xyz_rpy
 
 R, OMEGA = 20.0, 0.5  # circle radius (m) and yaw rate (rad/s): 10 m/s, turning left
 
@@ -83,6 +83,31 @@ def test_track_pose_fn_holds_its_ends_and_a_single_sample():
     np.testing.assert_array_equal(one(np.array([0.0, 2.0, 9.0])), np.broadcast_to(poses[1], (3, 4, 4)))
     # a scalar time gives one pose
     assert fn(2.5).shape == (1, 4, 4)
+
+
+def test_track_poses_are_the_same_in_any_query_order_and_match_one_segment_at_a_time():
+    # A sweep's ordered fire times go through one slice per segment with cached segments; any
+    # other order through masks. Both against the straightforward formula: each time on its own,
+    # interpolated between the two samples around it.
+    times = np.array([0.0, 0.1, 0.2, 0.35, 0.5])
+    poses = np.stack([circle_pose(3.0 * t) for t in times])  # 1.5 rad/s: the SLERP branch
+    fn = track_pose_fn(times, poses)
+    q = np.r_[np.linspace(0.05, 0.45, 3001), times, -1.0, 2.0]
+    q.sort()
+    want = []
+    for tq in q:
+        tc = np.clip(tq, times[0], times[-1])
+        k = min(int(np.searchsorted(times, tc, side="right")) - 1, len(times) - 2)
+        want.append(interpolate_poses(poses[k], poses[k + 1], [(tc - times[k]) / (times[k + 1] - times[k])])[0])
+    want = np.stack(want)
+    ordered = fn(q)
+    np.testing.assert_array_equal(ordered, fn(q))  # the cached segments give the same bytes again
+    perm = np.random.default_rng(3).permutation(len(q))
+    np.testing.assert_array_equal(fn(q[perm]), ordered[perm])
+    np.testing.assert_allclose(ordered, want, rtol=0, atol=1e-15)
+    # and on the circle itself, between samples: the chord's position, the exact heading
+    mid = fn(np.array([0.05]))[0]
+    np.testing.assert_allclose(mid[:3, :3], circle_pose(0.15)[:3, :3], atol=1e-14)
 
 
 def test_a_lateral_edit_on_a_circle_moves_towards_its_centre():
