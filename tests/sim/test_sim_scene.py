@@ -119,6 +119,107 @@ def test_bounding_sphere_culling_drops_no_hit(rng):
     np.testing.assert_array_equal(h.instance[hit], want_inst[hit])
 
 
+def _old_sphere_cull(part, o, d, tmin, tmax, times):
+    """The per-ray bounding-sphere test, written out: each ray's own origin against the part's
+    sphere (moving parts: around the centre's path between the batch's first and last time)."""
+    centre, radius = part.sphere()
+    if part.moving:
+        ends = part.poses_at(np.array([times.min(), times.max()]))
+        c_ends = np.stack([p[:3, :3] @ centre + p[:3, 3] for p in ends])
+        c, r = c_ends.mean(axis=0), radius + 0.5 * np.linalg.norm(c_ends[1] - c_ends[0])
+    else:
+        p = np.eye(4) if part.pose is None else part.pose
+        c, r = p[:3, :3] @ centre + p[:3, 3], radius
+    oc = c - o
+    along = (oc * d).sum(axis=1)
+    perp2 = (oc * oc).sum(axis=1) - along * along
+    return (perp2 <= r * r) & (along + r >= tmin) & (along - r <= tmax)
+
+
+def _spin_rays(rng, n_cols=720, rings=16, centre=(0.0, 0.0, 1.8), spread=0.5):
+    """A spinning LiDAR's rays in firing order (column by column) from origins spread over a
+    short path: o (N, 3), unit d (N, 3)."""
+    az = np.repeat(np.linspace(-np.pi, np.pi, n_cols, endpoint=False), rings)
+    el = np.tile(np.radians(np.linspace(-20.0, 5.0, rings)), n_cols)
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    o = np.asarray(centre) + np.column_stack([np.linspace(0.0, spread, len(az)), np.zeros(len(az)),
+                                              np.zeros(len(az))])
+    return o, d
+
+
+@pytest.mark.parametrize("layout", ["sweep", "sweep_far_limits", "random"])
+def test_the_cull_keeps_every_ray_the_per_ray_sphere_test_keeps(rng, layout):
+    # Blocks of directions and the origins' ball against the per-ray test written out, part by
+    # part; the rays left out must be ones the per-ray test leaves out.
+    from scube_sim.sim.sim_scene import _RayBatch
+
+    parts = []
+    for k in range(10):
+        size = rng.uniform(0.5, 5.0, 3)
+        at = rng.uniform(-40.0, 40.0, 2)
+        if k % 2:
+            parts.append(Part(Tracer(pr.box([0.3, 0.0, 0.5], size)), pose=_yaw_pose(*at, rng.uniform(-3, 3))))
+        else:
+            fn = track_pose_fn([0.0, 0.1], [_yaw_pose(*at, 0.2), _yaw_pose(*(at + rng.normal(size=2)), 0.6)])
+            parts.append(Part(Tracer(pr.box([0.3, 0.0, 0.5], size)), pose_fn=fn))
+    if layout == "random":
+        o = rng.uniform(-20.0, 20.0, (4000, 3))
+        d = rng.normal(size=(4000, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+    else:
+        o, d = _spin_rays(rng)
+    n = len(o)
+    tmin = np.zeros(n) if layout != "random" else rng.uniform(0.0, 3.0, n)
+    tmax = np.full(n, 120.0) if layout == "sweep" else rng.uniform(1.0, 60.0, n)
+    times = np.linspace(0.0, 0.1, n)
+    batch = _RayBatch(o, d, tmin, tmax, times)
+    best_t = np.where(rng.random(n) < 0.3, rng.uniform(1.0, 50.0, n), np.inf)  # hits found by earlier parts
+    engaged = 0
+    for part in parts:
+        want = _old_sphere_cull(part, o, d, tmin, np.minimum(tmax, best_t), times)
+        got = batch.near(part, best_t)
+        kept = np.zeros(n, bool)
+        if got is not None:
+            assert np.all(np.diff(got) > 0)  # ascending, no repeats
+            kept[got] = True
+        assert not np.any(want & ~kept)
+        if part.moving:  # moving parts: exactly the per-ray test's rays
+            np.testing.assert_array_equal(kept, want)
+        engaged += kept.sum() < n
+    assert engaged >= 5  # the cull left rays out for most parts
+
+
+def test_a_sweep_through_a_street_of_actors_equals_the_brute_force_trace(rng):
+    # LiDAR-like rays in firing order (the block cull engages), a ground part that every
+    # downward ray reaches (the dense path), and static and moving boxes around: nearest hits as
+    # every ray traced through every part without culling.
+    ground = Part(Tracer(pr.box([0.0, 0.0, -0.05], [200.0, 200.0, 0.1])), instance=0)
+    actors, static = [], [ground]
+    for k in range(12):
+        at = rng.uniform(-30.0, 30.0, 2)
+        size = rng.uniform(1.0, 4.5, 3)
+        if k % 3 == 0:
+            static.append(Part(Tracer(pr.box([0.0, 0.0, size[2] / 2], size)), pose=_yaw_pose(*at, rng.uniform(-3, 3)),
+                               instance=100 + k))
+        else:
+            fn = track_pose_fn([0.0, 0.05, 0.1], [_yaw_pose(*at, 0.0), _yaw_pose(*(at + [0.5, 0.2]), 0.1),
+                                                  _yaw_pose(*(at + [1.0, 0.1]), 0.3)])
+            actors.append(Part(Tracer(pr.box([0.0, 0.0, size[2] / 2], size)), pose_fn=fn, instance=100 + k))
+    scene = SimScene(static=static, actors=actors)
+    o, d = _spin_rays(rng, n_cols=900, rings=16, spread=1.5)
+    tmax = np.full(len(o), 80.0)
+    times = np.linspace(0.0, 0.1, len(o))
+    h = scene.trace_world(o, d, 0.0, tmax, times=times)
+    want_t, want_inst = _brute_force(static + actors, o, d, tmax, times)
+    hit = np.isfinite(want_t)
+    assert len(np.unique(want_inst[hit])) >= 8 and (~hit).sum() > 1000
+    np.testing.assert_array_equal(h.hit, hit)
+    np.testing.assert_allclose(h.t[hit], want_t[hit], rtol=1e-12, atol=1e-9)
+    np.testing.assert_array_equal(h.instance[hit], want_inst[hit])
+    np.testing.assert_allclose(h.points[hit], o[hit] + want_t[hit, None] * d[hit], atol=1e-9)
+    assert np.all(np.isnan(h.points[~hit]))
+
+
 def test_bounding_sphere_holds_every_vertex_of_the_part():
     mesh = pr.box([3.0, -1.0, 2.0], [1.0, 6.0, 0.5], yaw=0.3)
     centre, radius = Part(Tracer(mesh)).sphere()
