@@ -308,6 +308,7 @@ def build_cmd(
     mesh_max_edge_rel: float = typer.Option(0.2, "--mesh-max-edge-rel", help="longest triangle edge, as a share of the range"),
     all_points: bool = typer.Option(False, "--all-points/--mesh-points", help="every return adds its own patch, not only those in no triangle"),
     color: bool = typer.Option(True, "--color/--no-color", help="colour from the camera images, where present"),
+    assume_single_origin: bool = typer.Option(False, "--assume-single-origin", help="build sweeps that look merged from several LiDARs from their stated origin anyway"),
 ) -> None:
     """Build a VoxSplat from real LiDAR sweeps (accumulate, remove moving objects, fit, colour)."""
 
@@ -322,7 +323,8 @@ def build_cmd(
                             remove=remove, carve_with=_int_list(carve_with, "--carve-with"), voxel_size=voxel_size,
                             gaussians_per_voxel=gaussians_per_voxel, patch_scale=patch_scale,
                             max_patch_sigma=max_patch_sigma, max_normal_scale=max_normal_scale,
-                            all_points=all_points, color=color, mesh=mesh, mesh_max_edge_rel=mesh_max_edge_rel)
+                            all_points=all_points, color=color, mesh=mesh, mesh_max_edge_rel=mesh_max_edge_rel,
+                            assume_single_origin=assume_single_origin)
         if not opts.samples:
             raise CliError("--samples: give at least one sample index")
         t0 = time.perf_counter()
@@ -355,6 +357,7 @@ def fidelity_cmd(
     noise: bool = typer.Option(False, "--noise/--no-noise", help="add the sensor model's range noise"),
     raw: bool = typer.Option(False, "--raw", help="compare with the sweep as measured (undo motion compensation): tests the motion model"),
     static_from: str = typer.Option("", "--static-from", help="sample indices whose sweeps find returns on moving objects; adds [static rays] rows"),
+    assume_single_origin: bool = typer.Option(False, "--assume-single-origin", help="trace a sweep that looks merged from several LiDARs from its stated origin anyway"),
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
 
@@ -366,7 +369,8 @@ def fidelity_cmd(
         ds = open_dataset(dataset, path)
         vs = VoxSplat.load(scene)
         res = run_fidelity(ds, vs, sample=sample, sensor=sensor, mode=mode, baselines=baselines, noise=noise,
-                           static_from=_int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."))
+                           static_from=_int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."),
+                           assume_single_origin=assume_single_origin)
         paths = write_report(res, output)
         typer.echo(res.markdown())
         typer.echo(f"-> {paths['markdown']}, {paths['png']}")

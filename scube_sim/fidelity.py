@@ -32,6 +32,7 @@ import numpy as np
 
 from .atomic import atomic_path
 from .datasets.base import LidarSweep
+from .datasets.origins import require_single_origin
 from .errors import InputError
 from .lidar.config import LidarConfig
 from .lidar.model import Lidar
@@ -39,6 +40,7 @@ from .lidar.pattern import channels_by_elevation, replay_pattern
 from .mesh import TriangleMesh
 from .raytrace.tracer import Tracer
 from .reconstruct import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
+from .transforms import invert_pose
 from .viz import fidelity_png, intensity_png
 from .voxsplat import unique_voxels
 
@@ -50,7 +52,11 @@ class RealRays:
     timestamp; intensity (N,) in [0, 1] (NaN on no-returns); row, col (N,) int range-image cell;
     no_returns_known: whether the no-return rays are in the set; ring (N,) int the set's ring id
     (-1 where it has none); ego_body (N,) bool: returns under `min_range` off the sensor's
-    horizontal plane (EGO_BODY_Z_M): the sensor saw its own vehicle (full grids only)."""
+    horizontal plane (EGO_BODY_Z_M): the sensor saw its own vehicle (full grids only).
+
+    Rays of a merged cloud (`concat_rays`): part (N,) int which sensor each ray is from, and
+    to_sweep (K, 4, 4) each sensor's frame in the merged sweep's frame (directions stay in their
+    own sensor's frame; `cloud` maps points to the common one). None for one sensor."""
 
     directions: np.ndarray
     range: np.ndarray
@@ -64,6 +70,8 @@ class RealRays:
     notes: list[str] = field(default_factory=list)
     ring: np.ndarray | None = None
     ego_body: np.ndarray | None = None
+    part: np.ndarray | None = None
+    to_sweep: np.ndarray | None = None
 
     def __post_init__(self):
         if self.ring is None:
@@ -78,7 +86,17 @@ class RealRays:
         """The rays where `mask` (N,) bool."""
         return RealRays(self.directions[mask], self.range[mask], self.time[mask], self.intensity[mask],
                         self.row[mask], self.col[mask], self.rows, self.cols, self.no_returns_known, self.notes,
-                        self.ring[mask], self.ego_body[mask])
+                        self.ring[mask], self.ego_body[mask], None if self.part is None else self.part[mask],
+                        self.to_sweep)
+
+    def cloud(self, rng: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        """(M, 3) metres: the points at ranges `rng` (N,) of the rays where `mask` (N,) bool, in one
+        frame (the sensor's; a merged cloud's own frame for rays of several sensors)."""
+        p = self.directions[mask] * rng[mask, None]
+        if self.part is None:
+            return p
+        t = self.to_sweep[self.part[mask]]
+        return np.einsum("nij,nj->ni", t[:, :3, :3], p) + t[:, :3, 3]
 
     @property
     def hit(self) -> np.ndarray:
@@ -183,6 +201,29 @@ def real_rays(sweep: LidarSweep, *, min_range: float = 1.0, azimuth_bins: int = 
                     int(rings), int(cols), known, notes, laser[keep], body[keep])
 
 
+def concat_rays(parts: list[RealRays], to_sweep: np.ndarray) -> RealRays:
+    """The rays of several sensors (a merged cloud split by `LidarSweep.by_origin`) as one set:
+    to_sweep (K, 4, 4) each part's sensor frame in the merged sweep's frame. Range-image rows are
+    stacked (part k's rows below part k-1's), so pictures show one band per sensor."""
+    if len(parts) == 1:
+        return parts[0]
+    offs = np.cumsum([0] + [p.rows for p in parts])
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+    notes = [f"{k}: {n}" for k, p in enumerate(parts) for n in p.notes]
+    return RealRays(cat("directions"), cat("range"), cat("time"), cat("intensity"),
+                    np.concatenate([p.row + o for p, o in zip(parts, offs)]), cat("col"), int(offs[-1]),
+                    max(p.cols for p in parts), all(p.no_returns_known for p in parts), notes, cat("ring"),
+                    cat("ego_body"), np.concatenate([np.full(len(p), k, np.int64) for k, p in enumerate(parts)]),
+                    np.asarray(to_sweep, np.float64))
+
+
+def concat_sims(parts: list["SimRays"]) -> "SimRays":
+    """SimRays of the parts of `concat_rays`, in the same order."""
+    if len(parts) == 1:
+        return parts[0]
+    return SimRays(*(np.concatenate([getattr(p, n) for p in parts]) for n in ("range", "intensity", "label")))
+
+
 @dataclass
 class SimRays:
     """Per real ray: range (N,) metres (inf: no return), intensity (N,), label (N,)."""
@@ -274,8 +315,8 @@ def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20), mask: np.ndarray
         out["hit_agreement"] = float(np.mean(sim_hit[real_hit])) if real_hit.any() else float("nan")
     out["missed_returns"] = float(np.mean(~sim_hit[real_hit])) if real_hit.any() else 0.0
     # Clouds in the sensor frame of each ray (both clouds share the rays).
-    real_pts = rays.directions[real_hit] * rays.range[real_hit, None]
-    sim_pts = rays.directions[sim_hit] * sim.range[sim_hit, None]
+    real_pts = rays.cloud(rays.range, real_hit)
+    sim_pts = rays.cloud(sim.range, sim_hit)
     d_sr, d_rs = _nn(sim_pts, real_pts), _nn(real_pts, sim_pts)
     out["chamfer_m"] = float(0.5 * (d_sr.mean() + d_rs.mean())) if len(d_sr) and len(d_rs) else float("inf")
     for tau in taus:
@@ -372,9 +413,10 @@ def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensor
     world = pts @ sweep.sensor_to_world[:3, :3].T + sweep.sensor_to_world[:3, 3]
     seeds = np.zeros(len(pts), bool)
     for j in others:
-        for sw in ds[j].sweeps:
-            if sensors is None or sw.sensor in sensors:
-                seeds |= free_space_mask(world, sw)
+        for whole in ds[j].sweeps:
+            if sensors is None or whole.sensor in sensors:
+                for sw in whole.by_origin():
+                    seeds |= free_space_mask(world, sw)
     moving = np.zeros(len(rays), bool)
     moving[np.flatnonzero(rays.hit)] = grow_to_objects(pts, seeds)
     return moving
@@ -382,7 +424,8 @@ def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensor
 
 def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str = "max_response",
                  baselines: bool = True, noise: bool = False, min_range: float = 1.0, seed: int = 0,
-                 static_from: list[int] | None = None, raw: bool = False, progress=None) -> FidelityResult:
+                 static_from: list[int] | None = None, raw: bool = False, progress=None,
+                 assume_single_origin: bool = False) -> FidelityResult:
     """Compare a VoxSplat `scene` with the real sweep of `sensor` in `ds[sample]`, next to the
     two baselines (0.1 m voxel cubes and an open3d Poisson surface of the points the scene was
     built from: rebuilt here from the build options stored in the scene), all traced on the
@@ -390,21 +433,42 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     static_from: sample indices whose sweeps find the real returns on moving objects (see
     `moving_rays`); every row is then also given on the static rays only. raw: compare with the
     sweep as measured (motion compensation undone with the set's per-point times and poses), so
-    the simulator's motion model is tested; compensated sets are otherwise replayed as stored."""
+    the simulator's motion model is tested; compensated sets are otherwise replayed as stored.
+
+    A cloud merged from several LiDARs (`LidarSweep.merged`) is traced ray by ray from each
+    point's own sensor, with that sensor's model (`Sample.lidars` under its origin's name, else
+    the merged sweep's). A sweep without origins whose geometry shows several is refused
+    (`datasets.origins`), unless `assume_single_origin`."""
     step = progress or (lambda msg: None)
     smp = ds[sample]
     sweep = smp.sweep(sensor)
     if raw:
         sweep = sweep.raw()
-    if sweep.sensor not in smp.lidars:
-        raise InputError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {sweep.sensor!r}")
-    config = smp.lidars[sweep.sensor].config
-    rays = real_rays(sweep, min_range=min_range)
+    if not sweep.merged and not assume_single_origin:
+        require_single_origin(sweep, f"{ds.name}: sample {sample}", min_range=min_range,
+                              allow_flag="assume_single_origin=True (scube-sim fidelity --assume-single-origin)")
+    parts = sweep.by_origin()
+    specs = [smp.lidars.get(p.sensor) or smp.lidars.get(sweep.sensor) for p in parts]
+    for p, spec in zip(parts, specs):
+        if spec is None:
+            raise InputError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {p.sensor!r}")
+    configs = [spec.config for spec in specs]
+    config = configs[0]
+    part_rays = [real_rays(p, min_range=min_range) for p in parts]
+    rays = concat_rays(part_rays, [invert_pose(sweep.sensor_to_world) @ p.sensor_to_world for p in parts])
     notes = list(rays.notes)
+    if sweep.merged:
+        notes.append(f"merged sweep: {len(parts)} LiDARs ({', '.join(p.sensor for p in parts)}), each real ray "
+                     f"traced from its own sensor with its own model; range-image rows stacked in that order")
+
+    def simulate(sc, **kw) -> SimRays:
+        return concat_sims([simulate_rays(sc, c, r, p, noise=noise, seed=seed, **kw)
+                            for c, r, p in zip(configs, part_rays, parts)])
+
     rows, images = {}, {"real": range_image(rays, rays.range)}
     step("tracing the VoxSplat")
     tracer = Tracer(scene, mode=mode)
-    sim = simulate_rays(tracer, config, rays, sweep, noise=noise, seed=seed)
+    sim = simulate(tracer)
     sims = {"voxsplat": sim}
     images["voxsplat"] = range_image(rays, sim.range)
     intensity_images = {"real": range_image(rays, np.where(rays.hit, rays.intensity, np.nan))}
@@ -412,7 +476,7 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         # Before/after in one run: the same tracer without the measured reflectance.
         measured, tracer.reflectance = tracer.reflectance, None
         try:
-            sims[CLASS_ROW] = simulate_rays(tracer, config, rays, sweep, noise=noise, seed=seed)
+            sims[CLASS_ROW] = simulate(tracer)
         finally:
             tracer.reflectance = measured
         intensity_images["voxsplat"] = range_image(rays, sim.intensity)
@@ -424,8 +488,7 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         intensity_images["voxsplat"] = range_image(rays, sim.intensity)
         notes.append("intensity: the scene carries no measured reflectance: class reflectivity x cos incidence")
     if not sweep.motion_compensated:
-        sims["voxsplat, no motion model"] = simulate_rays(tracer, config, rays, sweep, distortion=False,
-                                                          noise=noise, seed=seed)
+        sims["voxsplat, no motion model"] = simulate(tracer, distortion=False)
         notes.append("raw sweep: 'voxsplat' fires each ray from the sensor pose at its own time (per-point "
                      "offsets, real pose stream); 'no motion model' fires all from the sweep-time pose")
     build = scene.metadata.get("build") if isinstance(scene.metadata, dict) else None
@@ -434,12 +497,10 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         opts = BuildOptions(**build)
         acc, _ = accumulate_from_dataset(ds, opts)
         cubes = Tracer(voxel_cube_mesh(acc.points, opts.voxel_size, acc.origin))
-        sims[f"baseline: {opts.voxel_size:g} m voxel cubes"] = simulate_rays(cubes, config, rays, sweep,
-                                                                             noise=noise, seed=seed)
+        sims[f"baseline: {opts.voxel_size:g} m voxel cubes"] = simulate(cubes)
         normals, _ = surface_patches(acc.points, acc.sensor)
         pm = poisson_mesh(acc.points, normals, origin=acc.origin)
-        sims["baseline: Poisson surface (open3d, depth 10)"] = simulate_rays(Tracer(pm), config, rays, sweep,
-                                                                             noise=noise, seed=seed)
+        sims["baseline: Poisson surface (open3d, depth 10)"] = simulate(Tracer(pm))
         notes.append(f"baselines rebuilt from the scene's input: {len(acc)} points of sample(s) {opts.samples}")
     elif baselines:
         notes.append("baselines skipped: the scene was not built from this dataset by `scube-sim build`")
@@ -447,7 +508,8 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         rows[name] = compare(rays, sr)
     if static_from:
         step("finding returns on moving objects")
-        moving = moving_rays(ds, sweep, rays, static_from, [sweep.sensor])
+        moving = np.concatenate([moving_rays(ds, p, r, static_from, [sweep.sensor])
+                                 for p, r in zip(parts, part_rays)])
         for name, sr in list(sims.items()):
             rows[f"{name} [static rays]"] = compare(rays, sr, mask=~moving)
         notes.append(f"[static rays]: {int(moving.sum())} of {int(rays.hit.sum())} real returns lie on objects "

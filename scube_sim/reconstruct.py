@@ -24,8 +24,10 @@ import numpy as np
 from .boxes import Box, points_in_boxes
 from .camera.frames import Frames
 from .datasets.base import LidarSweep, Sample
+from .datasets.origins import require_single_origin
 from .errors import InputError
 from .fit import fit_voxsplat
+from .lidar.config import LidarConfig, SpinningPattern
 from .lidar.pattern import channels_by_elevation
 from .lidar.response import Response
 from .mesh import TriangleMesh
@@ -76,7 +78,7 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
                max_range: float | None = None, remove: str = "none", speed_threshold: float = 0.5,
                box_margin: float = 0.1, origin: np.ndarray | None = None, mesh: bool = True,
                max_edge: float = 0.5, max_edge_rel: float = 0.2, max_angle_deg: float = 1.5,
-               max_incidence_deg: float = 88.0) -> Accumulated:
+               max_incidence_deg: float = 88.0, assume_single_origin: bool = False) -> Accumulated:
     """Gather the sweeps of `samples` in the world frame.
 
     sensors: which sweeps (default all). Returns closer than `min_range` metres are dropped (the
@@ -84,17 +86,34 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
     ones. remove: 'none' | 'dynamic' (points in boxes moving faster than `speed_threshold` m/s,
     or of unknown speed in multi-sample builds) | 'all' (every box). Points inside remaining boxes
     take the box's label. origin: the local frame (default: the first sweep's sensor position).
-    mesh: also connect each sweep's neighbouring returns into triangles (`range_image_mesh`).
+    mesh: also connect each sweep's neighbouring returns into triangles (`range_image_mesh`; the
+    angle limit widened to a sensor's own ring gap where that is wider: `mesh_angle_deg`).
+
+    A cloud merged from several LiDARs (`LidarSweep.merged`) is split by origin first: each part
+    is meshed in its own sensor's range image, seen from its own position, with its own sensor
+    model (`Sample.lidars` under its origin's name, else the merged sweep's). A sweep without
+    origins whose geometry shows several (`datasets.origins.check_origin`) is refused with
+    MergedCloudError, unless `assume_single_origin`.
     """
     if remove not in ("none", "dynamic", "all"):
         raise InputError(f"remove: expected 'none', 'dynamic' or 'all', got {remove!r}")
     sweeps: list[tuple[LidarSweep, list[Box]]] = []
     configs = []  # each sweep's sensor model, where the sample has one
+    notes = []
     for s in samples:
         for sw in s.sweeps:
-            if sensors is None or sw.sensor in sensors:
-                sweeps.append((sw, s.boxes))
-                spec = s.lidars.get(sw.sensor)
+            if sensors is not None and sw.sensor not in sensors:
+                continue
+            if not sw.merged and not assume_single_origin:
+                require_single_origin(sw, f"sample {s.name!r}", min_range=min_range,
+                                      allow_flag="assume_single_origin=True (scube-sim build --assume-single-origin)")
+            parts = sw.by_origin()
+            if sw.merged:
+                notes.append(f"sample {s.name!r}: sweep {sw.sensor!r} merges {len(parts)} LiDARs "
+                             f"({', '.join(p.sensor for p in parts)}): each part meshed from its own origin")
+            for part in parts:
+                sweeps.append((part, s.boxes))
+                spec = s.lidars.get(part.sensor) or s.lidars.get(sw.sensor)
                 configs.append(None if spec is None else spec.config)
     responses = [None if c is None or sw.intensity is None else Response(c.intensity)
                  for c, (sw, _) in zip(configs, sweeps)]
@@ -132,7 +151,7 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
             world, labels, poses, sw = world[keep2], labels[keep2], poses[keep2], sw.subset(keep2)
         if mesh and len(sw) >= 3:
             parts["faces"].append(range_image_mesh(sw.points, max_edge=max_edge, max_edge_rel=max_edge_rel,
-                                                   max_angle_deg=max_angle_deg,
+                                                   max_angle_deg=mesh_angle_deg(configs[k], max_angle_deg),
                                                    max_incidence_deg=max_incidence_deg) + base)
         base += len(sw)
         inten = (np.zeros(len(sw), np.float32) if sw.intensity is None
@@ -151,7 +170,22 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
     faces = np.concatenate(face_parts) if face_parts else np.zeros((0, 3), np.int64)
     cat = {k: np.concatenate(v) for k, v in parts.items()}
     return Accumulated(cat["points"], cat["sensor"], cat["intensity"], cat["labels"], cat["sweep"], origin, removed,
-                       [], faces, cat["ring"], responses)
+                       notes, faces, cat["ring"], responses)
+
+
+RING_GAP_SLACK = 1.15  # a triangle between rings spans the ring gap and a little azimuth
+
+
+def mesh_angle_deg(config: LidarConfig | None, max_angle_deg: float) -> float:
+    """The angle limit for meshing one sensor's range image: `max_angle_deg`, or a little over the
+    sensor's median ring gap where that is wider (a VLP-16's rings are 2 degrees apart: under a
+    1.5 degree limit its rings would never be joined). Degrees."""
+    if config is None or not isinstance(config.pattern, SpinningPattern):
+        return max_angle_deg
+    el = np.unique(np.asarray(config.pattern.channels.elevation_deg, np.float64))
+    if el.size < 2:
+        return max_angle_deg
+    return max(max_angle_deg, RING_GAP_SLACK * float(np.median(np.diff(el))))
 
 
 def range_image_mesh(points: np.ndarray, *, max_edge: float = 0.5, max_edge_rel: float = 0.2,
@@ -428,6 +462,7 @@ class BuildOptions:
     all_points: bool = False
     color: bool = True
     reflectance: bool = True
+    assume_single_origin: bool = False
 
 
 def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[Sample]]:
@@ -436,11 +471,13 @@ def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[S
     acc = accumulate(samples, sensors=opts.sensors, min_range=opts.min_range, max_range=opts.max_range,
                      remove=opts.remove, mesh=opts.mesh, max_edge=opts.mesh_max_edge,
                      max_edge_rel=opts.mesh_max_edge_rel, max_angle_deg=opts.mesh_max_angle_deg,
-                     max_incidence_deg=opts.mesh_max_incidence_deg)
+                     max_incidence_deg=opts.mesh_max_incidence_deg, assume_single_origin=opts.assume_single_origin)
     carved = 0
     for j in opts.carve_with:
-        for sw in ds[j].sweeps:
-            if opts.sensors is None or sw.sensor in opts.sensors:
+        for whole in ds[j].sweeps:
+            if opts.sensors is not None and whole.sensor not in opts.sensors:
+                continue
+            for sw in whole.by_origin():  # a merged cloud carves from each sensor's own origin
                 gone = free_space_mask(acc.points + acc.origin, sw)
                 if opts.grow_objects:
                     gone = grow_to_objects(acc.points, gone)

@@ -7,7 +7,7 @@ Poses are (4, 4) float64 `T_parent_child` (see `scube_sim.transforms`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterator, Protocol
 
@@ -48,6 +48,14 @@ class LidarSweep:
     by the dataset (its scale differs: see `intensity_max`); ring (N,) int16 laser index;
     time_offset (N,) float64 seconds relative to `timestamp`; pose_fn: absolute times ->
     sensor-to-world poses, where the dataset has a pose stream (for per-point timing).
+
+    Clouds merged from several LiDARs (one cloud, no single origin): origin_id (N,) int16 says
+    which measuring sensor each point came from, an index into origins (K, 4, 4) float64, each
+    measuring sensor's pose in this sweep's frame (``T_sweep_origin``; rigid on the vehicle, so
+    it holds at every fire time); origin_names (K,) optionally names them (keys of
+    `Sample.lidars`, for their sensor models). None (the default): every ray starts at this
+    frame's origin. `merge_sweeps` builds such a sweep; `by_origin` splits it back.
+    source: the file the sweep was read from (for messages), '' if none.
     """
 
     sensor: str
@@ -60,17 +68,42 @@ class LidarSweep:
     time_offset: np.ndarray | None = None
     motion_compensated: bool = True
     pose_fn: PoseFn | None = None
+    origin_id: np.ndarray | None = None
+    origins: np.ndarray | None = None
+    origin_names: tuple[str, ...] | None = None
+    source: str = ""
 
     def __post_init__(self):
         self.points = np.asarray(self.points, np.float64).reshape(-1, 3)
         self.sensor_to_world = check_pose(self.sensor_to_world, f"sweep {self.sensor!r}: sensor_to_world")
         n = self.points.shape[0]
-        for name in ("intensity", "ring", "time_offset"):
+        for name in ("intensity", "ring", "time_offset", "origin_id"):
             v = getattr(self, name)
             if v is not None and np.shape(v) != (n,):
                 raise InputError(f"sweep {self.sensor!r}: {name} has shape {np.shape(v)}, expected ({n},)")
         if not self.motion_compensated and (self.time_offset is None or self.pose_fn is None):
             raise InputError(f"sweep {self.sensor!r}: raw (not motion-compensated) points need time_offset and pose_fn")
+        if (self.origin_id is None) != (self.origins is None):
+            raise InputError(f"sweep {self.sensor!r}: give origin_id and origins together (or neither)")
+        if self.origins is not None:
+            o = np.asarray(self.origins, np.float64)
+            if o.ndim != 3 or o.shape[1:] != (4, 4) or o.shape[0] == 0:
+                raise InputError(f"sweep {self.sensor!r}: origins has shape {o.shape}, expected (K, 4, 4)")
+            self.origins = np.stack([check_pose(t, f"sweep {self.sensor!r}: origins[{k}]") for k, t in enumerate(o)])
+            ids = np.asarray(self.origin_id)
+            if not np.issubdtype(ids.dtype, np.integer):
+                raise InputError(f"sweep {self.sensor!r}: origin_id must be integers, got {ids.dtype}")
+            if n and (ids.min() < 0 or ids.max() >= len(o)):
+                raise InputError(f"sweep {self.sensor!r}: origin_id holds {int(ids.min())}..{int(ids.max())}, "
+                                 f"expected 0..{len(o) - 1} (one per row of origins)")
+            self.origin_id = ids.astype(np.int16)
+            if self.origin_names is not None:
+                self.origin_names = tuple(str(x) for x in self.origin_names)
+                if len(self.origin_names) != len(o):
+                    raise InputError(f"sweep {self.sensor!r}: {len(self.origin_names)} origin_names for "
+                                     f"{len(o)} origins")
+        elif self.origin_names is not None:
+            raise InputError(f"sweep {self.sensor!r}: origin_names given without origins")
 
     def __len__(self) -> int:
         return self.points.shape[0]
@@ -87,13 +120,24 @@ class LidarSweep:
             return transform_points(self.sensor_to_world, self.points)
         return transform_points(self.point_poses(), self.points)
 
+    @property
+    def merged(self) -> bool:
+        """True if the points carry their own origins (`origin_id`, `origins`)."""
+        return self.origins is not None
+
+    def point_origins(self) -> np.ndarray:
+        """(N, 3) float64 metres: each ray's start in this sweep's frame (at the point's own fire
+        time for raw sweeps, like the point): the frame origin unless the sweep is merged."""
+        if self.origins is None:
+            return np.zeros((len(self), 3))
+        return self.origins[self.origin_id.astype(np.int64), :3, 3]
+
     def compensated(self) -> "LidarSweep":
         """The same sweep with every point moved into the sensor frame at `timestamp`."""
         if self.motion_compensated:
             return self
         local = transform_points(invert_pose(self.sensor_to_world), self.world_points())
-        return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
-                          self.intensity_max, self.ring, self.time_offset, True, self.pose_fn)
+        return replace(self, points=local, motion_compensated=True)
 
     def raw(self) -> "LidarSweep":
         """The same sweep as the sensor measured it: each point in the sensor frame at its own
@@ -104,14 +148,64 @@ class LidarSweep:
             raise InputError(f"sweep {self.sensor!r}: undoing motion compensation needs time_offset and pose_fn")
         poses = np.asarray(self.pose_fn(self.timestamp + self.time_offset), np.float64)
         local = transform_points(invert_pose(poses), self.world_points())
-        return LidarSweep(self.sensor, local, self.sensor_to_world, self.timestamp, self.intensity,
-                          self.intensity_max, self.ring, self.time_offset, False, self.pose_fn)
+        return replace(self, points=local, motion_compensated=False)
 
     def subset(self, mask) -> "LidarSweep":
         pick = lambda a: None if a is None else a[mask]  # noqa: E731
-        return LidarSweep(self.sensor, self.points[mask], self.sensor_to_world, self.timestamp,
-                          pick(self.intensity), self.intensity_max, pick(self.ring), pick(self.time_offset),
-                          self.motion_compensated, self.pose_fn)
+        return replace(self, points=self.points[mask], intensity=pick(self.intensity), ring=pick(self.ring),
+                       time_offset=pick(self.time_offset), origin_id=pick(self.origin_id))
+
+    def origin_name(self, k: int) -> str:
+        """The name of measuring sensor k: its `origin_names` entry, else '<sensor>#<k>'."""
+        return self.origin_names[k] if self.origin_names is not None else f"{self.sensor}#{k}"
+
+    def by_origin(self) -> list["LidarSweep"]:
+        """Single-origin sweeps, one per measuring sensor that has points: each in that sensor's
+        own frame (points, pose and pose function moved by `origins[k]`), named by
+        `origin_name(k)`. A sweep that is not merged gives [self]."""
+        if self.origins is None:
+            return [self]
+        out = []
+        for k, t_so in enumerate(self.origins):
+            sel = self.origin_id == k
+            if not sel.any():
+                continue
+            part = self.subset(sel)
+            fn = None if self.pose_fn is None else (lambda t, f=self.pose_fn, m=t_so: np.asarray(f(t)) @ m)
+            out.append(replace(part, sensor=self.origin_name(k), points=transform_points(invert_pose(t_so), part.points),
+                               sensor_to_world=self.sensor_to_world @ t_so, pose_fn=fn, origin_id=None, origins=None,
+                               origin_names=None))
+        return out
+
+
+def merge_sweeps(sweeps: list[LidarSweep], sensor_to_world: np.ndarray, *, name: str = "merged") -> LidarSweep:
+    """One merged cloud of several single-origin, motion-compensated sweeps taken at the same
+    `timestamp` (the first one's), expressed in the frame `sensor_to_world` (4, 4): what a log
+    that merges its LiDARs stores, with each point's origin kept (`origin_id`, `origins`,
+    `origin_names` = the sweeps' sensor names). Intensity, ring and time_offset are kept where
+    every sweep has them (intensity on the first sweep's `intensity_max` scale)."""
+    if not sweeps:
+        raise InputError("merge_sweeps: no sweeps")
+    frame = check_pose(sensor_to_world, "merge_sweeps: sensor_to_world")
+    to_frame = invert_pose(frame)
+    for sw in sweeps:
+        if not sw.motion_compensated or sw.merged:
+            raise InputError(f"merge_sweeps: sweep {sw.sensor!r} is raw or already merged")
+    origins = np.stack([to_frame @ sw.sensor_to_world for sw in sweeps])
+    pts = np.concatenate([transform_points(o, sw.points) for o, sw in zip(origins, sweeps)])
+    ids = np.concatenate([np.full(len(sw), k, np.int16) for k, sw in enumerate(sweeps)])
+    imax = sweeps[0].intensity_max
+
+    def cat(name, scale=False):
+        vals = [getattr(sw, name) for sw in sweeps]
+        if any(v is None for v in vals):
+            return None
+        if scale:
+            vals = [np.asarray(v, np.float32) * np.float32(imax / sw.intensity_max) for v, sw in zip(vals, sweeps)]
+        return np.concatenate(vals)
+
+    return LidarSweep(name, pts, frame, sweeps[0].timestamp, cat("intensity", True), imax, cat("ring"),
+                      cat("time_offset"), True, None, ids, origins, tuple(sw.sensor for sw in sweeps))
 
 
 @dataclass

@@ -1,4 +1,4 @@
-"""Our generic dataset folder (``scube-sim-folder`` version 1): what other datasets convert to.
+"""Our generic dataset folder (``scube-sim-folder`` version 2): what other datasets convert to.
 
     write_folder_dataset(open_dataset("argoverse2", "log"), "out")   # any samples -> folder
     ds = FolderDataset("out")                                        # or open_dataset("folder", "out")
@@ -9,7 +9,7 @@ Layout (full description with an example: docs/dataset-folder-format.md):
     ROOT/lidars/<LIDAR>.yaml             LiDAR configs named by dataset.yaml (optional: or a preset)
     ROOT/samples/<NNNNNN>/sample.yaml    name, timestamp, ego_pose, images, sweeps, boxes, metadata
     ROOT/samples/<NNNNNN>/<CAM>.png|jpg  RGB image
-    ROOT/samples/<NNNNNN>/<LIDAR>.npz|pcd|ply|bin   points: x y z [intensity ring time_offset]
+    ROOT/samples/<NNNNNN>/<LIDAR>.npz|pcd|ply|bin   points: x y z [intensity ring time_offset sensor_id]
                                          (x y z float64 in .npz: exact; float32 in the others)
 
 Frames are those of `scube_sim.datasets.base`: poses are (4, 4) ``T_parent_child`` written as
@@ -17,8 +17,13 @@ Frames are those of `scube_sim.datasets.base`: poses are (4, 4) ``T_parent_child
 (x right, y down, z forward). Every YAML file is validated by strict pydantic models (unknown keys
 are errors); errors are DatasetError naming the file and the key path.
 
-Version 1 stores motion-compensated sweeps only (every point in the sensor frame at the sweep
-timestamp): a raw sweep needs a pose per point, which v1 has no place for, so
+Version 2 adds clouds merged from several LiDARs: a sweep's ``origins`` (the measuring sensors,
+by dataset.yaml name and/or pose in the sweep's frame) and a per-point ``sensor_id`` field
+indexing them (`LidarSweep.origin_id`). The writer writes version 1 when no sweep is merged, so
+older readers still read those folders.
+
+Every version stores motion-compensated sweeps only (every point in the sensor frame at the sweep
+timestamp): a raw sweep needs a pose per point, which the format has no place for, so
 `write_folder_dataset` compensates raw sweeps (`LidarSweep.compensated`) and the sweeps read back
 have no ``pose_fn``. Renderer ground truth on images (depth, semantic, sky) is not stored.
 """
@@ -48,7 +53,7 @@ from ..transforms import check_pose
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, index_check
 
 FORMAT = "scube-sim-folder"
-VERSION = 1
+VERSION = 2  # the newest version this module reads and writes
 DATASET_FILE = "dataset.yaml"
 SAMPLE_FILE = "sample.yaml"
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -127,7 +132,7 @@ class CameraEntry(_Strict):
 
 class DatasetFile(_Strict):
     format: Literal["scube-sim-folder"]
-    version: Literal[1]
+    version: Literal[1, 2]
     name: str = ""
     poses_from_icp: bool = False
     lidars: dict[Name, LidarEntry] = {}
@@ -141,14 +146,31 @@ class ImageEntry(_Strict):
     cam_to_world: Pose
 
 
+class OriginEntry(_Strict):
+    """One sensor of a merged cloud (version 2): `sensor`, its name (a LiDAR of dataset.yaml gives
+    its model, and its mount when `pose` is absent), and/or `pose`, the sensor's pose in the
+    sweep's frame (T_sweep_sensor)."""
+
+    sensor: Name | None = None
+    pose: Pose | None = None
+
+    @model_validator(mode="after")
+    def _something(self):
+        if self.sensor is None and self.pose is None:
+            raise ValueError("give 'sensor' (a LiDAR of dataset.yaml), 'pose' (T_sweep_sensor), or both")
+        return self
+
+
 class SweepEntry(_Strict):
-    """Points in the sensor frame at `timestamp` (compensated: v1 has no per-point poses)."""
+    """Points in the sensor frame at `timestamp` (compensated: the format has no per-point poses).
+    origins (version 2): the sensors of a merged cloud, indexed by the points' `sensor_id` field."""
 
     file: FileName
     timestamp: float
     sensor_to_world: Pose
     motion_compensated: Literal[True] = True
     intensity_max: float = Field(default=1.0, gt=0)
+    origins: list[OriginEntry] | None = Field(default=None, min_length=1)
 
 
 class BoxEntry(_Strict):
@@ -217,6 +239,7 @@ class FolderDataset:
                 raise DatasetError(f"{path}: version: {v} is newer than this reader (reads version {VERSION})")
         spec = _validate(DatasetFile, data, path, "dataset settings")
         self.spec = spec
+        self.version = spec.version
         self.dataset_name = spec.name
         self.poses_from_icp = spec.poses_from_icp
         self.lidars = {n: self._lidar(path, n, e) for n, e in spec.lidars.items()}
@@ -269,7 +292,7 @@ class FolderDataset:
             images.append(self._image(d / e.file, cam, e, path))
         frames = Frames(images, ego_pose, s.timestamp, metadata={"dataset": self.name, "sample_dir": str(d)}) \
             if images else None
-        sweeps = [self._sweep(d / e.file, name, e, path) for name, e in s.sweeps.items()]
+        sweeps = [self._sweep(d / e.file, name, e, path, ego_pose) for name, e in s.sweeps.items()]
         boxes = [self._box(b) for b in s.boxes]
         return Sample(name=s.name, timestamp=s.timestamp, ego_pose=ego_pose, frames=frames, sweeps=sweeps,
                       lidars=dict(self.lidars), boxes=boxes, metadata=dict(s.metadata))
@@ -290,7 +313,27 @@ class FolderDataset:
         except ValueError as exc:
             raise DatasetError(f"{file}: {exc}") from None
 
-    def _sweep(self, file: Path, name: str, e: SweepEntry, src: Path) -> LidarSweep:
+    def _origins(self, name: str, e: SweepEntry, src: Path, ego_pose: np.ndarray):
+        """(K, 4, 4) T_sweep_sensor and the names of a merged sweep's sensors (see OriginEntry)."""
+        key = f"sweeps.{name}.origins"
+        if self.version < 2:
+            raise DatasetError(f"{src}: {key}: merged sweeps need version 2 in {self.root / DATASET_FILE} "
+                               f"(it says {self.version})")
+        poses, names = [], []
+        to_sweep = np.linalg.inv(np.asarray(e.sensor_to_world, np.float64))
+        for k, o in enumerate(e.origins):
+            if o.pose is None and o.sensor not in self.lidars:
+                raise DatasetError(f"{src}: {key}[{k}].sensor: {o.sensor!r} is not a LiDAR of "
+                                   f"{self.root / DATASET_FILE} (have {', '.join(self.lidars) or 'none'}), "
+                                   f"so its mount is unknown: give its 'pose'")
+            if o.pose is not None:
+                poses.append(np.asarray(o.pose, np.float64))
+            else:  # the mount, through the sample's ego pose
+                poses.append(to_sweep @ ego_pose @ self.lidars[o.sensor].sensor_to_ego)
+            names.append(o.sensor if o.sensor is not None else f"{name}#{k}")
+        return np.stack(poses), tuple(names)
+
+    def _sweep(self, file: Path, name: str, e: SweepEntry, src: Path, ego_pose: np.ndarray) -> LidarSweep:
         if file.suffix.lower() not in POINT_SUFFIXES:
             raise DatasetError(f"{src}: sweeps.{name}.file: {file.name!r} is not one of {', '.join(POINT_SUFFIXES)}")
         if not file.is_file():
@@ -305,10 +348,26 @@ class FolderDataset:
                 raise DatasetError(f"{file}: no field {f!r} (fields: {', '.join(fields)})")
         xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1).astype(np.float64)
         get = lambda f, dt: pts[f].astype(dt) if f in fields else None  # noqa: E731
+        origin_id = origins = names = None
+        if e.origins is not None:
+            origins, names = self._origins(name, e, src, ego_pose)
+            if "sensor_id" not in fields:
+                raise DatasetError(f"{file}: no field 'sensor_id' (fields: {', '.join(fields)}); "
+                                   f"{src}: sweeps.{name}.origins needs it (index into origins per point)")
+            ids = pts["sensor_id"]
+            if ids.dtype.kind not in "iu" or (len(ids) and (ids.min() < 0 or ids.max() >= len(origins))):
+                raise DatasetError(f"{file}: field 'sensor_id' must hold integers 0..{len(origins) - 1} (one per "
+                                   f"entry of {src}: sweeps.{name}.origins), got {ids.dtype} "
+                                   f"{ids.min() if len(ids) else ''}..{ids.max() if len(ids) else ''}")
+            origin_id = ids.astype(np.int16)
+        elif "sensor_id" in fields:
+            raise DatasetError(f"{file}: has a 'sensor_id' field but {src}: sweeps.{name} has no 'origins' "
+                               f"saying which sensors the ids mean")
         return LidarSweep(name, xyz, np.asarray(e.sensor_to_world, np.float64), e.timestamp,
                           intensity=get("intensity", np.float32), intensity_max=e.intensity_max,
                           ring=get("ring", np.int16), time_offset=get("time_offset", np.float64),
-                          motion_compensated=True)
+                          motion_compensated=True, origin_id=origin_id, origins=origins, origin_names=names,
+                          source=str(file))
 
     @staticmethod
     def _box(b: BoxEntry) -> Box:
@@ -356,7 +415,8 @@ def _check_name(name: str, what: str) -> str:
 def _points_array(sweep: LidarSweep, suffix: str) -> np.ndarray:
     """Structured points in the sensor frame: x y z float64 in .npz (exact), float32 in .pcd,
     .ply and .bin (what PCL, Open3D and KITTI tools expect: Open3D's legacy PCD reader misreads
-    float64 x y z); intensity float32, ring int16, time_offset float64 (the fields the sweep has)."""
+    float64 x y z); intensity float32, ring int16, time_offset float64, sensor_id int16 (the
+    fields the sweep has; sensor_id = `origin_id` of a merged sweep)."""
     xyz_dt = np.float64 if suffix == ".npz" else np.float32
     fields = [("x", xyz_dt), ("y", xyz_dt), ("z", xyz_dt)]
     if sweep.intensity is not None:
@@ -365,11 +425,15 @@ def _points_array(sweep: LidarSweep, suffix: str) -> np.ndarray:
         fields.append(("ring", np.int16))
     if sweep.time_offset is not None:
         fields.append(("time_offset", np.float64))
+    if sweep.origin_id is not None:
+        fields.append(("sensor_id", np.int16))
     out = np.empty(len(sweep), fields)
     out["x"], out["y"], out["z"] = sweep.points[:, 0], sweep.points[:, 1], sweep.points[:, 2]
     for f in ("intensity", "ring", "time_offset"):
         if f in out.dtype.names:
             out[f] = getattr(sweep, f)
+    if sweep.origin_id is not None:
+        out["sensor_id"] = sweep.origin_id
     return out
 
 
@@ -390,12 +454,19 @@ def _sample_entry(sample: Sample, out_dir: Path, points_suffix: str, image_suffi
         images[im.name] = {"file": file, "timestamp": float(im.timestamp), "cam_to_world": _rows(im.cam_to_world)}
     sweeps = {}
     for sw in sample.sweeps:
-        sw = sw.compensated()  # v1 stores compensated sweeps only (no per-point poses)
+        sw = sw.compensated()  # the format stores compensated sweeps only (no per-point poses)
         file = _check_name(sw.sensor, "LiDAR") + points_suffix
+        if sw.merged and points_suffix == ".bin":
+            raise InputError(f"write_folder_dataset: sample {sample.name!r}: sweep {sw.sensor!r} is merged from "
+                             f"several LiDARs and KITTI .bin cannot store its sensor_id field: use npz, pcd or ply")
         write_points(out_dir / file, _points_array(sw, points_suffix))
         sweeps[sw.sensor] = {"file": file, "timestamp": float(sw.timestamp),
                              "sensor_to_world": _rows(sw.sensor_to_world), "motion_compensated": True,
                              "intensity_max": float(sw.intensity_max)}
+        if sw.merged:
+            sweeps[sw.sensor]["origins"] = [
+                {**({"sensor": _check_name(sw.origin_names[k], "LiDAR")} if sw.origin_names is not None else {}),
+                 "pose": _rows(t)} for k, t in enumerate(sw.origins)]
     boxes = []
     for b in sample.boxes:
         vel = np.asarray(b.velocity, np.float64)
@@ -445,7 +516,9 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
     lidars: dict[str, LidarSpec] = {}
     cameras: dict[str, Intrinsics] = {}
     count = 0
+    merged = False
     for sample in samples:
+        merged |= any(sw.merged for sw in sample.sweeps)
         for n, spec in sample.lidars.items():
             _check_name(n, "LiDAR")
             have = lidars.setdefault(n, spec)
@@ -475,7 +548,7 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
         (root / "lidars").mkdir(exist_ok=True)
         dump_config(spec.config, root / rel)
         lidar_entries[n] = {"config": rel, "sensor_to_ego": _rows(spec.sensor_to_ego)}
-    data = {"format": FORMAT, "version": VERSION, "name": str(name or getattr(samples, "name", "")),
+    data = {"format": FORMAT, "version": VERSION if merged else 1, "name": str(name or getattr(samples, "name", "")),
             "poses_from_icp": bool(getattr(samples, "poses_from_icp", False)),
             "lidars": lidar_entries,
             "cameras": {n: _plain(c.to_dict()) for n, c in cameras.items()}}

@@ -236,7 +236,7 @@ def test_missing_files_name_the_file_and_key(written):
 
 
 @pytest.mark.parametrize("edit, message", [
-    (lambda d: d.update(version=2), r"version: 2 is newer than this reader"),
+    (lambda d: d.update(version=3), r"version: 3 is newer than this reader"),
     (lambda d: d.update(format="other"), r"format: expected 'scube-sim-folder'"),
     (lambda d: d["lidars"]["lidar_top"].update(preset="VLP-16"),
      r"lidars\.lidar_top: .*exactly one of 'preset' and 'config'"),
