@@ -118,6 +118,9 @@ def export_cmd(
     to: str = typer.Option(..., "--to", help="ply (3DGS, Inria layout) | usd (.usda) | usdc | npz (VoxSplat)"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="default: SCENE with the new suffix"),
     voxel_size: Optional[float] = typer.Option(None, "--voxel-size", help="for --to npz from a .ply (default: automatic)"),
+    max_gaussians: Optional[int] = typer.Option(
+        None, "--max-gaussians", help="--to ply: keep the N Gaussians with the largest opacity x area (a 3DGS "
+                                      "trainer's initialisation)"),
 ) -> None:
     """Convert a scene between VoxSplat .npz, 3DGS .ply and USD."""
 
@@ -128,13 +131,18 @@ def export_cmd(
         suffixes = {"ply": ".ply", "usd": ".usda", "usda": ".usda", "usdc": ".usdc", "npz": ".npz"}
         if to not in suffixes:
             raise CliError(f"--to: expected one of {', '.join(suffixes)}, got {to!r}")
+        if max_gaussians is not None and (to != "ply" or max_gaussians < 1):
+            raise CliError(f"--max-gaussians: expected a count >= 1 with --to ply, got {max_gaussians} with --to {to}")
         out = output or scene.with_name(scene.stem + ("_3dgs" if to == "ply" and scene.suffix == ".ply" else "")
                                         + suffixes[to])
         sc = load_scene(scene)
         if to == "ply":
             from .io.ply3dgs import write_3dgs_ply
 
-            write_3dgs_ply(out, sc.gaussians() if isinstance(sc, VoxSplat) else sc)
+            g = sc.gaussians() if isinstance(sc, VoxSplat) else sc
+            if max_gaussians is not None:
+                g = g.strongest(max_gaussians)
+            write_3dgs_ply(out, g)
         elif to == "npz":
             as_voxsplat(sc, voxel_size).save(out)
         else:

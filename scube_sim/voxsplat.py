@@ -141,6 +141,20 @@ class Gaussians:
             self.origin.copy(),
         )
 
+    def strongest(self, n: int) -> "Gaussians":
+        """The `n` Gaussians that cover the most surface, in their original order: ranked by opacity
+        times the area of their two largest std-devs (alpha * s1 * s2, m^2), ties to the lower
+        index, so a 3DGS trainer starts from the surfaces rather than from faint or tiny splats.
+        All of them when n >= N."""
+        if n < 0:
+            raise InputError(f"max Gaussians: expected a count >= 0, got {n}")
+        if n >= len(self):
+            return self
+        s = np.sort(self.scales, axis=1)
+        score = self.opacities * s[:, 1] * s[:, 2]
+        keep = np.sort(np.argsort(-score, kind="stable")[:n])
+        return self.subset(keep)
+
     def check_finite(self, source: str = "gaussians") -> None:
         """Raise ValueError naming the field if any value is NaN or Inf."""
         for name in ("means", "scales", "quats", "opacities", "sh_dc"):

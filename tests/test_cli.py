@@ -63,6 +63,32 @@ def test_export_round_trips(scene_npz, tmp_path):
     assert (tmp_path / "x.bin").stat().st_size % 16 == 0
 
 
+def test_export_keeps_the_gaussians_that_cover_the_most_surface(tmp_path):
+    """--max-gaussians ranks by alpha * (product of the two largest std-devs), read back by plyfile."""
+    from plyfile import PlyData
+
+    from scube_sim.splat_params import opacities_to_raw, scales_to_raw
+    from scube_sim.voxsplat import VoxSplat
+
+    # One Gaussian per voxel: areas 1, 4, 0.25, 4 (m^2) at alphas 0.9, 0.1, 0.9, 0.5 -> scores
+    # 0.9, 0.4, 0.225, 2.0: the best two are voxels 3 and 0, written in index order.
+    scales = np.array([[1, 1, 0.01], [2, 0.01, 2], [0.5, 0.5, 0.5], [2, 2, 0.01]])
+    alpha = np.array([0.9, 0.1, 0.9, 0.5])
+    params = np.zeros((4, 1, 14), np.float32)
+    params[:, 0, 3] = opacities_to_raw(alpha)
+    params[:, 0, 4:7] = scales_to_raw(scales)
+    params[:, 0, 7] = 1.0
+    vs = VoxSplat(ijk=np.array([[0, 0, 0], [10, 0, 0], [20, 0, 0], [30, 0, 0]]), params=params, voxel_size=1.0)
+    vs.save(tmp_path / "four.npz")
+    res = run("export", tmp_path / "four.npz", "--to", "ply", "--max-gaussians", 2, "-o", tmp_path / "two.ply")
+    assert res.exit_code == 0, res.output
+    v = PlyData.read(str(tmp_path / "two.ply"))["vertex"]
+    assert np.allclose(v["x"] - v["x"][0], [0.0, 30.0])
+    assert np.allclose(1 / (1 + np.exp(-v["opacity"])), [0.9, 0.5], atol=1e-5)
+    one_line_error(run("export", tmp_path / "four.npz", "--to", "usd", "--max-gaussians", 2), "--max-gaussians")
+    one_line_error(run("export", tmp_path / "four.npz", "--to", "ply", "--max-gaussians", 0), "--max-gaussians")
+
+
 def test_sensors_lists_the_presets():
     res = run("sensors")
     assert res.exit_code == 0
