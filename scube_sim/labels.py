@@ -4,8 +4,16 @@ Ids 0..22 follow the Waymo Open Dataset 3D semantic segmentation classes; 23..25
 the procedural worlds need (fence, terrain, sky). Frozen at LABEL_TABLE_VERSION: a model trained
 on one version reads labels by these ids, so change it only by appending and bumping the version.
 
-`reflectivity` is a diffuse near-infrared (~905 nm) reflectance used by the LiDAR intensity model:
-rough figures for asphalt, paint, concrete, foliage and retroreflective sheeting, not measurements.
+`reflectivity` is the factor the LiDAR model's class formula uses where a surface has no measured
+reflectance (intensity = reflectivity x cos x fall-off, with no sensor response): rough figures for
+asphalt, paint, concrete, foliage and retroreflective sheeting, not measurements.
+
+`REFLECTANCE_DEFAULTS` is the default *reflectance* of each class on the scale of the VoxSplat
+`reflectance` channel (Lambertian-equivalent: 1 = a white diffuse target; what the build measures
+by inverting each sensor's response): what the converter, which has labels but no LiDAR, writes
+into that channel (`reflectance_from_labels`). Each entry names its source; the measured ones are
+medians over the real logs in ../shared/data through the build's own estimate
+(`tools/measure_class_reflectance.py`; docs/lidar-intensity-and-drop.md has the figures).
 """
 
 from __future__ import annotations
@@ -14,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import NotFoundError
+from .errors import InputError, NotFoundError
 
 LABEL_TABLE_VERSION = 1
 
@@ -71,3 +79,84 @@ def label_id(name: str) -> int:
         return LABEL_IDS[name]
     except KeyError:
         raise NotFoundError(f"unknown label {name!r}; known: {', '.join(LABEL_NAMES)}") from None
+
+
+# --- default reflectance per class (the converter's table) --------------------------------------
+
+# Where the numbers come from (medians of the build's per-return reflectance estimates; nuScenes'
+# HDL-32E reports calibrated reflectivity, Argoverse 2's VLP-32C is assumed to; KITTI's HDL-64E
+# has no published scale and is not used).
+REFLECTANCE_SOURCES: dict[str, str] = {
+    "nuscenes": "measured: median over the returns in this class's boxes, nuScenes demo keyframe (HDL-32E)",
+    "ground": "measured: mean of the medians of ground returns (< 0.15 m above the local ground; road, paint, "
+              "sidewalk together) of nuScenes (0.181) and Argoverse 2 sweep 0 (0.100)",
+    "ground_q75": "measured: mean of the ground returns' upper quartiles, nuScenes (0.290) and Argoverse 2 (0.146): "
+                  "the lighter part of the ground (concrete), not measured per class",
+    "above_ground": "measured: mean of the medians of unlabelled returns above the ground (walls, poles, "
+                    "vegetation, objects together) of nuScenes (0.223) and Argoverse 2 (0.162), not per class",
+    "all_returns": "measured: median of all of the nuScenes keyframe's returns (0.191)",
+    "retroreflective": "not measured: HDL-32E manual, calibrated reflectivity reads retroreflectors above "
+                       "100 (rho > 1); 1.0 is the floor of that range",
+    "vegetation": "not measured per class: green leaves reflect ~0.45-0.5 in the near infrared (the red edge "
+                  "plateau, a standard remote-sensing figure); canopies read lower where beams hit leaves partly",
+    "guess": "not measured: a rough figure (material named in the note)",
+    "no_return": "the sky returns nothing",
+}
+
+
+@dataclass(frozen=True)
+class ReflectanceDefault:
+    """label: a class name; reflectance: Lambertian-equivalent (0-1, above 1 for retroreflectors);
+    source: a key of REFLECTANCE_SOURCES, or 'as <class>' (taken from a measured similar class)."""
+
+    label: str
+    reflectance: float
+    source: str
+    note: str = ""
+
+
+REFLECTANCE_DEFAULTS: tuple[ReflectanceDefault, ...] = (
+    ReflectanceDefault("undefined", 0.19, "all_returns"),
+    ReflectanceDefault("car", 0.13, "nuscenes", "92 returns, 8 boxes; quartiles 0.06-0.24"),
+    ReflectanceDefault("truck", 0.17, "nuscenes", "502 returns, 2 boxes; quartiles 0.06-0.27"),
+    ReflectanceDefault("bus", 0.17, "as truck"),
+    ReflectanceDefault("other_vehicle", 0.15, "as car", "between car (0.13) and truck (0.17)"),
+    ReflectanceDefault("motorcyclist", 0.21, "as pedestrian"),
+    ReflectanceDefault("bicyclist", 0.21, "as pedestrian"),
+    ReflectanceDefault("pedestrian", 0.21, "nuscenes", "137 returns, 30 boxes; quartiles 0.08-0.43"),
+    ReflectanceDefault("sign", 1.00, "retroreflective", "retroreflective sheeting"),
+    ReflectanceDefault("traffic_light", 0.19, "above_ground"),
+    ReflectanceDefault("pole", 0.19, "above_ground"),
+    ReflectanceDefault("construction_cone", 0.50, "guess", "orange plastic with a retroreflective collar"),
+    ReflectanceDefault("bicycle", 0.13, "as car"),
+    ReflectanceDefault("motorcycle", 0.13, "as car"),
+    ReflectanceDefault("building", 0.19, "above_ground"),
+    ReflectanceDefault("vegetation", 0.45, "vegetation"),
+    ReflectanceDefault("tree_trunk", 0.19, "above_ground"),
+    ReflectanceDefault("curb", 0.22, "ground_q75"),
+    ReflectanceDefault("road", 0.14, "ground"),
+    ReflectanceDefault("lane_marker", 0.50, "guess", "white paint with glass beads (partly retroreflective)"),
+    ReflectanceDefault("other_ground", 0.14, "ground"),
+    ReflectanceDefault("walkable", 0.22, "ground_q75"),
+    ReflectanceDefault("sidewalk", 0.22, "ground_q75"),
+    ReflectanceDefault("fence", 0.14, "nuscenes", "nuScenes 'barrier' boxes: 317 returns, 22 boxes; quartiles 0.08-0.26"),
+    ReflectanceDefault("terrain", 0.30, "guess", "soil and grass"),
+    ReflectanceDefault("sky", 0.00, "no_return"),
+)
+assert tuple(d.label for d in REFLECTANCE_DEFAULTS) == LABEL_NAMES
+
+LABEL_REFLECTANCE = np.array([d.reflectance for d in REFLECTANCE_DEFAULTS], dtype=np.float32)  # (NUM_LABELS,)
+
+
+def reflectance_from_labels(labels) -> np.ndarray:
+    """Default reflectance (same shape as `labels`, float32, Lambertian-equivalent) of integer label
+    ids `labels` (any shape; see REFLECTANCE_DEFAULTS). InputError for ids outside the table."""
+    a = np.asarray(labels)
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        if not np.issubdtype(a.dtype, np.floating) or not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise InputError(f"reflectance_from_labels: labels must be integer label ids, got dtype {a.dtype}")
+    ids = a.astype(np.int64)
+    if ids.size and (ids.min() < 0 or ids.max() >= NUM_LABELS):
+        raise InputError(f"reflectance_from_labels: labels hold ids {int(ids.min())}..{int(ids.max())}, "
+                         f"expected 0..{NUM_LABELS - 1} (scube_sim.labels)")
+    return LABEL_REFLECTANCE[ids]
