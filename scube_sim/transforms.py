@@ -34,7 +34,9 @@ def normalize_quat(q: np.ndarray) -> np.ndarray:
     the identity (1, 0, 0, 0): a defined result, since raw network outputs can be exactly zero."""
     q = np.asarray(q, dtype=np.float64)
     with np.errstate(over="ignore"):
-        n = np.linalg.norm(q, axis=-1, keepdims=True)
+        n = np.sqrt(np.add.reduce(q * q, axis=-1, keepdims=True))  # np.linalg.norm's own sum, bit for bit
+    if np.all(n >= _EPS) and np.all(n < np.inf):  # every row fine (no NaN): skip the repairs' passes
+        return q / n
     big = np.isinf(n) & np.all(np.isfinite(q), axis=-1, keepdims=True)
     if np.any(big):  # finite but past sqrt(max float): normalise the rescaled quaternion instead
         q = np.where(big, q / np.where(big, np.abs(q).max(axis=-1, keepdims=True), 1.0), q)

@@ -291,15 +291,26 @@ class VoxSplat:
         """(V, M, 3) float32 RGB in [0, 1]."""
         return sp.colors(self.params[..., RGB])
 
-    def gaussians(self) -> Gaussians:
-        """The valid Gaussians, activated and flattened, with their voxel index and slot."""
+    def gaussians(self, min_opacity: float | None = None) -> Gaussians:
+        """The valid Gaussians, activated and flattened, with their voxel index and slot; with
+        `min_opacity`, only those at least that opaque. The kept slots' raw values are gathered
+        first and only they are activated (the activations work value by value, so the numbers
+        are those of `means()` etc.): no (V, M) float64 temporaries, whose first-touch pages
+        dominated building a tracer for millions of Gaussians."""
         vi, si = np.nonzero(self.valid)
+        opacities = sp.opacities(self.params[vi, si, 3])
+        if min_opacity is not None:
+            keep = opacities >= min_opacity
+            if not keep.all():
+                vi, si, opacities = vi[keep], si[keep], opacities[keep]
+        raw = self.params[vi, si]  # (N, 14) float32, one gather of the kept slots
+        centres = (self.ijk[vi].astype(np.float64) + 0.5) * self.voxel_size  # voxel_centers()[vi]
         return Gaussians(
-            means=self.means()[vi, si],
-            scales=self.scales()[vi, si],
-            quats=self.quats()[vi, si],
-            opacities=self.opacities()[vi, si],
-            sh_dc=self.params[vi, si, RGB].copy(),
+            means=sp.offsets(raw[:, OFFSET], self.offset_range * self.voxel_size) + centres,
+            scales=sp.scales(raw[:, SCALE]),
+            quats=normalize_quat(raw[:, QUAT]),
+            opacities=opacities,
+            sh_dc=np.ascontiguousarray(raw[:, RGB]),
             voxel=vi.astype(np.int64),
             slot=si.astype(np.int16),
             origin=self.origin.copy(),

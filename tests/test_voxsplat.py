@@ -276,6 +276,20 @@ def test_gaussians_are_the_valid_slots_in_voxel_major_order():
     np.testing.assert_allclose(g.rotations(), vs.rotations()[vi, si], atol=1e-15)
 
 
+@pytest.mark.parametrize("floor", [0.0, 0.3, 0.7, 1.1])
+def test_gaussians_above_an_opacity_floor_are_the_subset_of_all_valid_ones(floor):
+    # One gather of the kept slots against every valid slot activated, then masked.
+    vs = random_voxsplat(v=40, m=4, seed=6)
+    every = vs.gaussians()
+    keep = every.opacities >= floor
+    want, got = every.subset(keep), vs.gaussians(min_opacity=floor)
+    assert len(got) == int(keep.sum())
+    for name in ("means", "scales", "quats", "opacities", "sh_dc", "voxel", "slot", "origin"):
+        a, b = getattr(want, name), getattr(got, name)
+        assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), name
+        assert b.flags.c_contiguous and b.flags.writeable, name  # the tracer's own arrays
+
+
 def test_gaussians_subset_keeps_all_fields_aligned():
     g = random_voxsplat(seed=5).gaussians()
     idx = np.array([4, 0, 2])

@@ -38,6 +38,12 @@ MODES = ("entry", "max_response", "soft")
 MIN_SCALE = 1e-9  # metres
 
 
+def _row_max(a: np.ndarray) -> np.ndarray:
+    """(N, 3) -> (N,) the largest of each row: `a.max(axis=1)`'s values, column by column (a
+    reduction over a length-3 axis pays per row; this pays per column)."""
+    return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
+
+
 class Tracer:
     """Build once per static scene, then `trace` any number of ray batches (a `TraceableScene`).
 
@@ -143,37 +149,41 @@ class Tracer:
 
     def _build_gaussians(self, scene, labels) -> None:
         refl = None
+        floor = self.soft_alpha_min if self.mode == "soft" else self.opacity_floor
         if isinstance(scene, VoxSplat):
             scene.check_finite()
-            g = scene.gaussians()
-            vox_labels = scene.labels
-            g_labels = vox_labels[g.voxel] if len(g) else np.zeros(0, np.int16)
+            # The Gaussians at or above the floor, gathered once from the raw slots: fresh arrays
+            # this tracer owns (no subset copy, and the scales below are fixed in place).
+            g = scene.gaussians(min_opacity=floor)
+            g_labels = scene.labels[g.voxel] if len(g) else np.zeros(0, np.int16)
             self.num_voxels = scene.num_voxels
             if "reflectance" in scene.channels:
-                refl = scene.channel("reflectance")[scene.valid].astype(np.float32)  # gaussians() order
+                refl = scene.channel("reflectance")[g.voxel, g.slot].astype(np.float32)  # gaussians() order
+            keep, owned = slice(None), True
         else:
             g = scene
             g.check_finite()
             g_labels = (np.zeros(len(g), np.int16) if labels is None
                         else np.asarray(labels, np.int16).reshape(len(g)))
             self.num_voxels = 0
+            keep = g.opacities >= floor
+            owned = not keep.all()
+            # never change the caller's Gaussians: a mask subset copies; otherwise new attributes
+            g = g.subset(keep) if owned else g.subset(slice(None))
         self.origin = g.origin.copy()
-        floor = self.soft_alpha_min if self.mode == "soft" else self.opacity_floor
-        keep = g.opacities >= floor
-        if not keep.all():
-            g = g.subset(keep)
-        else:
-            g = g.subset(slice(None)) if g is scene else g  # never change the caller's Gaussians
         # A zero scale is a flat (2D) Gaussian and a negative one means the same spread: keep the
         # result defined by using |s|, floored where float64 still inverts it.
-        g.scales = np.maximum(np.abs(g.scales), MIN_SCALE)
+        if owned:
+            np.maximum(np.abs(g.scales, out=g.scales), MIN_SCALE, out=g.scales)
+        else:
+            g.scales = np.maximum(np.abs(g.scales), MIN_SCALE)
         self.gaussians = g
         self.labels = g_labels[keep]
-        self.reflectance = None if refl is None else refl[keep]
+        self.reflectance = refl  # VoxSplats only: already per kept Gaussian
         n = len(g)
         # The float32 tolerance follows the scene's extent, bounded per Gaussian by |mean| + k
         # times its largest scale (no rotation needed; a larger bound only widens the margins).
-        extent = float(np.max(np.abs(g.means).max(axis=1) + self.k * g.scales.max(axis=1))) if n else 0.0
+        extent = float(np.max(_row_max(np.abs(g.means)) + self.k * _row_max(g.scales))) if n else 0.0
         self._set_tolerances(extent)
         self.scene_gaussians = SceneGaussians(
             gaussians=g, k=self.k, labels=self.labels, colors=g.colors,

@@ -253,3 +253,28 @@ def test_lattice_of_identical_gaussians(engine, proxy, rng):
     h = Tracer(scene, **engine_kw(engine), proxy=proxy, opacity_floor=0.0).trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_gaussians_below_the_floor_are_dropped_and_the_rest_keep_their_reflectance_and_label(engine):
+    # Five round Gaussians in five voxels along y, each with its own reflectance and label; the
+    # second and fourth are fainter than the floor. A ray down x through each: the faint ones
+    # are missed, the others hit on their sphere (entry at 3 sigma) with their own values.
+    ys = np.arange(5) * 2.0
+    opac = np.array([0.9, 0.01, 0.6, 0.04, 0.99])
+    g = Gaussians(means=np.c_[np.zeros(5), ys, np.zeros(5)], scales=np.full((5, 3), 0.1),
+                  quats=np.tile([1.0, 0.0, 0.0, 0.0], (5, 1)), opacities=opac, sh_dc=np.zeros((5, 3), np.float32))
+    vs = VoxSplat.from_gaussians(g, voxel_size=0.4, labels=np.arange(5) + 3)
+    order = vs.gaussians()  # which (voxel, slot) holds which of the five
+    which = np.array([int(np.argmin(np.abs(ys - y))) for y in order.means[:, 1] + order.origin[1]])
+    refl = np.zeros(vs.valid.shape, np.float32)
+    refl[order.voxel, order.slot] = 0.1 * (which + 1)
+    vs.set_channel("reflectance", refl)
+    tracer = Tracer(vs, **engine_kw(engine), opacity_floor=0.05)
+    assert len(tracer.gaussians) == 3
+    h = tracer.trace_world(np.c_[np.full(5, -5.0), ys, np.zeros(5)], np.tile([1.0, 0.0, 0.0], (5, 1)))
+    np.testing.assert_array_equal(h.hit, opac >= 0.05)
+    np.testing.assert_allclose(h.t[h.hit], 5.0 - 0.3, atol=1e-6)
+    np.testing.assert_allclose(h.reflectance[h.hit], 0.1 * (np.nonzero(opac >= 0.05)[0] + 1), rtol=1e-6)
+    assert np.all(np.isnan(h.reflectance[~h.hit]))
+    np.testing.assert_array_equal(h.label[h.hit], vs.labels[h.voxel[h.hit]])
