@@ -6,8 +6,12 @@ the loop and of the sinks (PCD files + a USD stage with value clips) over bare t
 sweeps in the same run.
 soak: 3 000 ticks of a multi-LiDAR rig with file and USD sinks: the RSS curve's slope, and threads
 and open files before and after.
+split: where one sweep's time goes on the urban loop (12 moving actors, compiled core): the ego's
+poses at the fire times, the Gaussian and mesh tracers, the scene's own work around them (culling
+rays per part, moving them into each part's frame, merging hits), and the rest of `Lidar.scan`
+(intensity, echoes, drops, noise, points). The minimum over the ticks of each stage.
 
-Run: `python -m bench.bench_sim [--quick]`.
+Run: `python -m bench.bench_sim [--quick] [--only speed|soak|split]`.
 """
 
 from __future__ import annotations
@@ -92,6 +96,68 @@ def speed(ticks: int = 20) -> list[dict]:
     return rows
 
 
+def split(ticks: int = 10) -> list[dict]:
+    """Seconds per stage of one sweep, by wrapping the stages' entry points (min over `ticks`)."""
+    from scube_sim.raytrace.tracer import Tracer
+    from scube_sim.sim.scenario import SensorSpec, build_run
+
+    rows = []
+    work = Path(tempfile.mkdtemp(prefix="scube-bench-split-"))
+    try:
+        os.environ[CORE_ENV] = "compiled"
+        for preset in ("hdl64e", "os1-128"):
+            sc, base = _scenario("urban-loop")
+            sc.sensors = [SensorSpec(preset=preset)]
+            sc.duration_s = (ticks + 2) / sc.tick_hz
+            sc.outputs.files, sc.outputs.usd = [], None
+            sim, src, t0, _ = build_run(sc, base, work)
+            scene, sensor = sim.scene, sim.sensors[0]
+            lidar = sensor.lidar
+            acc: dict[str, float] = {}
+
+            def timed_call(key, fn):
+                def run(*a, **k):
+                    t = time.perf_counter()
+                    out = fn(*a, **k)
+                    acc[key] = acc.get(key, 0.0) + time.perf_counter() - t
+                    return out
+                return run
+
+            def ego(ts):
+                return src.poses_at(ts) @ sensor.mount
+
+            scene_trace = scene.trace_world
+            tracer_trace = Tracer.trace_world
+            scene.trace_world = timed_call("scene", scene_trace)
+            Tracer.trace_world = timed_call("tracers", tracer_trace)
+            per = []
+            try:
+                for k in range(ticks + 1):
+                    te = t0 + (k + 1) / sensor.rate_hz
+                    scene.update(te, src.poses_at(np.array([te]))[0][:3, 3])
+                    acc.clear()
+                    t = time.perf_counter()
+                    lidar.scan(scene, None, pose_fn=timed_call("ego", ego), t_start=te - lidar.pattern.period_s)
+                    acc["sweep"] = time.perf_counter() - t
+                    if k:  # the first sweep loads the chunks
+                        per.append(dict(acc))
+            finally:
+                Tracer.trace_world = tracer_trace
+                del scene.trace_world
+            row = {"sensor": preset, "rays": len(lidar.pattern.time), "ticks": ticks}
+            stages = {"sweep_s": lambda a: a["sweep"], "ego_poses_s": lambda a: a["ego"],
+                      "tracers_s": lambda a: a["tracers"], "scene_glue_s": lambda a: a["scene"] - a["tracers"],
+                      "rest_of_scan_s": lambda a: a["sweep"] - a["ego"] - a["scene"]}
+            for name, f in stages.items():
+                row[name] = min(f(a) for a in per)
+            rows.append(row)
+            print(row)
+    finally:
+        os.environ.pop(CORE_ENV, None)
+        shutil.rmtree(work, ignore_errors=True)
+    return rows
+
+
 def _fds() -> int:
     return len(os.listdir("/proc/self/fd"))
 
@@ -169,7 +235,7 @@ def _plot_rss(x, y, path):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="fewer ticks")
-    ap.add_argument("--only", choices=("speed", "soak"), default=None)
+    ap.add_argument("--only", choices=("speed", "soak", "split"), default=None)
     args = ap.parse_args()
     if args.only in (None, "speed"):
         rows = speed(10 if args.quick else 20)
@@ -180,6 +246,15 @@ def main():
                            "loop_sinks: with PCD files and a USD stage with value clips (writer thread). core: the "
                            "Gaussian tracer core (reference: the NumPy walk, the 'before'; compiled: the 'after'). "
                            "sensors_at_10Hz: 0.1 s / loop_sinks_s_per_tick.")
+        print(md.read_text())
+    if args.only in (None, "split"):
+        rows = split(5 if args.quick else 10)
+        md = write_results("sim_split", rows, ["sensor", "rays", "ticks", "sweep_s", "ego_poses_s", "tracers_s",
+                                               "scene_glue_s", "rest_of_scan_s"],
+                           "One sweep on the urban loop (12 moving actors, 0.4 m VoxSplat chunks, compiled core), "
+                           "minimum over the ticks per stage. ego_poses: the pose source at every distinct fire "
+                           "time; tracers: the parts' tracers; scene_glue: the scene's culling, moves into the "
+                           "parts' frames and merging; rest_of_scan: intensity, echoes, drops, noise, points.")
         print(md.read_text())
     if args.only in (None, "soak"):
         rows = soak(300 if args.quick else 3000)

@@ -204,7 +204,9 @@ class _RayBatch:
 
     def __init__(self, o, d, tmin, tmax, times):
         self.o, self.d, self.tmin, self.tmax, self.times = o, d, tmin, tmax, times
-        lo, hi = o.min(axis=0), o.max(axis=0)
+        # per column: a reduction over axis 0 of an (N, 3) array runs several times slower
+        lo = np.array([o[:, j].min() for j in range(3)])
+        hi = np.array([o[:, j].max() for j in range(3)])
         self.c_o = 0.5 * (lo + hi)
         self.r_o = float(0.5 * np.linalg.norm(hi - lo))
         self.t_span = (float(times.min()), float(times.max()))
@@ -218,7 +220,7 @@ class _RayBatch:
         nb = -(-n // k)
         d = self.d if nb * k == n else np.concatenate([self.d, np.repeat(self.d[-1:], nb * k - n, axis=0)])
         d = d.reshape(nb, k, 3)  # the last block padded with copies of the last ray: no wider cone
-        axis = d.sum(axis=1)
+        axis = np.einsum("nkj->nj", d)  # d.sum(axis=1) at a fraction of its time
         norm = np.sqrt(np.einsum("ij,ij->i", axis, axis))
         flat = norm < 1e-6 * k  # directions that cancel out: no useful axis, a cone of every direction
         axis = axis / np.where(flat, 1.0, norm)[:, None]
