@@ -68,24 +68,23 @@ class _History:
 
 def _twist_poses(pose_end: np.ndarray, t_end: float, velocity, times: np.ndarray) -> np.ndarray:
     """Poses at `times` of a body that moves with constant twist `velocity` = (vx, vy, vz, wx, wy,
-    wz) (metres/s and rad/s, ego frame) and is at `pose_end` at `t_end`."""
+    wz) (metres/s and rad/s, ego frame) and is at `pose_end` at `t_end`: pose_end @ delta(t - t_end),
+    delta = rotation by w (t - t_end) about w's axis, translation v (t - t_end) (first order, in the
+    ego frame). All times at once: a sweep asks for tens of thousands."""
     v = np.asarray(velocity, np.float64).reshape(6)
-    dt = np.asarray(times, np.float64) - t_end
-    out = np.empty((dt.shape[0], 4, 4))
+    dt = np.atleast_1d(np.asarray(times, np.float64)) - t_end
+    delta = np.zeros((dt.shape[0], 4, 4))
     w = v[3:]
     ang = np.linalg.norm(w)
-    for i, tau in enumerate(dt):
-        if ang > 1e-12:
-            axis = w / ang
-            half = 0.5 * ang * tau
-            r = quat_to_rotmat(np.r_[np.cos(half), np.sin(half) * axis])
-        else:
-            r = np.eye(3)
-        delta = np.eye(4)
-        delta[:3, :3] = r
-        delta[:3, 3] = v[:3] * tau  # first-order translation in the ego frame
-        out[i] = pose_end @ delta
-    return out
+    if ang > 1e-12:
+        half = 0.5 * ang * dt
+        q = np.concatenate([np.cos(half)[:, None], np.sin(half)[:, None] * (w / ang)], axis=1)
+        delta[:, :3, :3] = quat_to_rotmat(q)
+    else:
+        delta[:, :3, :3] = np.eye(3)
+    delta[:, :3, 3] = v[:3] * dt[:, None]
+    delta[:, 3, 3] = 1.0
+    return np.einsum("ij,njk->nik", pose_end, delta)  # einsum, not `@`: no BLAS threads
 
 
 class Simulator:

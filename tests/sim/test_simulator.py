@@ -114,6 +114,30 @@ def test_velocity_twist_moves_the_ego():
     np.testing.assert_allclose(s.pose_end[:3, 3], [1.0, 0, 0], atol=1e-9)
 
 
+def test_twist_poses_turn_about_the_twist_axis_and_move_along_the_ego_frame():
+    # Against the closed form: after tau seconds the body has turned by |w| tau about w's axis
+    # and moved v tau in the end pose's frame (first order), pose = pose_end @ [R(w tau), v tau].
+    from scipy.spatial.transform import Rotation
+
+    from scube_sim.sim.simulator import _twist_poses
+
+    pose_end = pose_from_xyz_rpy([5.0, -2.0, 0.3], [3.0, -4.0, 70.0])
+    vel = np.array([8.0, 0.5, -0.1, 0.05, -0.02, 0.4])
+    times = np.r_[np.linspace(9.8, 10.1, 41), 10.0]
+    got = _twist_poses(pose_end, 10.0, vel, times)
+    tau = times - 10.0
+    delta = np.zeros((len(tau), 4, 4))
+    delta[:, :3, :3] = Rotation.from_rotvec(tau[:, None] * vel[3:]).as_matrix()
+    delta[:, :3, 3] = tau[:, None] * vel[:3]
+    delta[:, 3, 3] = 1.0
+    np.testing.assert_allclose(got, np.stack([pose_end @ m for m in delta]), atol=1e-13)
+    np.testing.assert_allclose(got[np.argmin(np.abs(tau))], pose_end, atol=1e-15)  # at t_end: the pose
+    # no rotation: translation only
+    still = _twist_poses(pose_end, 10.0, [1.0, 2.0, 3.0, 0, 0, 0], np.array([10.5]))[0]
+    np.testing.assert_allclose(still[:3, :3], pose_end[:3, :3], atol=1e-15)
+    np.testing.assert_allclose(still[:3, 3], pose_end[:3, 3] + pose_end[:3, :3] @ [0.5, 1.0, 1.5], atol=1e-12)
+
+
 def test_each_sensor_sweeps_at_its_own_rate():
     scene = SimScene(static=[Part(Tracer(room()))])
     fast = LidarSensor.from_config(ring_lidar(hz=20.0, name="fast"), mount=np.eye(4))
