@@ -4,7 +4,8 @@
    config (`scube_sim/model/configs/geometry-coarse.yaml`), seed 0, on the same frozen structure
    VAE (`--vae`), then evaluated on `--eval-split`: the latent diffusion with depth-weighted
    lifting (Eq. 1), the same with the broadcast lifting (the paper's ablation), the
-   deterministic single-step predictor, the diffusion at a lower image resolution, the 2D-prior
+   deterministic single-step predictor, the diffusion at a lower image resolution, the diffusion
+   on the frozen ImageNet EfficientNet-Lite0 instead of the from-scratch CNN, the 2D-prior
    baseline (the diffusion variant's own depth head unprojected into voxels, no 3D prior) and a
    floor without images (the mean training scene).
 2. **DDIM steps** (1, 5, 10, 25, 50) of the diffusion variant (or `--checkpoint`): IoU against
@@ -33,6 +34,8 @@ VARIANTS = {
     "broadcast lifting": {"model": {"lifting": "broadcast"}},
     "single-step predictor": {"model": {"mode": "predictor"}},
     "diffusion, half resolution": {"data": {"image_scale": 0.33}},
+    "diffusion, EfficientNet-Lite0 (ImageNet, frozen)": {
+        "model": {"encoder": {"kind": "efficientnet-lite0", "channels": 64, "stride": 8, "freeze_backbone": True}}},
 }
 DDIM_STEPS = (1, 5, 10, 25, 50)
 
@@ -50,7 +53,7 @@ def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
     from scube_sim.model.config import load_config
     from scube_sim.model.trainer import LAST, evaluate, train
 
-    tag = name.replace(",", "").replace(" ", "-")
+    tag = "".join(c for c in name if c.isalnum() or c in " -").replace(" ", "-")
     work = Path(args.work)
     cfg_path = work / f"{tag}.yaml"
     cfg_path.write_text(yaml.safe_dump(cfg))
