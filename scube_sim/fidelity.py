@@ -453,7 +453,6 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         if spec is None:
             raise InputError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {p.sensor!r}")
     configs = [spec.config for spec in specs]
-    config = configs[0]
     part_rays = [real_rays(p, min_range=min_range) for p in parts]
     rays = concat_rays(part_rays, [invert_pose(sweep.sensor_to_world) @ p.sensor_to_world for p in parts])
     notes = list(rays.notes)
@@ -517,8 +516,9 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
                      f"objects above the ground plane) and are left out")
     if not noise:
         notes.append("range noise off in the simulated sensor (the real points carry the real noise)")
-    notes.append(f"tracer depth: {mode}; sensor model: {config.name} (range {config.range.min_m}-"
-                 f"{config.range.max_m} m, incidence drop off: real sensors return at grazing angles)")
+    models = "; ".join(f"{c.name} (range {c.range.min_m}-{c.range.max_m} m)" for c in configs)
+    notes.append(f"tracer depth: {mode}; sensor model{'s' if len(configs) > 1 else ''}: {models}, incidence drop "
+                 f"off: real sensors return at grazing angles")
     images["error (voxsplat - real)"] = images["voxsplat"] - images["real"]
     mismatch = range_image(rays, np.where(rays.hit != sim.hit, 1.0, np.nan)) > 0
     context = {"dataset": ds.name, "sample": sample, "sensor": sweep.sensor}

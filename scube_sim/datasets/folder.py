@@ -464,9 +464,10 @@ def _sample_entry(sample: Sample, out_dir: Path, points_suffix: str, image_suffi
                              "sensor_to_world": _rows(sw.sensor_to_world), "motion_compensated": True,
                              "intensity_max": float(sw.intensity_max)}
         if sw.merged:
-            sweeps[sw.sensor]["origins"] = [
-                {**({"sensor": _check_name(sw.origin_names[k], "LiDAR")} if sw.origin_names is not None else {}),
-                 "pose": _rows(t)} for k, t in enumerate(sw.origins)]
+            # A name that cannot be a sensor name (the reader's '<sweep>#<k>' for unnamed ones) is left out.
+            named = lambda k: sw.origin_names is not None and re.match(NAME_PATTERN, sw.origin_names[k])  # noqa: E731
+            sweeps[sw.sensor]["origins"] = [{**({"sensor": sw.origin_names[k]} if named(k) else {}), "pose": _rows(t)}
+                                            for k, t in enumerate(sw.origins)]
     boxes = []
     for b in sample.boxes:
         vel = np.asarray(b.velocity, np.float64)

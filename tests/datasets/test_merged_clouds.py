@@ -249,3 +249,13 @@ def test_argoverse2_table_in_its_ego_frame_is_refused_and_split_by_laser_number(
         np.testing.assert_allclose(part.points, sw.points, atol=1e-9)
         np.testing.assert_allclose(part.sensor_to_world, sw.sensor_to_world, atol=1e-9)
         assert check_origin(part).single_origin
+
+
+def test_unnamed_origins_round_trip_twice(two_sweeps, tmp_path):
+    merged = dataclasses.replace(merge_sweeps(two_sweeps, EGO), origin_names=None)
+    first = FolderDataset(write_folder_dataset([Sample("s0", 0.0, EGO, sweeps=[merged])], tmp_path / "a"))[0]
+    got = first.sweep("merged")
+    assert got.origin_names == ("merged#0", "merged#1")  # read back with made-up names ...
+    second = FolderDataset(write_folder_dataset([first], tmp_path / "b"))[0].sweep("merged")  # ... not written
+    np.testing.assert_array_equal(second.origins, merged.origins)
+    np.testing.assert_array_equal(second.origin_id, merged.origin_id)
