@@ -34,6 +34,7 @@ from torch.utils.data import Dataset
 
 from ..config import StrictModel
 from ..errors import InputError
+from ..labels import NUM_LABELS, reflectance_from_labels
 from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .activations import activate
@@ -134,15 +135,21 @@ class AppearanceDataset(Dataset):
     def __getitem__(self, index: int) -> dict:
         item = self.base[index]
         ijk = item[f"{self.cfg.level}_ijk"]
+        labels = item[f"{self.cfg.level}_labels"].to(torch.int64)
         vs = float(item[f"{self.cfg.level}_voxel_size"])
         if self.cfg.coarsen > 1:
-            ijk = torch.unique(ijk // self.cfg.coarsen, dim=0)
+            ijk, inv = torch.unique(ijk // self.cfg.coarsen, dim=0, return_inverse=True)
+            # a coarse voxel takes its children's most frequent label (ties to the lower id)
+            counts = torch.zeros(len(ijk), NUM_LABELS, dtype=torch.int64).index_put_(
+                (inv, labels), torch.ones_like(inv), accumulate=True)
+            labels = counts.argmax(1)
             vs *= self.cfg.coarsen
         if self.cfg.region is not None:
             centres = torch.as_tensor(CHUNK_CORNER) + (ijk.double() + 0.5) * vs
             lo, hi = torch.tensor(self.cfg.region[:3]), torch.tensor(self.cfg.region[3:])
-            ijk = ijk[((centres >= lo) & (centres < hi)).all(1)]
-        item["ijk"], item["voxel_size"] = ijk, vs
+            inside = ((centres >= lo) & (centres < hi)).all(1)
+            ijk, labels = ijk[inside], labels[inside]
+        item["ijk"], item["labels"], item["voxel_size"] = ijk, labels, vs
         caster = VoxelRayCaster(ijk, vs, CHUNK_CORNER)
         n, _, h, w = item["images"].shape
         hits = []
@@ -294,14 +301,19 @@ class AppearanceNet(nn.Module):
         """The prediction for `item` as a VoxSplat in the chunk frame (origin CHUNK_CORNER, the
         item's grid; metadata ``frame: chunk``, ``chunk_to_world``, ``sample``) with its sky as the
         ``sky_panorama`` channel at `sky_size` (rows, columns). Same activations, so the
-        Gaussians are the ones `render` draws."""
-        vs = VoxSplat(ijk=item["ijk"].numpy(), params=out["raw"].detach().float().numpy(),
+        Gaussians are the ones `render` draws. The voxels carry the item's labels and each Gaussian
+        its label's default reflectance (`labels.reflectance_from_labels`) as the ``reflectance``
+        channel, so a LiDAR's intensity goes through its own response as on a built scene."""
+        raw = out["raw"].detach().float().numpy()
+        labels = item["labels"].numpy()
+        vs = VoxSplat(ijk=item["ijk"].numpy(), params=raw, labels=labels,
                       voxel_size=float(item["voxel_size"]), origin=np.asarray(CHUNK_CORNER, np.float64),
                       offset_range=self.cfg.offset_range,
                       metadata={"frame": "chunk", "sample": str(item.get("sample", "")),
                                 "chunk_to_world": np.asarray(item["chunk_to_world"], np.float64).tolist(),
                                 "source": "scube_sim.model.appearance"})
         vs.set_channel("sky_panorama", self.sky_rgb(out, *sky_size).detach().float().numpy())
+        vs.set_channel("reflectance", np.repeat(reflectance_from_labels(labels)[:, None], raw.shape[1], axis=1))
         return vs
 
     def render(self, out: dict, K: torch.Tensor, cam_to_chunk: torch.Tensor, height: int, width: int,

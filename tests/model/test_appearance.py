@@ -216,6 +216,14 @@ def test_the_prediction_exports_as_a_voxsplat_that_renders_the_same(data, tmp_pa
         path = net.to_voxsplat(out, item, sky_size=(64, 128)).save(tmp_path / "pred.npz")
         back = VoxSplat.load(path)
         assert back.channel("sky_panorama").shape == (64, 128, 3) and back.metadata["frame"] == "chunk"
+        # the voxels' labels are the worlds' own, and every Gaussian carries its label's default
+        # reflectance from the table in labels.py (each looked up by name here)
+        from scube_sim.labels import LABEL_NAMES, REFLECTANCE_DEFAULTS
+
+        assert np.array_equal(back.labels, item["labels"].numpy()) and len(set(back.labels.tolist())) > 2
+        by_name = {d.label: d.reflectance for d in REFLECTANCE_DEFAULTS}
+        want = np.array([by_name[LABEL_NAMES[i]] for i in back.labels], np.float32)
+        assert np.array_equal(back.channel("reflectance"), np.repeat(want[:, None], back.params.shape[1], 1))
         g = back.gaussians()
         np.testing.assert_allclose(g.means + back.origin, out["means"].numpy(), atol=1e-4)
         # the network's own render of the FRONT camera and the file's through the rig: the same image
