@@ -100,3 +100,20 @@ def test_drop_study_needs_the_no_returns():
     returns_only = sweep.subset(np.linalg.norm(sweep.points, axis=1) > 1.0)
     with pytest.raises(InputError, match="records its no-returns"):
         drop_study(scene, cfg, returns_only, "unused.yaml")
+
+
+def test_transfer_study_fits_one_sensor_and_scores_another(tmp_path):
+    """Fitted on one sensor's grid, scored on another's (another column count, so other rays) of
+    the same scene, both dropping every return beyond 25 m."""
+    from scube_sim.raydrop import transfer_study
+
+    scene, cfg, sweep_a, _ = full_grid_sweep(columns=360)
+    _, _, sweep_b, roof_b = full_grid_sweep(columns=300)
+    rays_a, rays_b = real_rays(sweep_a), real_rays(sweep_b)
+    study = transfer_study((scene, cfg, rays_a, sweep_a), (scene, cfg, rays_b, sweep_b), tmp_path / "d.yaml",
+                           l2=1.0, seed=1)
+    fitted, hand = study.scores["model fitted on top"], study.scores["hand-set rules (preset)"]
+    assert fitted["rays"] == int((~roof_b).sum())  # the ego body left out
+    assert fitted["drop recall"] > 0.95 and fitted["drop precision"] > 0.95
+    assert fitted["hit agreement"] > hand["hit agreement"] + 0.1
+    assert DropModel.load(tmp_path / "d.yaml").coefficients["log_range"] > 0
