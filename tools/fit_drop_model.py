@@ -48,8 +48,8 @@ AV2_SOURCE = ("Argoverse 2 sensor log 7fab2350-7eaf-3b7e-a39d-6937a4c1bede (argo
               "sector, against the VoxSplat `scube-sim build --sensors {sensor}` makes of it "
               "(tools/fit_drop_model.py --dataset argoverse2)")
 # Where each unit sees its own vehicle or rig (vehicle-frame azimuth from, to (counter-clockwise,
-# degrees); highest elevation), measured on sweeps 0 and 1: the 2-degree azimuth bins, around the
-# rear, in which a channel that must see the ground returned nothing in over 60 % of its cycles.
+# degrees); highest elevation), read off sweep 0: the 2-degree azimuth bins around the rear in
+# which the channels returned nothing in most of their cycles.
 # up_lidar: only its lowest laser (-25 degrees) sees the car's roof and trunk, 152 to -154.
 # down_lidar (mounted upside down under up_lidar): every laser, even at -15 degrees where the
 # ground is 7 m away, is blind from about 168 to -156 (the rig behind it).
