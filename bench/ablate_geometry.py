@@ -4,8 +4,10 @@
    config (`scube_sim/model/configs/geometry-coarse.yaml`), seed 0, on the same frozen structure
    VAE (`--vae`), then evaluated on `--eval-split`: the latent diffusion with depth-weighted
    lifting (Eq. 1), the same with the broadcast lifting (the paper's ablation), the
-   deterministic single-step predictor, the diffusion at a lower image resolution, the diffusion
-   on the frozen ImageNet EfficientNet-Lite0 instead of the from-scratch CNN, the 2D-prior
+   deterministic single-step predictor, the diffusion lifting with the depth maps' own bins
+   (`lifting: oracle`, an upper bound that isolates the 3D prior from the depth estimate), the
+   diffusion on the frozen ImageNet EfficientNet-Lite0 instead of the from-scratch CNN, the
+   diffusion at a lower image resolution, the 2D-prior
    baseline (the diffusion variant's own depth head unprojected into voxels, no 3D prior) and a
    floor without images (the mean training scene).
 2. **DDIM steps** (1, 5, 10, 25, 50) of the diffusion variant (or `--checkpoint`): IoU against
@@ -13,7 +15,8 @@
 
 Not part of `make bench` (it trains for hours on 2 cores). Run:
 `python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
-Each training is resumable: a rerun continues the runs in --work. Results:
+Each training is resumable and each row is kept in --work once measured: a rerun continues where
+the last one stopped. Results:
 bench/results/geometry_ablation.{json,md} and geometry_ddim.{json,md}.
 """
 
@@ -33,9 +36,10 @@ VARIANTS = {
     "diffusion": {},
     "broadcast lifting": {"model": {"lifting": "broadcast"}},
     "single-step predictor": {"model": {"mode": "predictor"}},
-    "diffusion, half resolution": {"data": {"image_scale": 0.33}},
+    "diffusion, oracle depth (upper bound)": {"model": {"lifting": "oracle"}},
     "diffusion, EfficientNet-Lite0 (ImageNet, frozen)": {
         "model": {"encoder": {"kind": "efficientnet-lite0", "channels": 64, "stride": 8, "freeze_backbone": True}}},
+    "diffusion, half resolution": {"data": {"image_scale": 0.33}},
 }
 DDIM_STEPS = (1, 5, 10, 25, 50)
 
@@ -49,8 +53,19 @@ def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
     return cfg
 
 
+def _cached_row(args, tag: str, measure) -> dict:
+    """The row `measure()` gives, kept in --work as TAG.row.json so a rerun does not measure twice."""
+    path = Path(args.work) / f"{tag}.row.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    row = measure()
+    path.write_text(json.dumps(row))
+    return row
+
+
 def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
     from scube_sim.model.config import load_config
+    from scube_sim.model.checkpoint import load_checkpoint
     from scube_sim.model.trainer import LAST, evaluate, train
 
     tag = "".join(c for c in name if c.isalnum() or c in " -").replace(" ", "-")
@@ -60,16 +75,24 @@ def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
     run_dir = work / tag
     timing = run_dir / "timing.json"
     resume = (run_dir / LAST).is_file()
+    start = load_checkpoint(run_dir / LAST)["step"] if resume else 0
     t0 = time.perf_counter()
     res = train(stage, load_config(str(cfg_path)), args.data, run_dir, resume=resume, progress=True)
-    if not resume:
-        timing.write_text(json.dumps({"train_s": time.perf_counter() - t0, "steps": res.step}))
-    took = json.loads(timing.read_text()) if timing.is_file() else {}
-    m = evaluate(stage, res.last, args.data, split=args.eval_split, progress=True)
-    rows.append({"variant": name, "steps": res.step, "train_min": round(float(took.get("train_s", float("nan"))) / 60, 1),
-                 **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
-                                                               "chamfer_q50", "chamfer_q90", "seconds_per_sample",
-                                                               "peak_mb_per_sample")}})
+    # seconds per step over the sessions that were timed (a killed session's steps are not)
+    took = json.loads(timing.read_text()) if timing.is_file() else {"train_s": 0.0, "steps_timed": 0}
+    if res.step > start:
+        took = {"train_s": took["train_s"] + time.perf_counter() - t0, "steps_timed": took["steps_timed"] + res.step - start}
+        timing.write_text(json.dumps(took))
+
+    def measure():
+        m = evaluate(stage, res.last, args.data, split=args.eval_split, progress=True)
+        per_step = took["train_s"] / took["steps_timed"] if took["steps_timed"] else float("nan")
+        return {"variant": name, "steps": res.step, "s_per_step": round(per_step, 2),
+                **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
+                                                              "chamfer_q50", "chamfer_q90", "seconds_per_sample",
+                                                              "peak_mb_per_sample")}}
+
+    rows.append(_cached_row(args, tag, measure))
     return res.last
 
 
@@ -92,7 +115,7 @@ def depth_prior_row(checkpoint: Path, args) -> dict:
             preds.append(model.predict_from_depth(item))
             items.append(item)
     m = _grid_metrics(preds, items, split=True)
-    return {"variant": "2D prior (own depth, unprojected)", "steps": "", "train_min": "",
+    return {"variant": "2D prior (own depth, unprojected)", "steps": "", "s_per_step": "",
             **{k: round(v, 4) for k, v in m.items() if k in ("iou", "iou_visible", "iou_invisible", "chamfer_q50",
                                                           "chamfer_q90")}}
 
@@ -135,7 +158,7 @@ def mean_scene_row(args) -> dict:
     best_q = max(qs, key=lambda q: _grid_metrics([grid(q)] * len(val), val, split=False)["iou"])
     ev = items(args.eval_split)
     m = _grid_metrics([grid(best_q)] * len(ev), ev, split=True)
-    return {"variant": f"mean training scene (no images, share >= {best_q})", "steps": "", "train_min": "",
+    return {"variant": f"mean training scene (no images, share >= {best_q})", "steps": "", "s_per_step": "",
             **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
                                                           "chamfer_q50", "chamfer_q90")}}
 
@@ -201,14 +224,14 @@ def main(argv=None) -> None:
     Path(args.work).mkdir(parents=True, exist_ok=True)
     rows, diffusion_ck = [], None
     if not args.only or "mean training scene" in args.only:
-        rows.append(mean_scene_row(args))
+        rows.append(_cached_row(args, "mean-training-scene", lambda: mean_scene_row(args)))
     for name, variant in VARIANTS.items():
         if args.only and name not in args.only:
             continue
         ck = _train_and_evaluate(stage, name, _config(base, variant, args.steps, args.vae), args, rows)
         if name == "diffusion":
             diffusion_ck = ck
-            rows.append(depth_prior_row(ck, args))
+            rows.append(_cached_row(args, "2d-prior", lambda: depth_prior_row(ck, args)))
     if rows:
         write_results("geometry_ablation", rows, list(rows[0]),
                       notes=f"coarse level, {args.steps} steps each on the same frozen VAE, {args.eval_split} split")

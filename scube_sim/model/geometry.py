@@ -133,7 +133,9 @@ class GeometryModelConfig(StrictModel):
     trained `geometry-vae` run of this level (path or shipped name), frozen; `vae` must be its
     architecture. encoder: the image backbone; feature_channels C and depth_bins D of the conv
     head (paper: 32, 64; bins from near to far metres); lifting: depth (Eq. 1) | broadcast (the
-    ablation); depth_weight: lambda of the focal depth loss (paper 1). Denoiser: a 3D U-Net of
+    ablation) | oracle (each pixel's features put in its depth map's bin alone, in training and
+    at inference: an upper bound that isolates the 3D prior from the depth estimate; needs depth
+    maps, so worlds only); depth_weight: lambda of the focal depth loss (paper 1). Denoiser: a 3D U-Net of
     `widths` (one level each, halving between) with `blocks` residual blocks per level,
     condition channels `cond_channels`. Diffusion: `train_steps` linear steps from beta_start to
     beta_end, `sample_steps` DDIM steps at inference (validation uses them too)."""
@@ -147,7 +149,7 @@ class GeometryModelConfig(StrictModel):
     depth_bins: int = Field(default=64, ge=2)
     near: float = Field(default=0.1, gt=0)
     far: float = Field(default=90.0, gt=0)
-    lifting: str = Field(default="depth", pattern="^(depth|broadcast)$")
+    lifting: str = Field(default="depth", pattern="^(depth|broadcast|oracle)$")
     depth_weight: float = Field(default=1.0, ge=0)
     cond_channels: int = Field(default=64, ge=1)
     widths: tuple[int, ...] = Field(default=(64, 128, 256), min_length=1, max_length=5)
@@ -317,7 +319,11 @@ class ImageConditioner(nn.Module):
             target.append(depth_to_bin(item["depth"][i][rows][:, cols], self.bin_edges))
         valid_t, target_t = torch.stack(valid), torch.stack(target)
         target_t = torch.where(valid_t, target_t, torch.full_like(target_t, -1))
-        vol, hits = lift(feats, None if self.cfg.lifting == "broadcast" else probs, torch.stack(pts), grid, valid_t)
+        weights = {"depth": probs, "broadcast": None}.get(self.cfg.lifting)
+        if self.cfg.lifting == "oracle":  # one-hot at the depth map's bin; nothing where it has none
+            weights = F.one_hot(target_t.clamp(min=0), probs.shape[1]).permute(0, 3, 1, 2).to(feats.dtype)
+            weights = weights * (target_t >= 0)[:, None].to(feats.dtype)
+        vol, hits = lift(feats, weights, torch.stack(pts), grid, valid_t)
         x = torch.cat([vol, torch.log1p(hits)[None].to(vol.dtype)], 0)[None]
         return (x if self.down is None else self.down(x)), probs, target_t
 

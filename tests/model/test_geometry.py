@@ -415,3 +415,22 @@ def test_calibrated_latents_have_unit_rms(data, level):
             mu = model.vae.encode(*_dense_batch(batch))[0]
     # one train item: its RMS over the calibrated scale is 1
     assert float((mu / std).pow(2).mean().sqrt()) == pytest.approx(1.0, rel=1e-5)
+
+
+def test_oracle_lifting_puts_features_on_the_visible_surface_only(data):
+    """lifting: oracle: each pixel's features land in its depth map's bin alone, so the voxels that
+    receive features are the visible surface (at or next to a ground-truth voxel), where Eq. 1 with
+    an untrained depth head smears them along every ray."""
+    _, item = _geometry_item(data)
+    filled = {}
+    for lifting in ("oracle", "depth"):
+        model = GeometryNet(GeometryModelConfig(**{**MODEL, "lifting": lifting})).eval()
+        model.conditioner.down = torch.nn.Identity()  # the lifted volume itself
+        with torch.no_grad():
+            x, _, target = model.conditioner(item, item["lift_grid"])
+        c = model.cfg.feature_channels
+        filled[lifting] = torch.nonzero(x[0, :c].abs().sum(0) > 0)
+    ijk = filled["oracle"]
+    assert len(ijk) > 20 and len(filled["depth"]) > 3 * len(ijk)
+    d = torch.cdist(ijk.double(), item["gt_ijk"].double()).min(1).values
+    assert float((d <= 1.0).double().mean()) > 0.9
