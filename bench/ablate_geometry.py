@@ -174,11 +174,14 @@ def ddim_trade(checkpoint: Path, args) -> list[dict]:
     ds = stage.dataset(Path(args.data), GeometryDataConfig(**run.data), args.eval_split, 0)
     rows = []
     for steps in DDIM_STEPS:
-        model.cfg = model.cfg.model_copy(update={"sample_steps": steps})
-        m = evaluate_model(stage, model, ds, batch_size=1, progress=True)
-        rows.append({"ddim_steps": steps, "iou": round(m["iou"], 4), "miou": round(m["miou"], 4),
-                     "seconds_per_sample": round(m["seconds_per_sample"], 3),
-                     "peak_mb_per_sample": round(m["peak_mb_per_sample"], 1)})
+        def measure():
+            model.cfg = model.cfg.model_copy(update={"sample_steps": steps})
+            m = evaluate_model(stage, model, ds, batch_size=1, progress=True)
+            return {"ddim_steps": steps, "iou": round(m["iou"], 4), "miou": round(m["miou"], 4),
+                    "seconds_per_sample": round(m["seconds_per_sample"], 3),
+                    "peak_mb_per_sample": round(m["peak_mb_per_sample"], 1)}
+
+        rows.append(_cached_row(args, f"ddim-{steps}-{checkpoint.parent.name}", measure))
     return rows
 
 
@@ -190,9 +193,10 @@ def plot_trade(rows: list[dict], path: Path) -> Path:
 
     fig, ax = plt.subplots(1, 2, figsize=(9, 3.6))
     for a, key, label in ((ax[0], "seconds_per_sample", "seconds per sample (2 cores)"),
-                          (ax[1], "peak_mb_per_sample", "peak memory per sample (MB)")):
+                          (ax[1], "peak_mb_per_sample", "peak resident memory rise per sample (MB)")):
         xs, ys = [r[key] for r in rows], [r["iou"] for r in rows]
-        a.plot(xs, ys, "o-")
+        # time grows with the steps, so a line reads along it; peak memory does not: points only
+        a.plot(xs, ys, "o-" if key == "seconds_per_sample" else "o")
         for r, x, y in zip(rows, xs, ys):
             a.annotate(str(r.get("ddim_steps", r.get("variant"))), (x, y), textcoords="offset points", xytext=(4, 4))
         a.set_xlabel(label)
@@ -233,7 +237,8 @@ def main(argv=None) -> None:
             diffusion_ck = ck
             rows.append(_cached_row(args, "2d-prior", lambda: depth_prior_row(ck, args)))
     if rows:
-        write_results("geometry_ablation", rows, list(rows[0]),
+        columns = list(dict.fromkeys(k for r in rows for k in r))  # every row's keys, first seen first
+        write_results("geometry_ablation", rows, columns,
                       notes=f"coarse level, {args.steps} steps each on the same frozen VAE, {args.eval_split} split")
     trade_ck = Path(args.checkpoint) if args.checkpoint else diffusion_ck
     if trade_ck is not None:
