@@ -57,7 +57,9 @@ from .geometry_metrics import geometry_sample_metrics, summarise, visible_voxels
 from .image_encoder import ImageEncoderConfig, build_image_encoder
 from .lifting import LiftGrid, depth_bin_centres, depth_bin_edges, depth_focal_loss, depth_to_bin, \
     feature_intrinsics, frustum_points, lift
+from .sky import camera_ray_directions
 from .stages import Stage, register_stage
+from .voxel_rays import VoxelRayCaster
 
 NUM_LABELS = len(LABEL_NAMES)
 SITE_PE_FREQUENCIES = 6
@@ -519,6 +521,22 @@ class GeometryNet(nn.Module):
         ijk = torch.stack([keys // (y * z), (keys // z) % y, keys % z], 1)
         return ijk, torch.zeros(len(ijk), dtype=torch.int64)
 
+    def predict_with_confidence(self, item: dict, k: int = 1, steps: int | None = None, seed: int = 0,
+                                coarse=None):
+        """`predict` with seed `seed` -> (ijk (V, 3), labels (V,), confidence (V,) float32 the share
+        of the k samples drawn with seeds seed .. seed + k - 1 that hold the voxel (1 when k = 1:
+        only the first sample is drawn), observed (V,) bool whether an input camera sees the voxel
+        first along one of its rays, traced through the predicted grid itself, `observed_voxels`)."""
+        if k < 1:
+            raise InputError(f"k: expected at least one sample, got {k}")
+        ijk, labels = self.predict(item, steps, seed, coarse)
+        count = torch.ones(len(ijk), dtype=torch.int64)
+        keys = _flat_keys(ijk, item["gt_grid"].dims)
+        for extra in range(1, k):
+            other, _ = self.predict(item, steps, seed + extra, coarse)
+            count += torch.isin(keys, _flat_keys(other, item["gt_grid"].dims)).to(torch.int64)
+        return ijk, labels, (count.double() / k).float(), observed_voxels(ijk, item["gt_grid"], item)
+
     def predict(self, item: dict, steps: int | None = None, seed: int = 0, coarse=None):
         """One sample -> (ijk (V, 3) int64 in the level's box voxels, labels (V,)). coarse: the
         fine level's latent grid (ijk, labels) at the coarse voxel size (default: the item's
@@ -545,6 +563,31 @@ class GeometryNet(nn.Module):
 
 
 # ---------------------------------------------------------------------------- stages
+def _flat_keys(ijk: torch.Tensor, dims) -> torch.Tensor:
+    """(V, 3) box voxel indices -> (V,) int64 i * Y * Z + j * Z + k."""
+    _, y, z = (int(d) for d in dims)
+    return (ijk[:, 0] * y + ijk[:, 1]) * z + ijk[:, 2]
+
+
+def observed_voxels(ijk: torch.Tensor, grid: LiftGrid, item: dict, stride: int = 4) -> torch.Tensor:
+    """(V,) bool: whether voxel ijk[v] of `grid` is the first voxel of the grid itself along a ray
+    of an input camera (rays through the centres of each image's stride x stride pixel blocks,
+    distortion included). Needs no depth map: the grid's own voxels occlude, so it applies to a
+    prediction from real photographs as to a worlds sample."""
+    out = torch.zeros(len(ijk), dtype=torch.bool)
+    if not len(ijk):
+        return out
+    caster = VoxelRayCaster(ijk, grid.voxel_size, grid.origin)
+    for i in range(len(item["intrinsics"])):
+        h, w = (-(-int(v) // stride) for v in item["image_size"][i])
+        dirs = camera_ray_directions(feature_intrinsics(item["intrinsics"][i], stride), item["distortion"][i],
+                                     item["cam_to_chunk"][i], h, w).reshape(-1, 3).double()
+        origin = torch.as_tensor(item["cam_to_chunk"][i])[:3, 3].double().expand_as(dirs)
+        hit, _ = caster.first_hit(origin, dirs)
+        out[hit[hit >= 0]] = True
+    return out
+
+
 def _grid_metrics(pred: list[tuple[torch.Tensor, torch.Tensor]], items: list[dict], split: bool) -> dict[str, float]:
     """`geometry_metrics.summarise` of predicted against ground-truth voxels: IoU (mean over
     samples), mIoU (semantic scene completion convention, over the summed confusion), voxel Chamfer

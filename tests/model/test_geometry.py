@@ -434,3 +434,51 @@ def test_oracle_lifting_puts_features_on_the_visible_surface_only(data):
     assert len(ijk) > 20 and len(filled["depth"]) > 3 * len(ijk)
     d = torch.cdist(ijk.double(), item["gt_ijk"].double()).min(1).values
     assert float((d <= 1.0).double().mean()) > 0.9
+
+
+def test_observed_voxels_are_the_first_surface_each_camera_sees():
+    """A pinhole camera at the origin looking along +x at two walls, 10 m and 14 m out: the near
+    wall's voxels inside the field of view are observed, the far wall (behind it) and the near
+    wall's voxels outside the view are not."""
+    from scube_sim.model.geometry import observed_voxels
+
+    grid = LiftGrid(origin=(-8.0, -8.0, -8.0), voxel_size=1.0, dims=(32, 16, 16))
+    near = torch.tensor([[18, j, k] for j in range(16) for k in range(16)])  # x in [10, 11) m
+    far = near + torch.tensor([4, 0, 0])
+    ijk = torch.cat([near, far])
+    # camera axes: x right, y down, z forward -> chunk: forward +x, right -y, down -z
+    cam_to_chunk = torch.eye(4, dtype=torch.float64)
+    cam_to_chunk[:3, :3] = torch.tensor([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]], dtype=torch.float64)
+    f = 40.0  # 80 x 80 pixels: half-angle atan(40 / 40) = 45 deg -> |y|, |z| < 10 m at x = 10 m
+    item = {"intrinsics": torch.tensor([[[f, 0, 40.0], [0, f, 40.0], [0, 0, 1]]], dtype=torch.float64),
+            "distortion": torch.zeros(1, 5), "cam_to_chunk": cam_to_chunk[None], "image_size": torch.tensor([[80, 80]])}
+    seen = observed_voxels(ijk, grid, item, stride=1)
+    assert not seen[len(near):].any()
+    # every near-wall voxel within the view's cone at its near face (|y|, |z| < 10 m) is seen
+    centres = torch.tensor(grid.origin) + (near.double() + 0.5) * grid.voxel_size
+    assert bool(seen[: len(near)].all())  # the 16 m wall spans +-8 m, all inside +-10 m
+    narrow = dict(item, intrinsics=item["intrinsics"].clone())
+    narrow["intrinsics"][0, 0, 0] = narrow["intrinsics"][0, 1, 1] = 80.0  # half-angle 26.6 deg: +-5 m
+    seen = observed_voxels(ijk, grid, narrow, stride=1)
+    inside = (centres[:, 1].abs() < 4.5) & (centres[:, 2].abs() < 4.5)
+    outside = (centres[:, 1].abs() > 5.5) | (centres[:, 2].abs() > 5.5)
+    assert bool(seen[: len(near)][inside].all()) and not seen[: len(near)][outside].any()
+    assert not seen[len(near):].any()
+
+
+def test_confidence_is_the_share_of_samples_holding_each_voxel(data):
+    _, item = _geometry_item(data)
+    model = GeometryNet(GeometryModelConfig(**MODEL)).eval()
+    with torch.no_grad():
+        ijk, labels, conf, observed = model.predict_with_confidence(item, k=1, seed=5)
+        first, first_labels = model.predict(item, seed=5)
+        assert torch.equal(ijk, first) and torch.equal(labels, first_labels) and bool((conf == 1).all())
+        ijk3, _, conf3, observed3 = model.predict_with_confidence(item, k=3, seed=5)
+        samples = [set(map(tuple, model.predict(item, seed=s)[0].tolist())) for s in (5, 6, 7)]
+    assert torch.equal(ijk3, first) and torch.equal(observed3, observed)
+    want = torch.tensor([sum(tuple(v) in s for s in samples) / 3 for v in first.tolist()], dtype=torch.float32)
+    assert torch.equal(conf3, want)
+    assert len(set(conf3.tolist())) > 1  # an untrained model's samples disagree somewhere
+    assert observed.dtype == torch.bool and 0 < int(observed.sum()) < len(observed)
+    with pytest.raises(InputError, match="k: expected at least one sample"):
+        model.predict_with_confidence(item, k=0)
