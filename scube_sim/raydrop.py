@@ -34,7 +34,7 @@ import numpy as np
 from .datasets.base import LidarSweep
 from .errors import InputError
 from .fidelity import RealRays, real_rays, simulate_rays
-from .lidar.config import LidarConfig
+from .lidar.config import LidarConfig, SpinningPattern
 from .lidar.drop import CONTINUOUS, DropModel, drop_features
 from .lidar.model import class_reflectivity_table
 from .lidar.pattern import channels_by_elevation
@@ -372,8 +372,6 @@ def rebuild_firing_grid(sweep: LidarSweep, config: LidarConfig, *, cycle_us: flo
     Returns under `min_range` count as no-returns. Two returns in one cell (dual-return logs)
     keep the nearer. ego_body: optional function of (directions (M, 3) sensor frame) -> (M,) bool,
     the rays that would meet the vehicle itself (flagged ``ego_body``)."""
-    from .lidar.config import SpinningPattern
-
     if sweep.time_offset is None or sweep.ring is None:
         raise InputError(f"sweep {sweep.sensor!r}: rebuilding the firing grid needs per-return times and channels")
     if not isinstance(config.pattern, SpinningPattern) or config.pattern.channels.fire_time_us is None:
