@@ -139,10 +139,7 @@ class AppearanceDataset(Dataset):
         vs = float(item[f"{self.cfg.level}_voxel_size"])
         if self.cfg.coarsen > 1:
             ijk, inv = torch.unique(ijk // self.cfg.coarsen, dim=0, return_inverse=True)
-            # a coarse voxel takes its children's most frequent label (ties to the lower id)
-            counts = torch.zeros(len(ijk), NUM_LABELS, dtype=torch.int64).index_put_(
-                (inv, labels), torch.ones_like(inv), accumulate=True)
-            labels = counts.argmax(1)
+            labels = majority_labels(inv, labels, len(ijk))
             vs *= self.cfg.coarsen
         if self.cfg.region is not None:
             centres = torch.as_tensor(CHUNK_CORNER) + (ijk.double() + 0.5) * vs
@@ -235,6 +232,14 @@ class ImageEncoder(nn.Module):
 
     def forward(self, images):
         return self.net(images)
+
+
+def majority_labels(inverse: torch.Tensor, labels: torch.Tensor, n: int) -> torch.Tensor:
+    """(n,) int64 the most frequent of the `labels` (M,) that `inverse` (M,) maps to each of n
+    coarse voxels (ties to the lower id): a coarsened grid's labels."""
+    counts = torch.zeros(n, NUM_LABELS, dtype=torch.int64).index_put_(
+        (inverse, labels.to(torch.int64)), torch.ones_like(inverse), accumulate=True)
+    return counts.argmax(1)
 
 
 def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:

@@ -46,7 +46,7 @@ from ..errors import InputError
 from ..labels import LABEL_NAMES
 from ..memory import peak_mb, reset_peak, rss_mb
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
-from .appearance import positional_encoding
+from .appearance import majority_labels, positional_encoding
 from .augment import AugmentConfig, CameraSelection
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .diffusion import NoiseSchedule, ddim_sample
@@ -254,11 +254,9 @@ def grid_in_box(ijk: torch.Tensor, labels: torch.Tensor, visible: torch.Tensor, 
         order = torch.argsort(key)
         return rel[order], labels[order], visible[order]
     uniq, inv = torch.unique(key, return_inverse=True)
-    counts = torch.zeros(len(uniq), NUM_LABELS, dtype=torch.int64).index_put_(
-        (inv, labels), torch.ones_like(inv), accumulate=True)
     vis = torch.zeros(len(uniq), dtype=torch.bool).index_put_((inv,), visible, accumulate=True)
     out = torch.stack([uniq // (dims[1] * dims[2]), (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
-    return out, counts.argmax(1), vis
+    return out, majority_labels(inv, labels, len(uniq)), vis
 
 
 def dense_target(ijk: torch.Tensor, labels: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
