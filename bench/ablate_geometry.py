@@ -40,6 +40,12 @@ VARIANTS = {
     "diffusion, EfficientNet-Lite0 (ImageNet, frozen)": {
         "model": {"encoder": {"kind": "efficientnet-lite0", "channels": 64, "stride": 8, "freeze_backbone": True}}},
     "diffusion, half resolution": {"data": {"image_scale": 0.33}},
+    "diffusion, mean lifting": {"model": {"lift_norm": "mean"}},
+    "diffusion, oracle depth, mean lifting": {"model": {"lifting": "oracle", "lift_norm": "mean"}},
+    "predictor, decoded loss, mean lifting": {"model": {"mode": "predictor", "predictor_loss": "decoded",
+                                                        "lift_norm": "mean"}},
+    "predictor, decoded loss, oracle depth, mean lifting": {
+        "model": {"mode": "predictor", "predictor_loss": "decoded", "lift_norm": "mean", "lifting": "oracle"}},
 }
 DDIM_STEPS = (1, 5, 10, 25, 50)
 

@@ -7,5 +7,17 @@ Public faces: this package (the VoxSplat container and the error base), `scube_s
 from .errors import ScubeSimError
 from .voxsplat import Gaussians, VoxSplat
 
-__all__ = ["Gaussians", "ScubeSimError", "VoxSplat"]
+
+
+def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=None, sky=True) -> VoxSplat:
+    """The sensor-to-sensor converter: posed camera `frames` (`scube_sim.camera.Frames`) -> a
+    VoxSplat in their ego frame, with semantics, sky, per-voxel observation and confidence, and
+    provenance (`scube_sim.model.converter.Converter.convert`). torch and the models load on the
+    first call, not on `import scube_sim`."""
+    from .model.converter import convert as _convert  # the one upward import: keeps the package torch-free
+
+    return _convert(frames, profile=profile, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky)
+
+
+__all__ = ["Gaussians", "ScubeSimError", "VoxSplat", "convert"]
 __version__ = "0.1.0"

@@ -147,19 +147,7 @@ class AppearanceDataset(Dataset):
             inside = ((centres >= lo) & (centres < hi)).all(1)
             ijk, labels = ijk[inside], labels[inside]
         item["ijk"], item["labels"], item["voxel_size"] = ijk, labels, vs
-        caster = VoxelRayCaster(ijk, vs, CHUNK_CORNER)
-        n, _, h, w = item["images"].shape
-        hits = []
-        for i in range(n):
-            hh, ww = _half(int(item["image_size"][i, 0])), _half(int(item["image_size"][i, 1]))
-            dirs = camera_ray_directions(_half_k(item["intrinsics"][i]), item["distortion"][i],
-                                         item["cam_to_chunk"][i], hh, ww).reshape(-1, 3).double()
-            origin = item["cam_to_chunk"][i][:3, 3].double().expand_as(dirs)
-            idx, _ = caster.first_hit(origin, dirs)
-            full = torch.full((_half(h), _half(w)), -1, dtype=torch.int64)
-            full[:hh, :ww] = idx.reshape(hh, ww)
-            hits.append(full)
-        item["hits"] = torch.stack(hits)
+        item["hits"] = first_hit_voxels(item, ijk, vs)
         offsets = self.cfg.loss_offsets if self.train else [0]
         views = [(k, i) for k in offsets for i in range(frame_at(item, k)["images"].shape[0])]
         if self.train and self.cfg.train_views is not None and self.cfg.train_views < len(views):
@@ -171,6 +159,25 @@ class AppearanceDataset(Dataset):
             gen = item_generator(self.seed + 2, self.base.epoch, index % len(self))
             item["input_images"] = torch.stack([photometric(im, gen, self.cfg.augment) for im in item["images"]])
         return item
+
+
+def first_hit_voxels(item: dict, ijk: torch.Tensor, voxel_size: float) -> torch.Tensor:
+    """(N, h, w) int64: for each half-resolution feature pixel of the item's N cameras, the row
+    of `ijk` (V, 3) (chunk voxels of `voxel_size` from CHUNK_CORNER) its ray enters first; -1
+    where it enters none (sky, or beyond the grid) and in the padding."""
+    caster = VoxelRayCaster(ijk, voxel_size, CHUNK_CORNER)
+    n, _, h, w = item["images"].shape
+    hits = []
+    for i in range(n):
+        hh, ww = _half(int(item["image_size"][i, 0])), _half(int(item["image_size"][i, 1]))
+        dirs = camera_ray_directions(_half_k(item["intrinsics"][i]), item["distortion"][i],
+                                     item["cam_to_chunk"][i], hh, ww).reshape(-1, 3).double()
+        origin = item["cam_to_chunk"][i][:3, 3].double().expand_as(dirs)
+        idx, _ = caster.first_hit(origin, dirs)
+        full = torch.full((_half(h), _half(w)), -1, dtype=torch.int64)
+        full[:hh, :ww] = idx.reshape(hh, ww)
+        hits.append(full)
+    return torch.stack(hits)
 
 
 def frame_at(item: dict, offset: int) -> dict:
@@ -262,9 +269,10 @@ class AppearanceNet(nn.Module):
         # where the raw values start: opacity init_opacity, scale init_scale_voxels (x voxel size)
         self.register_buffer("_opacity_bias", torch.tensor(math.log(cfg.init_opacity / (1 - cfg.init_opacity))))
 
-    def forward(self, item: dict) -> dict:
+    def forward(self, item: dict, sky: bool = True) -> dict:
         """One sample (an `AppearanceDataset` item) -> the Gaussians (flat: means (G, 3), quats,
-        scales, opacities, colors; chunk frame) and the sky panorama (C, Hp, Wp)."""
+        scales, opacities, colors; chunk frame) and the sky panorama (C, Hp, Wp); with sky False
+        (a LiDAR-only conversion) no panorama is built (``pano`` None)."""
         feats = self.encoder(item.get("input_images", item["images"]))  # (N, C, h, w)
         n, c, h, w = feats.shape
         hits = item["hits"][:, :h, :w]
@@ -288,24 +296,27 @@ class AppearanceNet(nn.Module):
         bias[4:7] = math.log(self.cfg.init_scale_voxels * vs)
         raw = raw + bias
         g = activate(raw, centres, vs, self.cfg.offset_range)
+        flat = {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
+                "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
+                "colors": g["colors"].reshape(-1, 3), "raw": raw}
+        if not sky:
+            return {**flat, "pano": None, "pano_weight": None}
         sky_small = F.interpolate((item["sky"] & item["valid"])[:, None].to(feats.dtype), size=(h, w),
                                   mode="area")[:, 0]  # the sky fraction of each feature pixel
         k_half = torch.stack([_half_k(k) for k in item["intrinsics"]])
         pano, weight = build_panorama(feats, sky_small, item["cam_to_chunk"].double(), k_half, item["distortion"],
                                       *self.cfg.panorama)
-        return {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
-                "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
-                "colors": g["colors"].reshape(-1, 3), "pano": pano, "pano_weight": weight, "raw": raw}
+        return {**flat, "pano": pano, "pano_weight": weight}
 
     def sky_rgb(self, out: dict, height: int, width: int) -> torch.Tensor:
         """(height, width, 3) the decoded sky on the equirectangular grid of `sky` (chunk axes)."""
         feats = sample_panorama(out["pano"], panorama_directions(height, width, out["pano"].dtype))
         return self.sky(feats[None])[0].permute(1, 2, 0)
 
-    def to_voxsplat(self, out: dict, item: dict, sky_size: tuple[int, int] = (128, 256)) -> VoxSplat:
+    def to_voxsplat(self, out: dict, item: dict, sky_size: tuple[int, int] | None = (128, 256)) -> VoxSplat:
         """The prediction for `item` as a VoxSplat in the chunk frame (origin CHUNK_CORNER, the
         item's grid; metadata ``frame: chunk``, ``chunk_to_world``, ``sample``) with its sky as the
-        ``sky_panorama`` channel at `sky_size` (rows, columns). Same activations, so the
+        ``sky_panorama`` channel at `sky_size` (rows, columns; None or no panorama: none). Same activations, so the
         Gaussians are the ones `render` draws. The voxels carry the item's labels and each Gaussian
         its label's default reflectance (`labels.reflectance_from_labels`) as the ``reflectance``
         channel, so a LiDAR's intensity goes through its own response as on a built scene."""
@@ -317,7 +328,8 @@ class AppearanceNet(nn.Module):
                       metadata={"frame": "chunk", "sample": str(item.get("sample", "")),
                                 "chunk_to_world": np.asarray(item["chunk_to_world"], np.float64).tolist(),
                                 "source": "scube_sim.model.appearance"})
-        vs.set_channel("sky_panorama", self.sky_rgb(out, *sky_size).detach().float().numpy())
+        if sky_size is not None and out.get("pano") is not None:
+            vs.set_channel("sky_panorama", self.sky_rgb(out, *sky_size).detach().float().numpy())
         vs.set_channel("reflectance", np.repeat(reflectance_from_labels(labels)[:, None], raw.shape[1], axis=1))
         return vs
 

@@ -50,7 +50,7 @@ from .appearance import majority_labels, positional_encoding
 from .augment import AugmentConfig, CameraSelection
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .diffusion import NoiseSchedule, ddim_sample
-from .geometry_nets import Denoiser3d, StructureVAE, VAEConfig, prune_decode
+from .geometry_nets import Denoiser3d, StructureVAE, VAEConfig, label_ce, prune_decode, structure_bce
 from .geometry_sparse import SparseDenoiser, SparseStructureVAE, decoded_voxels, row_ids
 from .sparse import SparseTensor
 from .geometry_metrics import geometry_sample_metrics, summarise, visible_voxels
@@ -63,6 +63,9 @@ from .voxel_rays import VoxelRayCaster
 
 NUM_LABELS = len(LABEL_NAMES)
 SITE_PE_FREQUENCIES = 6
+# lift_norm mean: voxels whose summed depth weight is far below this hold ~0 instead of a mean of
+# features that no pixel puts there with any confidence.
+MASS_EPS = 1e-2
 # The cpu profile's box: the whole 102.4 m chunk in x and y, the lowest 25.6 m in z.
 DEFAULT_REGION = (float(CHUNK_CORNER[0]), float(CHUNK_CORNER[1]), float(CHUNK_CORNER[2]),
                   float(CHUNK_CORNER[0] + CHUNK_SIZE), float(CHUNK_CORNER[1] + CHUNK_SIZE),
@@ -137,13 +140,22 @@ class GeometryModelConfig(StrictModel):
     head (paper: 32, 64; bins from near to far metres); lifting: depth (Eq. 1) | broadcast (the
     ablation) | oracle (each pixel's features put in its depth map's bin alone, in training and
     at inference: an upper bound that isolates the 3D prior from the depth estimate; needs depth
-    maps, so worlds only); depth_weight: lambda of the focal depth loss (paper 1). Denoiser: a 3D U-Net of
+    maps, so worlds only); lift_norm: sum (Eq. 1 as written: each voxel holds the weighted sum of
+    its features and log(1 + frustum points)) | mean (the weighted mean feature, log(1 + the
+    summed weight) and log(1 + frustum points): the sum spans orders of magnitude between a voxel
+    next to a camera and one 60 m out, which the unnormalised convolutions after it do not undo);
+    depth_weight: lambda of the focal depth loss (paper 1). Denoiser: a 3D U-Net of
     `widths` (one level each, halving between) with `blocks` residual blocks per level,
-    condition channels `cond_channels`. Diffusion: `train_steps` linear steps from beta_start to
+    condition channels `cond_channels`. predictor_loss (mode predictor, coarse level): latent (MSE
+    to the ground truth's latent) | decoded (the predicted latent decoded by the frozen VAE and
+    scored as the VAE is trained: structure BCE at every level + label cross-entropy against the
+    ground-truth grid; the latent is a learnt, non-linear code of the grid, and regressing it
+    drifts to the mean scene). Diffusion: `train_steps` linear steps from beta_start to
     beta_end, `sample_steps` DDIM steps at inference (validation uses them too)."""
 
     level: str = Field(default="coarse", pattern="^(coarse|fine)$")
     mode: str = Field(default="diffusion", pattern="^(diffusion|predictor)$")
+    predictor_loss: str = Field(default="latent", pattern="^(latent|decoded)$")
     vae_checkpoint: str | None = None
     vae: VAEConfig = Field(default_factory=VAEConfig)
     encoder: ImageEncoderConfig = Field(default_factory=ImageEncoderConfig)
@@ -152,6 +164,7 @@ class GeometryModelConfig(StrictModel):
     near: float = Field(default=0.1, gt=0)
     far: float = Field(default=90.0, gt=0)
     lifting: str = Field(default="depth", pattern="^(depth|broadcast|oracle)$")
+    lift_norm: str = Field(default="sum", pattern="^(sum|mean)$")
     depth_weight: float = Field(default=1.0, ge=0)
     cond_channels: int = Field(default=64, ge=1)
     widths: tuple[int, ...] = Field(default=(64, 128, 256), min_length=1, max_length=5)
@@ -169,6 +182,9 @@ class GeometryModelConfig(StrictModel):
     def _check(self):
         if self.far <= self.near:
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
+        if self.predictor_loss == "decoded" and (self.mode != "predictor" or self.level != "coarse"):
+            raise ValueError("predictor_loss 'decoded' is the coarse level's single-step predictor's "
+                             "(mode: predictor, level: coarse)")
         if self.sample_steps > self.train_steps:
             raise ValueError(f"sample_steps ({self.sample_steps}) cannot exceed train_steps ({self.train_steps})")
         return self
@@ -287,17 +303,23 @@ class ImageConditioner(nn.Module):
         self.register_buffer("bin_centres", depth_bin_centres(cfg.depth_bins, cfg.near, cfg.far), persistent=False)
         self.site_proj = None
         if latent_stride is None:  # lifted features + the coarse label of each site
-            self.site_proj = nn.Linear(cfg.feature_channels + 1 + NUM_LABELS + 6 * SITE_PE_FREQUENCIES,
+            self.site_proj = nn.Linear(self.lifted_channels + NUM_LABELS + 6 * SITE_PE_FREQUENCIES,
                                        cfg.cond_channels)
             self.down = None
             return
         levels = int(round(math.log2(latent_stride)))
-        down, cin = [], cfg.feature_channels + 1  # + log(1 + frustum points per voxel)
+        down, cin = [], self.lifted_channels
         for i in range(levels):
             cout = cfg.cond_channels if i == levels - 1 else max(cfg.feature_channels, cfg.cond_channels // 2)
             down += [nn.Conv3d(cin, cout, 2, stride=2), nn.SiLU()]
             cin = cout
         self.down = nn.Sequential(*down[:-1]) if down else nn.Conv3d(cin, cfg.cond_channels, 1)
+
+    @property
+    def lifted_channels(self) -> int:
+        """Channels per voxel of the lifted volume: C features, then log(1 + summed weight) with
+        lift_norm mean, then log(1 + frustum points)."""
+        return self.cfg.feature_channels + (2 if self.cfg.lift_norm == "mean" else 1)
 
     def forward(self, item: dict, grid: LiftGrid) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One sample -> (condition (1, cond, X', Y', Z'), depth probabilities (N, D, h, w), their
@@ -316,20 +338,32 @@ class ImageConditioner(nn.Module):
             rows = torch.clamp(torch.arange(h) * stride + stride // 2, max=images.shape[2] - 1)
             cols = torch.clamp(torch.arange(w) * stride + stride // 2, max=images.shape[3] - 1)
             valid.append(item["valid"][i][rows][:, cols])
-            target.append(depth_to_bin(item["depth"][i][rows][:, cols], self.bin_edges))
+            if "depth" in item:
+                target.append(depth_to_bin(item["depth"][i][rows][:, cols], self.bin_edges))
+            else:  # real frames at inference: no depth map, no depth target
+                target.append(torch.full((h, w), -1, dtype=torch.int64))
         valid_t, target_t = torch.stack(valid), torch.stack(target)
         target_t = torch.where(valid_t, target_t, torch.full_like(target_t, -1))
         weights = {"depth": probs, "broadcast": None}.get(self.cfg.lifting)
+        if self.cfg.lifting == "oracle" and "depth" not in item:
+            raise InputError(f"{item.get('sample', 'sample')}: lifting 'oracle' needs depth maps (worlds data); "
+                             f"these frames have none")
         if self.cfg.lifting == "oracle":  # one-hot at the depth map's bin; nothing where it has none
             weights = F.one_hot(target_t.clamp(min=0), probs.shape[1]).permute(0, 3, 1, 2).to(feats.dtype)
             weights = weights * (target_t >= 0)[:, None].to(feats.dtype)
-        vol, hits = lift(feats, weights, torch.stack(pts), grid, valid_t)
+        if self.cfg.lift_norm == "mean":  # a channel of ones lifts the summed weight beside the features
+            vol, hits = lift(torch.cat([feats, feats.new_ones(n, 1, h, w)], 1), weights, torch.stack(pts), grid,
+                             valid_t)
+            mass = vol[c:]
+            vol = torch.cat([vol[:c] / (mass + MASS_EPS), torch.log1p(mass)], 0)
+        else:
+            vol, hits = lift(feats, weights, torch.stack(pts), grid, valid_t)
         x = torch.cat([vol, torch.log1p(hits)[None].to(vol.dtype)], 0)[None]
         return (x if self.down is None else self.down(x)), probs, target_t
 
     def site_condition(self, volume: torch.Tensor, sites: torch.Tensor, labels: torch.Tensor,
                        grid: LiftGrid) -> torch.Tensor:
-        """(1, C + 1, X, Y, Z) lifted volume on `grid`, (N, 3) site indices in it, (N,) their coarse
+        """(1, lifted_channels, X, Y, Z) lifted volume on `grid`, (N, 3) site indices in it, (N,) their coarse
         labels -> (N, cond) per-site condition: the lifted features there, the label, and a
         positional encoding of the site's centre (sparse convolutions see no box edges, so
         absolute height comes from here)."""
@@ -475,7 +509,12 @@ class GeometryNet(nn.Module):
         last = self.schedule.steps - 1
         if self.cfg.mode == "predictor":
             pred = self._v(torch.zeros_like(x0), cond, torch.full((1,), last))
-            main = F.mse_loss(pred, x0)
+            if self.cfg.predictor_loss == "decoded":
+                occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
+                occ_levels, occ_final, lab_logits = self.vae.decode(pred * self.vae.latent_std)
+                main = structure_bce(occ_levels, occ_final, occ[None]) + label_ce(lab_logits, lab[None])
+            else:
+                main = F.mse_loss(pred, x0)
         else:
             t = torch.randint(0, self.schedule.steps, (1,))
             noise = torch.randn_like(x0)

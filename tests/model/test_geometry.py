@@ -436,6 +436,68 @@ def test_oracle_lifting_puts_features_on_the_visible_surface_only(data):
     assert float((d <= 1.0).double().mean()) > 0.9
 
 
+def test_mean_lifting_holds_the_weighted_mean_feature_and_the_summed_weight(data):
+    """lift_norm mean: with every pixel's features the same vector c, each voxel holds c however
+    many frustum points land in it (the sum holds c times their weight, which spans orders of
+    magnitude), and the next channel holds log(1 + the summed weight)."""
+    _, item = _geometry_item(data)
+    c_vec = torch.tensor([0.5, -1.0, 2.0, 0.25])
+    vols = {}
+    for norm in ("mean", "sum"):
+        torch.manual_seed(0)
+        model = GeometryNet(GeometryModelConfig(**{**MODEL, "lifting": "oracle", "lift_norm": norm})).eval()
+        model.conditioner.down = torch.nn.Identity()
+        last = model.conditioner.head[-1]
+        with torch.no_grad():
+            last.weight.zero_()
+            last.bias.zero_()
+            last.bias[:4] = c_vec
+            vols[norm], _, _ = model.conditioner(item, item["lift_grid"])
+    mean, summed = vols["mean"][0], vols["sum"][0]
+    assert mean.shape[0] == 4 + 2 and summed.shape[0] == 4 + 1
+    mass = torch.expm1(mean[4])
+    reached = mass >= 1.0  # oracle: the number of pixels whose depth falls in the voxel
+    assert int(reached.sum()) > 20
+    torch.testing.assert_close(mean[:4][:, reached], c_vec[:, None].expand(4, int(reached.sum())), rtol=0.011, atol=0)
+    torch.testing.assert_close(summed[:4][:, reached], c_vec[:, None] * mass[reached][None], rtol=1e-4, atol=1e-5)
+    assert float(mass[reached].max()) > 10 * float(mass[reached].min())
+    torch.testing.assert_close(mean[5], summed[4])  # log(1 + frustum points) in both
+
+
+def test_decoded_predictor_learns_one_grid_through_the_frozen_decoder(data):
+    """predictor_loss decoded: the loss is the frozen VAE's structure BCE + label CE of the
+    decoded prediction, so training on one sample moves the decoded grid towards it."""
+    stage, item = _geometry_item(data)
+    torch.manual_seed(0)
+    model = GeometryNet(GeometryModelConfig(**MODEL, mode="predictor", predictor_loss="decoded", depth_weight=0.0))
+    model.vae_loaded = True
+    opt = torch.optim.Adam([p for p in model.parameters() if p.requires_grad], 1e-2)
+
+    def iou():
+        model.eval()
+        with torch.no_grad():
+            ijk, _ = model.predict(item)
+        model.train()
+        a = {tuple(v) for v in ijk.tolist()}
+        b = {tuple(v) for v in item["gt_ijk"].tolist()}
+        return len(a & b) / max(len(a | b), 1)
+
+    iou0 = iou()
+    losses = []
+    for _ in range(40):
+        loss, logs = model.loss(item)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(logs["latent"])
+    # a random frozen decoder cannot draw every grid (the loss has a floor), but its best match
+    # to this one is found: IoU from ~0.02 to ~0.35
+    assert losses[-1] < 0.9 * losses[0], losses[::8]
+    assert iou() > iou0 + 0.2, (iou0, iou())
+    with pytest.raises(ValueError, match="predictor_loss 'decoded'"):
+        GeometryModelConfig(**MODEL, mode="diffusion", predictor_loss="decoded")
+
+
 def test_observed_voxels_are_the_first_surface_each_camera_sees():
     """A pinhole camera at the origin looking along +x at two walls, 10 m and 14 m out: the near
     wall's voxels inside the field of view are observed, the far wall (behind it) and the near

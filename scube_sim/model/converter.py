@@ -1,0 +1,325 @@
+"""The sensor-to-sensor converter (SCube section 3): posed camera frames -> a VoxSplat.
+
+The geometry stage (`geometry.GeometryNet`, coarse level) predicts semantic voxels from the
+images; the appearance stage (`appearance.AppearanceNet`) puts M Gaussians in each predicted voxel
+and decodes a sky panorama. A *profile* names both stages' checkpoints and their settings: the
+shipped ones are `profiles/<name>.yaml` in this package (`cpu` is the default), a user's own is a
+YAML file given by path (`ConverterProfile`).
+
+Frames: the chunk frame is the frames' ego frame at their reference instant (x forward, y left,
+z up, metres), as the worlds define it: ``Frames.ego_pose`` is chunk_to_world. The VoxSplat lives
+in that frame (origin CHUNK_CORNER) with ``chunk_to_world`` in its metadata, as
+`worlds.groundtruth.gt_voxsplat` writes the ground truth, so the simulator places both the same
+way. Poses are composed in float64 before anything is cast to float32, so frames 10^6 m from the
+world origin convert as they do at the origin.
+
+Images are resized so that each camera's focal length in pixels is the one its stage was trained
+at (`StageProfile.focal_px`): a depth estimate learns how large things look at a distance, in
+pixels; any input resolution then meets the network at its training scale, and memory is bounded
+by the field of view, not by the sensor's pixel count.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import yaml
+from pydantic import Field, ValidationError
+
+from ..camera.frames import Frames
+from ..config import StrictModel
+from ..datasets import open_dataset
+from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
+from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
+from ..errors import InputError
+from ..memory import peak_mb, reset_peak
+from ..transforms import invert_pose
+from ..voxsplat import VoxSplat
+from ..worlds.groundtruth import CHUNK_CORNER
+from .appearance import AppearanceNet, first_hit_voxels
+from .checkpoint import resolve_checkpoint
+from .data import resize_bilinear, scale_intrinsics
+from .geometry import GeometryDataConfig, GeometryNet
+from .trainer import load_model
+
+PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
+DEFAULT_PROFILE = "cpu"
+
+
+class StageProfile(StrictModel):
+    """One stage: its checkpoint (path or shipped name) and the focal length, in pixels, each input
+    image is resized to (the training images'); `max_side` caps the resized image's longer side
+    (a camera with a very long focal length over a wide image)."""
+
+    checkpoint: str
+    focal_px: float = Field(gt=0)
+    max_side: int = Field(default=1024, ge=16)
+
+
+class GeometryProfile(StageProfile):
+    """sample_steps: DDIM steps (None: the checkpoint's own)."""
+
+    sample_steps: int | None = Field(default=None, ge=1)
+
+
+class AppearanceProfile(StageProfile):
+    """sky_size: (rows, columns) of the sky panorama channel."""
+
+    sky_size: tuple[int, int] = (128, 256)
+
+
+class ConverterProfile(StrictModel):
+    """Both stages' checkpoints and settings (module docstring). confidence_samples: K, the
+    geometry samples per-voxel confidence is counted over when a caller asks for confidence."""
+
+    name: str
+    description: str = ""
+    geometry: GeometryProfile
+    appearance: AppearanceProfile
+    confidence_samples: int = Field(default=4, ge=2)
+
+
+def shipped_profiles() -> list[str]:
+    return sorted(p.stem for p in PROFILE_DIR.glob("*.yaml"))
+
+
+def load_profile(profile: str | Path | ConverterProfile = DEFAULT_PROFILE) -> ConverterProfile:
+    """A profile: a `ConverterProfile`, a YAML file's path, or a shipped profile's name."""
+    if isinstance(profile, ConverterProfile):
+        return profile
+    path = Path(profile)
+    if not path.is_file():
+        if str(profile) not in shipped_profiles():
+            raise InputError(f"profile {str(profile)!r}: no such file, nor a shipped profile "
+                             f"(shipped: {', '.join(shipped_profiles())})")
+        path = PROFILE_DIR / f"{profile}.yaml"
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise InputError(f"{path}: not YAML ({exc})") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping of profile keys, got {type(data).__name__}")
+    data.setdefault("name", path.stem)
+    try:
+        return ConverterProfile(**data)
+    except ValidationError as exc:
+        raise InputError(f"{path}: {exc}") from None
+
+
+def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0) -> Frames:
+    """The camera frames of one sample: `path` a worlds sample folder (DIR/<split>/NNNNNN) or, with
+    `dataset`, any adapter's folder (`datasets.open_dataset`) and its sample index `sample`."""
+    path = Path(path)
+    if dataset is None:
+        if (path / WORLDS_SAMPLE_META).is_file() and (path.parent.parent / WORLDS_HEADER).is_file():
+            ds = open_dataset("worlds", path.parent.parent, split=path.parent.name, eval_frames=False)
+            names = [d.name for d in ds.sample_dirs]
+            dataset, sample = "worlds", names.index(path.name)
+        else:
+            raise InputError(f"{path}: not a worlds sample folder (DIR/<split>/NNNNNN with {WORLDS_SAMPLE_META}); "
+                             f"name the format of other folders with --dataset (nuscenes, kitti_raw, waymo, folder, "
+                             f"worlds with DIR/<split> ...)")
+    else:
+        options = {}
+        if dataset == "worlds":  # DIR/<split>
+            options = {"split": path.name, "eval_frames": False}
+            path = path.parent
+        ds = open_dataset(dataset, path, **options)
+    s = ds[sample]
+    if s.frames is None or len(s.frames) == 0:
+        raise InputError(f"{path}: sample {sample} ({s.name}) of the {ds.name} dataset has no camera images "
+                         f"(Argoverse 2 here is LiDAR only); the converter needs posed camera frames")
+    s.frames.metadata.setdefault("sample", s.name)
+    s.frames.metadata.setdefault("dataset", ds.name)
+    return s.frames
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _distortion(im) -> np.ndarray:
+    intr = im.intrinsics
+    if intr.model == "pinhole" or not intr.dist:
+        return np.zeros(5)
+    if intr.model == "opencv":
+        d = np.zeros(5)
+        d[: len(intr.dist)] = intr.dist
+        return d
+    raise InputError(f"camera {im.name!r}: distortion model {intr.model!r}; the converter takes 'pinhole' or "
+                     f"'opencv' cameras")
+
+
+def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
+    """The item a stage's network reads, from `frames` (module docstring): ``images`` (N, 3, H, W)
+    float32 in [0, 1], zero-padded to the largest; ``intrinsics`` (N, 3, 3) of the resized
+    images; ``distortion`` (N, 5) OpenCV; ``image_size`` (N, 2) (rows, columns); ``valid`` (N, H, W)
+    bool; ``cam_to_chunk`` (N, 4, 4) float32; ``chunk_to_world`` (4, 4) float64;
+    ``camera_names``; and with_sky ``sky`` (N, H, W) bool from the frames' sky masks where every
+    camera has one (otherwise the caller derives it)."""
+    if not isinstance(frames, Frames):
+        raise InputError(f"frames: expected a scube_sim.camera.Frames, got {type(frames).__name__}")
+    if len(frames) == 0:
+        raise InputError("frames: no images (the converter needs at least one posed camera image)")
+    names = frames.names
+    if len(set(names)) != len(names):
+        raise InputError(f"frames: camera names must be unique, got {names}")
+    to_chunk = invert_pose(frames.ego_pose)
+    cams = []
+    for im in frames.images:
+        intr = im.intrinsics
+        if im.image.ndim != 3 or im.image.shape[2] != 3 or im.image.dtype != np.uint8:
+            raise InputError(f"camera {im.name!r}: image: expected (H, W, 3) uint8 RGB, got "
+                             f"{im.image.shape} {im.image.dtype}")
+        scale = stage.focal_px / float(intr.K[0, 0])
+        scale = min(scale, stage.max_side / max(intr.width, intr.height))
+        size = (intr.height, intr.width)
+        new = (max(8, round(intr.height * scale)), max(8, round(intr.width * scale)))
+        rgb = torch.from_numpy(np.array(im.image, np.uint8)).permute(2, 0, 1).to(torch.float32) / 255.0
+        cam = {"images": resize_bilinear(rgb, new).clamp(0.0, 1.0),
+               "intrinsics": torch.from_numpy(scale_intrinsics(intr.K, size, new).astype(np.float32)),
+               "distortion": torch.from_numpy(_distortion(im).astype(np.float32)),
+               "image_size": torch.tensor(new, dtype=torch.int64),
+               # composed in float64: the world's coordinates may be large, the chunk's are small
+               "cam_to_chunk": torch.from_numpy((to_chunk @ im.cam_to_world).astype(np.float32))}
+        if with_sky and im.sky is not None:
+            idx_r = np.minimum((np.arange(new[0]) + 0.5) * size[0] / new[0], size[0] - 1).astype(int)
+            idx_c = np.minimum((np.arange(new[1]) + 0.5) * size[1] / new[1], size[1] - 1).astype(int)
+            cam["sky"] = torch.from_numpy(np.asarray(im.sky, bool)[idx_r][:, idx_c].copy())
+        cams.append(cam)
+    h = max(int(c["image_size"][0]) for c in cams)
+    w = max(int(c["image_size"][1]) for c in cams)
+    n = len(cams)
+    item = {"images": torch.zeros(n, 3, h, w), "valid": torch.zeros(n, h, w, dtype=torch.bool),
+            "camera_names": names, "chunk_to_world": torch.from_numpy(np.array(frames.ego_pose, np.float64)),
+            "sample": str(frames.metadata.get("sample", frames.metadata.get("name", "frames")))}
+    for key in ("intrinsics", "distortion", "image_size", "cam_to_chunk"):
+        item[key] = torch.stack([c[key] for c in cams])
+    for i, c in enumerate(cams):
+        ch, cw = (int(v) for v in c["image_size"])
+        item["images"][i, :, :ch, :cw] = c["images"]
+        item["valid"][i, :ch, :cw] = True
+    if with_sky and all("sky" in c for c in cams):
+        item["sky"] = torch.zeros(n, h, w, dtype=torch.bool)
+        for i, c in enumerate(cams):
+            ch, cw = (int(v) for v in c["image_size"])
+            item["sky"][i, :ch, :cw] = c["sky"]
+    return item
+
+
+class Converter:
+    """Both stages of a profile, loaded once; `convert` turns frames into a VoxSplat."""
+
+    def __init__(self, profile: str | Path | ConverterProfile = DEFAULT_PROFILE):
+        self.profile = load_profile(profile)
+        p = self.profile
+        self._paths = {"geometry": resolve_checkpoint(p.geometry.checkpoint),
+                       "appearance": resolve_checkpoint(p.appearance.checkpoint)}
+        self.geometry, run = load_model("geometry", self._paths["geometry"])
+        if not isinstance(self.geometry, GeometryNet) or self.geometry.cfg.level != "coarse":
+            raise InputError(f"{self._paths['geometry']}: the converter needs a coarse-level geometry checkpoint")
+        self.data = GeometryDataConfig(**run.data)
+        self.appearance, _ = load_model("appearance", self._paths["appearance"])
+        if not isinstance(self.appearance, AppearanceNet):
+            raise InputError(f"{self._paths['appearance']}: not an appearance checkpoint")
+        self._hashes: dict[str, str] = {}
+        self.timings: dict[str, float] = {}
+
+    def checkpoint_hashes(self) -> dict[str, str]:
+        """sha256 of each stage's checkpoint file (provenance), computed once."""
+        if not self._hashes:
+            self._hashes = {k: _sha256(v) for k, v in self._paths.items()}
+        return self._hashes
+
+    def predict_voxels(self, frames: Frames, *, steps: int | None = None, seed: int = 0, k: int = 1):
+        """The geometry stage: -> (ijk (V, 3) int64 chunk voxels from CHUNK_CORNER, labels (V,),
+        confidence (V,) float32 (the share of k samples holding the voxel; 1 when k = 1),
+        observed (V,) bool, voxel_size metres)."""
+        item = frames_item(frames, self.profile.geometry)
+        cfg = self.data
+        item["lift_grid"], item["gt_grid"], item["level"] = cfg.grid(), cfg.grid(cfg.voxel_size), "coarse"
+        steps = steps or self.profile.geometry.sample_steps
+        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed)
+        shift = torch.round((torch.tensor(cfg.region[:3], dtype=torch.float64) - torch.as_tensor(CHUNK_CORNER))
+                            / cfg.voxel_size).to(torch.int64)
+        return ijk + shift, labels, conf, observed, float(cfg.voxel_size)
+
+    def gaussians(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, voxel_size: float,
+                  sky: bool = True) -> VoxSplat:
+        """The appearance stage on given voxels -> a VoxSplat in the chunk frame (with its sky
+        panorama channel when `sky`). Sky pixels are the frames' sky masks where every camera
+        has one, otherwise the pixels whose ray enters no voxel."""
+        item = frames_item(frames, self.profile.appearance, with_sky=True)
+        item.update(ijk=ijk, labels=labels, voxel_size=voxel_size)
+        item["hits"] = first_hit_voxels(item, ijk, voxel_size)
+        if "sky" not in item:
+            n, _, h, w = item["images"].shape
+            miss = (item["hits"] < 0).to(torch.float32)[:, None]
+            item["sky"] = (F.interpolate(miss, scale_factor=2, mode="nearest")[:, 0, :h, :w] > 0.5) & item["valid"]
+        out = self.appearance(item, sky=sky)
+        if sky:
+            return self.appearance.to_voxsplat(out, item, sky_size=tuple(self.profile.appearance.sky_size))
+        return self.appearance.to_voxsplat(out, item, sky_size=None)
+
+    @torch.no_grad()
+    def convert(self, frames: Frames, *, steps: int | None = None, seed: int = 0, confidence: bool = False,
+                k: int | None = None, sky: bool = True) -> VoxSplat:
+        """Frames -> VoxSplat (chunk frame, module docstring) with labels, reflectance, the sky
+        panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
+        camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
+        (`k`, default the profile's confidence_samples) and store each voxel's share of them;
+        otherwise one sample is drawn and confidence is 1. Same frames and seed, same bytes."""
+        if k is not None and k < 1:
+            raise InputError(f"k: expected at least one geometry sample, got {k}")
+        k = (k or self.profile.confidence_samples) if confidence else 1
+        if not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
+        reset_peak()
+        t0 = time.perf_counter()
+        ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), k=k)
+        t1 = time.perf_counter()
+        scene = self.gaussians(frames, ijk, labels, vs, sky=sky)
+        t2 = time.perf_counter()
+        self.timings = {"geometry_s": t1 - t0, "appearance_s": t2 - t1, "peak_mb": peak_mb()}
+        scene.set_channel("observed", observed.numpy())
+        scene.set_channel("confidence", conf.numpy().astype(np.float32))
+        hashes = self.checkpoint_hashes()
+        scene.metadata.update({
+            "source": "scube_sim.convert",
+            "profile": self.profile.name,
+            "geometry_checkpoint": {"path": self.profile.geometry.checkpoint, "sha256": hashes["geometry"]},
+            "appearance_checkpoint": {"path": self.profile.appearance.checkpoint, "sha256": hashes["appearance"]},
+            "sample_steps": int(steps or self.profile.geometry.sample_steps or self.geometry.cfg.sample_steps),
+            "seed": int(seed),
+            "confidence_samples": int(k),
+            "cameras": list(frames.names),
+            "timestamp": float(frames.timestamp),
+            "frames": {str(key): str(v) for key, v in frames.metadata.items()},
+        })
+        return scene
+
+
+_CACHE: dict[str, Converter] = {}
+
+
+def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_PROFILE, steps: int | None = None,
+            seed: int = 0, confidence: bool = False, k: int | None = None, sky: bool = True) -> VoxSplat:
+    """`Converter(profile).convert(frames, ...)`, with the loaded converter kept per profile name
+    or path for the next call."""
+    key = profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)
+    if key not in _CACHE:
+        _CACHE[key] = Converter(profile)
+    return _CACHE[key].convert(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky)
+
+
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "convert", "frames_item", "load_profile",
+           "open_frames", "shipped_profiles"]

@@ -1,0 +1,217 @@
+"""The converter end to end on tiny models: frames in, a VoxSplat out with provenance, the same
+bytes for the same seed, the world frame kept to 1e-4 m at 10^6 m from the origin, confidence
+counted over K samples, and clear errors for input it cannot use."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from typer.testing import CliRunner
+
+from scube_sim.camera.frames import CameraImage, Frames
+from scube_sim.camera.model import Intrinsics
+from scube_sim.cli import app
+from scube_sim.datasets import open_dataset
+from scube_sim.errors import InputError
+from scube_sim.model.config import config_from_dict
+from scube_sim.model.converter import Converter, frames_item, load_profile, open_frames
+from scube_sim.model.trainer import train
+from scube_sim.voxsplat import VoxSplat
+from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
+
+TINY = DatasetConfig(image_scale=0.04, visibility_scale=0.04, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0],
+                     lidar="vlp16", styles=["suburban"])
+GEO_DATA = {"voxel_size": 3.2, "image_scale": 1.0}
+VAE = {"widths": [16], "blocks": 1, "latent_channels": 4, "groups": 4}
+GEO = {"vae": VAE, "encoder": {"kind": "cnn", "channels": 8, "stride": 4}, "feature_channels": 4, "depth_bins": 8,
+       "cond_channels": 8, "widths": [8, 16], "blocks": 1, "groups": 4, "sample_steps": 2, "lift_norm": "mean"}
+APP = {"gaussians_per_voxel": 2, "image_channels": 8, "widths": [8, 16], "pe_frequencies": 2, "panorama": [8, 16]}
+APP_DATA = {"level": "coarse", "image_scale": 1.0}
+
+
+def _train(stage, model, data_cfg, data, out, tmp, steps=2, lr=1e-3):
+    cfg = {"stage": stage, "train": {"seed": 0, "steps": steps, "batch_size": 1, "lr": lr, "threads": 1},
+           "model": model, "data": data_cfg}
+    train(stage, config_from_dict(cfg), data, out, progress=False)
+    return out / "last.pt"
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A tiny worlds dataset, both stages trained two steps, and a profile naming them."""
+    tmp = tmp_path_factory.mktemp("converter")
+    data = tmp / "worlds"
+    for split in ("train", "val", "test"):
+        generate_dataset(data, split, 1, TINY, progress=False)
+    # the VAE overfits the one training world, so that even an untrained denoiser's latents decode
+    # to a grid of that world's kind (not an empty one)
+    vae = _train("geometry-vae", {"vae": VAE}, GEO_DATA, data, tmp / "vae", tmp, steps=40, lr=1e-2)
+    geo = _train("geometry", {**GEO, "vae_checkpoint": str(vae)}, GEO_DATA, data, tmp / "geo", tmp)
+    app_ck = _train("appearance", APP, APP_DATA, data, tmp / "app", tmp)
+    fx = float(open_dataset("worlds", data, split="test")[0].frames.images[0].intrinsics.K[0, 0])
+    profile = tmp / "tiny.yaml"
+    profile.write_text(yaml.safe_dump({"geometry": {"checkpoint": str(geo), "focal_px": fx},
+                                       "appearance": {"checkpoint": str(app_ck), "focal_px": fx, "sky_size": [8, 16]},
+                                       "confidence_samples": 3}))
+    return {"data": data, "profile": profile, "geo": geo, "app": app_ck, "sample": data / "test" / "000000"}
+
+
+def _frames(setup) -> Frames:
+    return open_frames(setup["sample"])
+
+
+def _sha(path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_importing_the_package_does_not_import_torch():
+    code = "import sys, scube_sim; assert callable(scube_sim.convert); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
+def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(setup, tmp_path):
+    outs = []
+    for name in ("a.npz", "b.npz"):
+        r = CliRunner().invoke(app, ["convert", str(setup["sample"]), "--profile", str(setup["profile"]),
+                                     "--seed", "3", "-o", str(tmp_path / name)])
+        assert r.exit_code == 0, r.output
+        outs.append(tmp_path / name)
+    assert outs[0].read_bytes() == outs[1].read_bytes()
+    vs = VoxSplat.load(outs[0])
+    m = vs.metadata
+    assert m["source"] == "scube_sim.convert" and m["profile"] == "tiny" and m["seed"] == 3
+    assert m["geometry_checkpoint"]["sha256"] == _sha(setup["geo"])
+    assert m["appearance_checkpoint"]["sha256"] == _sha(setup["app"])
+    assert m["sample_steps"] == 2 and m["confidence_samples"] == 1
+    gt = open_dataset("worlds", setup["data"], split="test")[0].ground_truth
+    np.testing.assert_array_equal(np.array(m["chunk_to_world"]), gt.chunk_to_world)
+    assert vs.voxel_size == pytest.approx(3.2) and vs.gaussians_per_voxel == 2
+    assert vs.num_voxels > 0
+    # every voxel inside the 102.4 x 102.4 x 25.6 m box the geometry stage predicts
+    assert (vs.ijk >= 0).all() and (vs.ijk[:, :2] < 32).all() and (vs.ijk[:, 2] < 8).all()
+    assert vs.channel("observed").dtype == bool and len(vs.channel("observed")) == vs.num_voxels
+    assert (vs.channel("confidence") == 1.0).all()  # one sample: confidence 1
+    assert vs.channel("sky_panorama").shape == (8, 16, 3)
+    assert vs.channel("reflectance").shape == (vs.num_voxels, 2)
+
+
+def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(setup):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    one = conv.convert(frames, seed=1)
+    many = conv.convert(frames, seed=1, confidence=True)
+    assert many.metadata["confidence_samples"] == 3
+    np.testing.assert_array_equal(one.ijk, many.ijk)
+    c = many.channel("confidence")
+    assert set(np.round(c * 3).astype(int).tolist()) <= {1, 2, 3}
+    # the share each voxel gets is the count of samples (seeds 1, 2, 3) that hold it
+    sets = [{tuple(v) for v in conv.convert(frames, seed=s).ijk.tolist()} for s in (1, 2, 3)]
+    expect = np.array([sum(tuple(v) in s for s in sets) / 3 for v in many.ijk.tolist()], np.float32)
+    np.testing.assert_allclose(c, expect, atol=1e-6)
+
+
+def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(setup):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    full = conv.convert(frames, seed=0)
+    lidar = conv.convert(frames, seed=0, sky=False)
+    assert "sky_panorama" not in lidar.channels and "sky_panorama" in full.channels
+    np.testing.assert_array_equal(lidar.params, full.params)
+
+
+def _moved(frames: Frames, offset) -> Frames:
+    out = copy.deepcopy(frames)
+    out.ego_pose[:3, 3] += offset
+    for im in out.images:
+        im.cam_to_world[:3, 3] += offset
+    return out
+
+
+def test_frames_a_million_metres_out_convert_to_the_same_scene(setup):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    near = conv.convert(frames, seed=2)
+    far = conv.convert(_moved(frames, np.array([1.0e6, -1.0e6, 30.0])), seed=2)
+    np.testing.assert_array_equal(near.ijk, far.ijk)
+    np.testing.assert_allclose(far.means(), near.means(), rtol=0, atol=1e-4)
+    shift = np.array(far.metadata["chunk_to_world"])[:3, 3] - np.array(near.metadata["chunk_to_world"])[:3, 3]
+    np.testing.assert_allclose(shift, [1.0e6, -1.0e6, 30.0], rtol=0, atol=1e-6)
+
+
+def _camera(name, width, height, fx, pose, image=None):
+    intr = Intrinsics(width, height, fx, fx, width / 2, height / 2)
+    img = np.full((height, width, 3), 128, np.uint8) if image is None else image
+    return CameraImage(name, img, intr, pose, 0.0)
+
+
+def test_any_image_size_meets_the_network_at_its_focal_length(setup):
+    """A 64 x 48 and a 4000 x 3000 camera with the same field of view resize to the same size
+    (the profile's focal length), so memory is bounded by the field of view."""
+    conv = Converter(setup["profile"])
+    base = _frames(setup).images[0]
+    fov = 2 * np.arctan(base.intrinsics.width / 2 / base.intrinsics.K[0, 0])
+    cams = [_camera(f"c{w}", w, h, w / 2 / np.tan(fov / 2), base.cam_to_world) for w, h in ((64, 48), (4000, 3000))]
+    frames = Frames(cams, _frames(setup).ego_pose, 0.0, {"sample": "sizes"})
+    item = frames_item(frames, conv.profile.geometry)
+    small, large = item["image_size"].tolist()
+    assert abs(small[1] - large[1]) <= 1 and abs(small[0] - large[0]) <= 1
+    # the profile's focal length is the dataset camera's: the same field of view, the same width
+    assert abs(large[1] - base.intrinsics.width) <= 1
+    np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.05)
+    vs = conv.convert(frames, seed=0)
+    assert np.isfinite(vs.params).all()
+
+
+def test_a_camera_that_sees_only_sky_and_frames_without_sky_masks_give_defined_output(setup):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    bare = copy.deepcopy(frames)
+    for im in bare.images:  # a real adapter's frames: no depth, semantics or sky masks
+        im.depth = im.semantic = im.sky = im.instance = None
+    vs = conv.convert(bare, seed=0)
+    assert vs.channel("sky_panorama").shape == (8, 16, 3) and np.isfinite(vs.channel("sky_panorama")).all()
+    up = np.eye(4)  # 2 m over the ego, optical axis (camera z) straight up, camera x to the ego's right
+    up[:3, :3] = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # columns x, y, z
+    up[:3, 3] = [0.0, 0.0, 2.0]
+    pose = frames.ego_pose @ up
+    sky_only = Frames([_camera("UP", 32, 24, 16.0, pose)], frames.ego_pose, 0.0, {"sample": "up"})
+    vs = conv.convert(sky_only, seed=0)
+    assert np.isfinite(vs.params).all() and vs.channel("sky_panorama").shape == (8, 16, 3)
+
+
+def test_bad_input_gives_clear_errors(setup, tmp_path):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    with pytest.raises(InputError, match="no images"):
+        conv.convert(Frames([], frames.ego_pose, 0.0))
+    with pytest.raises(InputError, match="expected a scube_sim.camera.Frames"):
+        conv.convert({"images": []})
+    dup = copy.deepcopy(frames)
+    dup.images[1].name = dup.images[0].name
+    with pytest.raises(InputError, match="camera names must be unique"):
+        conv.convert(dup)
+    with pytest.raises(InputError, match="seed"):
+        conv.convert(frames, seed=-1)
+    with pytest.raises(InputError, match="shipped"):
+        load_profile("no-such-profile")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"geometry": {"checkpoint": "x", "focal_px": -1}}))
+    with pytest.raises(InputError, match="bad.yaml"):
+        load_profile(bad)
+    with pytest.raises(InputError, match="not a worlds sample folder"):
+        open_frames(tmp_path)
+    r = CliRunner().invoke(app, ["convert", str(tmp_path), "--profile", str(setup["profile"]),
+                                 "-o", str(tmp_path / "x.npz")])
+    assert r.exit_code == 2 and "not a worlds sample folder" in r.output
+    assert not (tmp_path / "x.npz").exists()
+    r = CliRunner().invoke(app, ["convert", str(setup["sample"]), "--profile", str(setup["profile"]),
+                                 "-o", str(tmp_path / "x.ply")])
+    assert r.exit_code == 2 and ".npz" in r.output
