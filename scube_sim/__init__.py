@@ -9,14 +9,16 @@ from .voxsplat import Gaussians, VoxSplat
 
 
 
-def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=None, sky=True) -> VoxSplat:
+def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=None, sky=True,
+            max_range=None) -> VoxSplat:
     """The sensor-to-sensor converter: posed camera `frames` (`scube_sim.camera.Frames`) -> a
     VoxSplat in their ego frame, with semantics, sky, per-voxel observation and confidence, and
     provenance (`scube_sim.model.converter.Converter.convert`). torch and the models load on the
     first call, not on `import scube_sim`."""
     from .model.converter import convert as _convert  # the one upward import: keeps the package torch-free
 
-    return _convert(frames, profile=profile, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky)
+    return _convert(frames, profile=profile, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
+                    max_range=max_range)
 
 
 __all__ = ["Gaussians", "ScubeSimError", "VoxSplat", "convert"]

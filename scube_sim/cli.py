@@ -222,13 +222,17 @@ def demo_cmd(
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
     voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
     seed: int = typer.Option(0, "--seed"),
+    profile: str = typer.Option("cpu", "--profile", help="converter profile for the camera-to-LiDAR part"),
+    convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),
 ) -> None:
-    """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/."""
+    """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/; convert the
+    scene's camera images with the SCube converter and sweep that too."""
 
     def body():
         from .demo import run_demo
 
-        run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo)
+        run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo,
+                 profile=profile if convert else None)
 
     _run(body)
 
@@ -363,6 +367,7 @@ def convert_cmd(
     seed: int = typer.Option(0, "--seed", help="the geometry sampler's seed"),
     confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),
     sky: bool = typer.Option(True, "--sky/--no-sky", help="decode the sky panorama (--no-sky for LiDAR-only use)"),
+    max_range: Optional[float] = typer.Option(None, "--max-range", help="keep voxels within this many metres of the ego (a LiDAR's range)"),
 ) -> None:
     """Convert posed camera frames into a VoxSplat (the SCube converter: geometry, then appearance)."""
 
@@ -376,7 +381,8 @@ def convert_cmd(
         frames = open_frames(path, dataset, sample)
         conv = Converter(profile)
         t0 = time.perf_counter()
-        vs = conv.convert(frames, steps=steps, seed=seed, confidence=confidence > 1, k=confidence or None, sky=sky)
+        vs = conv.convert(frames, steps=steps, seed=seed, confidence=confidence > 1, k=confidence or None, sky=sky,
+                          max_range=max_range)
         output.parent.mkdir(parents=True, exist_ok=True)
         vs.save(output)
         t = conv.timings

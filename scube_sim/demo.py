@@ -1,6 +1,8 @@
 """The `make demo` job on the embedded default scenario: a procedural urban block ->
 ground-truth VoxSplat -> HDL-64E sweep -> files in out/, with timings and the VoxSplat's range
-error against the same sweep on the exact mesh."""
+error against the same sweep on the exact mesh; then the converter: the world's five camera
+images -> a converted VoxSplat -> the same sweep through it, compared with the mesh's and the
+ground-truth VoxSplat's in one table."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from typing import Callable
 
 import numpy as np
 
+from .camera.frames import CameraImage, Frames
 from .camera.render import render_camera
 from .camera.rig import load_rig
 from .io.ply3dgs import write_3dgs_ply
@@ -20,7 +23,8 @@ from .lidar.model import Lidar
 from .mesh import TriangleMesh
 from .raytrace.tracer import Tracer
 from .transforms import invert_pose, transform_points
-from .viz import bev_png, mosaic_png
+from .viz import bev_compare_png, bev_png, fidelity_png, mosaic_png
+from .worlds.dataset import DatasetConfig
 from .worlds.generator import WorldConfig, generate_world
 from .worlds.groundtruth import gt_voxsplat
 from .worlds.textures import albedo
@@ -31,10 +35,47 @@ DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
 REGION = (np.array([-10.24, -25.6, -3.23]), np.array([40.96, 25.6, 40.0]))
 
 
+CONVERTED_MODE = "soft"  # how the demo traces converted scenes (`_convert_and_compare`)
+# The worlds datasets' image scale of the rig presets (the converter's training images).
+FRAMES_SCALE = DatasetConfig().image_scale
+
+
+def sweep_agreement(reference: np.ndarray, candidate: np.ndarray, rays: np.ndarray) -> dict:
+    """A candidate sweep against a reference sweep of the same rays: range images (rings,
+    columns) (NaN: no return) and `rays` (rings, columns) bool, the reference's returns compared
+    (e.g. those inside the region both scenes cover). Returns median and p90 |range error| in
+    metres over the rays where both return, `hit_agreement` the share of `rays` the candidate
+    returns too, and `rays` the count."""
+    both = rays & np.isfinite(candidate) & np.isfinite(reference)
+    err = np.abs(reference - candidate)[both]
+    n = int(rays.sum())
+    return {"rays": n, "median_m": float(np.median(err)) if err.size else float("nan"),
+            "p90_m": float(np.percentile(err, 90)) if err.size else float("nan"),
+            "hit_agreement": float(both.sum() / n) if n else float("nan")}
+
+
+def demo_frames(world, chunk_to_world: np.ndarray, rig_name: str = "waymo-5", scale: float = FRAMES_SCALE) -> Frames:
+    """The rig's camera images of `world` at T (its ego pose at time 0), rendered at the worlds
+    datasets' scale, with sky masks, as the converter's input."""
+    rig = load_rig(rig_name)
+    tracers = [Tracer(world.static)] + ([Tracer(TriangleMesh.concatenate(world.actor_meshes_at(0.0)))]
+                                        if world.actors else [])
+    images = []
+    for c in rig.cameras:
+        intr = c.intrinsics().scaled(scale)
+        pose = chunk_to_world @ c.cam_to_ego()
+        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
+        images.append(CameraImage(c.name, r["rgb"], intr, pose, 0.0, sky=r["sky"]))
+    return Frames(images, chunk_to_world, 0.0, {"sample": "demo", "rig": rig_name})
+
+
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
-             world: WorldConfig | None = None, echo: Callable[[str], None] = print) -> dict:
+             world: WorldConfig | None = None, echo: Callable[[str], None] = print,
+             profile: str | None = "cpu") -> dict:
     """Write views.png, scene.npz, scene_3dgs.ply, sweep.pcd, scene.usdc, sweep.usda and bev.png
-    into `out`; returns the timings and counts it printed."""
+    into `out`; with a converter `profile` (None: skip) also converted.npz (the VoxSplat the
+    converter makes from the camera images), converted_sweep.pcd, mesh_sweep.pcd,
+    converted_bev.png and converted_range.png. Returns the timings and counts it printed."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     times = {}
@@ -46,11 +87,9 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     times["generate world"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    rig = load_rig("waymo-5")
-    tracers = [Tracer(w.static)] + ([Tracer(TriangleMesh.concatenate(w.actor_meshes_at(0.0)))] if w.actors else [])
-    views = {c.name: render_camera(tracers, c.intrinsics().scaled(0.3), chunk_to_world @ c.cam_to_ego(),
-                                   sun_dir=w.sun_dir, albedo_fn=albedo)["rgb"] for c in rig.cameras}
-    mosaic_png(out / "views.png", views, title=f"{wcfg.style} world, seed {wcfg.seed}: the Waymo-like rig at T")
+    frames = demo_frames(w, chunk_to_world)
+    mosaic_png(out / "views.png", {im.name: im.image for im in frames.images},
+               title=f"{wcfg.style} world, seed {wcfg.seed}: the Waymo-like rig at T")
     times["render 5 cameras"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -100,7 +139,64 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
         echo(f"VoxSplat vs mesh sweep on {int(mask.sum())} rays returning inside the fitted region (noise on both): "
              f"|range error| median {np.median(err) * 100:.1f} cm, p90 {np.percentile(err, 90) * 100:.1f} cm; "
              f"{both.sum() / mask.sum() * 100:.1f} % of them return on the VoxSplat too")
+    result = {"times": times, "points": len(sweep), "gaussians": vs.num_gaussians}
+    names = "views.png scene.npz scene_3dgs.ply sweep.pcd scene.usdc sweep.usda bev.png"
+    if profile is not None:
+        result["converted"] = _convert_and_compare(out, frames, profile, lidar, pose, pose_world, mesh_sweep, sweep,
+                                                   mask, seed, times, echo)
+        names += " converted.npz converted_sweep.pcd mesh_sweep.pcd converted_bev.png converted_range.png"
     for name, sec in times.items():
         echo(f"  {name:<28s} {sec:7.3f} s")
-    echo(f"outputs in {out}/: views.png scene.npz scene_3dgs.ply sweep.pcd scene.usdc sweep.usda bev.png")
-    return {"times": times, "points": len(sweep), "gaussians": vs.num_gaussians}
+    echo(f"outputs in {out}/: {names}")
+    return result
+
+
+def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, pose: np.ndarray,
+                         pose_world: np.ndarray, mesh_sweep, gt_sweep, rays: np.ndarray, seed: int,
+                         times: dict, echo: Callable[[str], None]) -> dict:
+    """The converter's part of the demo (run_demo's docstring): convert, sweep, compare, write."""
+    from .model.converter import Converter  # torch: only when the converter runs
+
+    t = time.perf_counter()
+    conv = Converter(profile)
+    scene = conv.convert(frames, seed=seed)
+    times["convert 5 cameras"] = time.perf_counter() - t
+    # soft: the converter's Gaussians are camera-trained blobs about half a voxel wide whose
+    # opacity matters; at hard opacity their 3-sigma shells are 2-3 m slabs (the sensor sits
+    # inside the ground's). The ground truth's are thin surfels fitted for hard opacity (`entry`).
+    t = time.perf_counter()
+    sweep = lidar.scan(Tracer(scene, mode=CONVERTED_MODE), pose, seed=seed)
+    times["LiDAR sweep (converted)"] = time.perf_counter() - t
+    t = time.perf_counter()
+    scene.save(out / "converted.npz")
+    write_pcd(out / "converted_sweep.pcd", sweep.points, viewpoint=pose)
+    write_pcd(out / "mesh_sweep.pcd", mesh_sweep.points, viewpoint=pose_world)
+    ref = mesh_sweep.range_image()
+    rows = {"ground-truth VoxSplat, entry": sweep_agreement(ref, gt_sweep.range_image(), rays),
+            f"converted, {CONVERTED_MODE}": sweep_agreement(ref, sweep.range_image(), rays)}
+    conv_img = sweep.range_image()
+    fidelity_png(out / "converted_range.png",
+                 {"mesh (ground truth)": ref, "converted VoxSplat": conv_img, "error (converted - mesh)": conv_img - ref},
+                 title=f"{lidar.config.name}: the converted scene against the mesh, ray for ray",
+                 mismatch=np.isfinite(ref) != np.isfinite(conv_img))
+    err = np.abs(np.nan_to_num(conv_img - ref, nan=np.inf))
+    ring_row = np.empty(sweep.channels, np.int64)
+    ring_row[np.argsort(-sweep.ring_elevation_deg, kind="stable")] = np.arange(sweep.channels)
+    pts = sweep.points
+    per_point = err[ring_row[pts["ring"]], pts["column"]]
+    bev_compare_png(out / "converted_bev.png",
+                    {"mesh (ground truth)": (mesh_sweep.xyz(), None), "ground-truth VoxSplat": (gt_sweep.xyz(), None),
+                     "converted from the cameras, |range error|": (sweep.xyz(), np.minimum(per_point, 5.0))},
+                    extent=45.0, value_name="|range error| [m] (5 = 5 or more, or no mesh return)",
+                    title=f"{lidar.config.name}, sensor frame: the converted scene beside the ground truth")
+    times["write converted outputs"] = time.perf_counter() - t
+    echo(f"converter (profile {profile}): {scene}; {100 * float(scene.channel('observed').mean()):.1f} % of voxels "
+         f"seen by the cameras; geometry {conv.timings['geometry_s']:.1f} s, appearance "
+         f"{conv.timings['appearance_s']:.1f} s")
+    echo(f"{lidar.config.name} on both VoxSplats against the mesh, on the rays whose mesh return lies inside the "
+         f"fitted region:")
+    echo(f"{'scene':<30s} {'rays':>7s} {'median |dr|':>12s} {'p90 |dr|':>10s} {'hit agreement':>14s}")
+    for name, r in rows.items():
+        echo(f"{name:<30s} {r['rays']:7d} {100 * r['median_m']:10.1f} cm {100 * r['p90_m']:7.1f} cm "
+             f"{100 * r['hit_agreement']:12.1f} %")
+    return rows

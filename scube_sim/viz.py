@@ -62,6 +62,43 @@ def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = No
     return _save(fig, path)
 
 
+def bev_compare_png(path: str | Path, panels: dict[str, tuple[np.ndarray, np.ndarray | None]], *,
+                    extent: float = 45.0, value_name: str = "", title: str = "", point_size: float = 0.3) -> Path:
+    """Top-down views side by side: name -> ((N, 3) points, sensor frame; (N,) values or None).
+    Panels without values are coloured by height (z), those with values by them (magma, one shared
+    colour bar); same axes everywhere, the sensor at the origin."""
+    plt = _plt()
+    n = len(panels)
+    fig, axes = plt.subplots(1, n, figsize=(6.2 * n, 6.6), dpi=110, squeeze=False)
+    z_all = np.concatenate([np.asarray(p, np.float64)[:, 2] for p, v in panels.values() if v is None and len(p)]
+                           or [np.zeros(1)])
+    zlo, zhi = np.percentile(z_all, [1, 99])
+    for ax, (name, (pts, vals)) in zip(axes[0], panels.items()):
+        pts = np.asarray(pts, np.float64)
+        order = np.argsort(pts[:, 2]) if len(pts) else np.zeros(0, int)
+        p = pts[order]
+        if vals is None:
+            sc = ax.scatter(p[:, 0], p[:, 1], s=point_size, c=p[:, 2], cmap="viridis", vmin=zlo, vmax=zhi,
+                            linewidths=0)
+            fig.colorbar(sc, ax=ax, fraction=0.04, label="height z [m]")
+        else:
+            sc = ax.scatter(p[:, 0], p[:, 1], s=point_size, c=np.asarray(vals)[order], cmap="magma_r", vmin=0,
+                            linewidths=0)
+            fig.colorbar(sc, ax=ax, fraction=0.04, label=value_name)
+        ax.plot([0.0], [0.0], "r^", ms=7)
+        ax.set_xlim(-extent, extent)
+        ax.set_ylim(-extent, extent)
+        ax.set_aspect("equal")
+        ax.set_title(f"{name} ({len(pts)} points)", fontsize=9)
+        ax.set_xlabel("x [m]")
+        ax.grid(alpha=0.3)
+    axes[0, 0].set_ylabel("y [m]")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
 def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: float | None = None,
                      title: str = "") -> Path:
     """Stack (rings, columns) images one above the other (NaN = no return)."""

@@ -39,7 +39,7 @@ from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
 from ..errors import InputError
 from ..memory import peak_mb, reset_peak
 from ..transforms import invert_pose
-from ..voxsplat import VoxSplat
+from ..voxsplat import SCALE, VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance import AppearanceNet, first_hit_voxels
 from .checkpoint import resolve_checkpoint
@@ -68,9 +68,13 @@ class GeometryProfile(StageProfile):
 
 
 class AppearanceProfile(StageProfile):
-    """sky_size: (rows, columns) of the sky panorama channel."""
+    """sky_size: (rows, columns) of the sky panorama channel. max_scale_voxels: each Gaussian's
+    standard deviations are capped at this many voxels (None: as predicted). The camera loss
+    tolerates a few wide, faint Gaussians that fill background; a LiDAR tracing at hard opacity
+    sees each as a wall k standard deviations out, and one around the sensor hides everything."""
 
     sky_size: tuple[int, int] = (128, 256)
+    max_scale_voxels: float | None = Field(default=1.0, gt=0)
 
 
 class ConverterProfile(StrictModel):
@@ -266,18 +270,28 @@ class Converter:
             miss = (item["hits"] < 0).to(torch.float32)[:, None]
             item["sky"] = (F.interpolate(miss, scale_factor=2, mode="nearest")[:, 0, :h, :w] > 0.5) & item["valid"]
         out = self.appearance(item, sky=sky)
-        if sky:
-            return self.appearance.to_voxsplat(out, item, sky_size=tuple(self.profile.appearance.sky_size))
-        return self.appearance.to_voxsplat(out, item, sky_size=None)
+        scene = self.appearance.to_voxsplat(out, item, sky_size=tuple(self.profile.appearance.sky_size) if sky else None)
+        cap = self.profile.appearance.max_scale_voxels
+        if cap is not None:
+            scale = scene.params[..., SCALE]
+            scene.params[..., SCALE] = np.minimum(scale, np.float32(np.log(cap * voxel_size)))
+        return scene
 
     @torch.no_grad()
     def convert(self, frames: Frames, *, steps: int | None = None, seed: int = 0, confidence: bool = False,
-                k: int | None = None, sky: bool = True) -> VoxSplat:
+                k: int | None = None, sky: bool = True, max_range: float | None = None) -> VoxSplat:
         """Frames -> VoxSplat (chunk frame, module docstring) with labels, reflectance, the sky
         panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
         camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
         (`k`, default the profile's confidence_samples) and store each voxel's share of them;
-        otherwise one sample is drawn and confidence is 1. Same frames and seed, same bytes."""
+        otherwise one sample is drawn and confidence is 1. A single-step predictor's geometry
+        draws no samples: its confidence is the decoder's occupancy probability either way
+        (``confidence_kind`` in the metadata says which). max_range: keep only the voxels whose
+        centre lies within this many metres (horizontally) of the ego origin before the
+        appearance stage (a LiDAR's range: the appearance stage's cost grows with the voxels).
+        Same frames and seed, same bytes."""
+        if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
+            raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
         if k is not None and k < 1:
             raise InputError(f"k: expected at least one geometry sample, got {k}")
         k = (k or self.profile.confidence_samples) if confidence else 1
@@ -286,6 +300,10 @@ class Converter:
         reset_peak()
         t0 = time.perf_counter()
         ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), k=k)
+        if max_range is not None:
+            centres = torch.as_tensor(CHUNK_CORNER[:2]) + (ijk[:, :2].double() + 0.5) * vs
+            keep = centres.norm(dim=1) <= max_range
+            ijk, labels, conf, observed = ijk[keep], labels[keep], conf[keep], observed[keep]
         t1 = time.perf_counter()
         scene = self.gaussians(frames, ijk, labels, vs, sky=sky)
         t2 = time.perf_counter()
@@ -299,8 +317,12 @@ class Converter:
             "geometry_checkpoint": {"path": self.profile.geometry.checkpoint, "sha256": hashes["geometry"]},
             "appearance_checkpoint": {"path": self.profile.appearance.checkpoint, "sha256": hashes["appearance"]},
             "sample_steps": int(steps or self.profile.geometry.sample_steps or self.geometry.cfg.sample_steps),
+            "max_range_m": None if max_range is None else float(max_range),
             "seed": int(seed),
             "confidence_samples": int(k),
+            "geometry_mode": self.geometry.cfg.mode,
+            "confidence_kind": ("decoder occupancy probability" if self.geometry.cfg.mode == "predictor"
+                                else f"share of {k} geometry samples"),
             "cameras": list(frames.names),
             "timestamp": float(frames.timestamp),
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},
@@ -312,13 +334,15 @@ _CACHE: dict[str, Converter] = {}
 
 
 def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_PROFILE, steps: int | None = None,
-            seed: int = 0, confidence: bool = False, k: int | None = None, sky: bool = True) -> VoxSplat:
+            seed: int = 0, confidence: bool = False, k: int | None = None, sky: bool = True,
+            max_range: float | None = None) -> VoxSplat:
     """`Converter(profile).convert(frames, ...)`, with the loaded converter kept per profile name
     or path for the next call."""
     key = profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)
     if key not in _CACHE:
         _CACHE[key] = Converter(profile)
-    return _CACHE[key].convert(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky)
+    return _CACHE[key].convert(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
+                               max_range=max_range)
 
 
 __all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "convert", "frames_item", "load_profile",

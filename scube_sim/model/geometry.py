@@ -563,9 +563,15 @@ class GeometryNet(nn.Module):
         """`predict` with seed `seed` -> (ijk (V, 3), labels (V,), confidence (V,) float32 the share
         of the k samples drawn with seeds seed .. seed + k - 1 that hold the voxel (1 when k = 1:
         only the first sample is drawn), observed (V,) bool whether an input camera sees the voxel
-        first along one of its rays, traced through the predicted grid itself, `observed_voxels`)."""
+        first along one of its rays, traced through the predicted grid itself, `observed_voxels`).
+        The coarse single-step predictor draws no samples (each would be the same grid): its
+        confidence is the decoder's occupancy probability of the voxel, the product over the
+        voxel and its ancestors (each level's sigmoid), whatever k is."""
         if k < 1:
             raise InputError(f"k: expected at least one sample, got {k}")
+        if self.cfg.mode == "predictor" and not self.fine:
+            ijk, labels, prob = self._predict_coarse(item, steps, seed)
+            return ijk, labels, prob.float(), observed_voxels(ijk, item["gt_grid"], item)
         ijk, labels = self.predict(item, steps, seed, coarse)
         count = torch.ones(len(ijk), dtype=torch.int64)
         keys = _flat_keys(ijk, item["gt_grid"].dims)
@@ -574,18 +580,31 @@ class GeometryNet(nn.Module):
             count += torch.isin(keys, _flat_keys(other, item["gt_grid"].dims)).to(torch.int64)
         return ijk, labels, (count.double() / k).float(), observed_voxels(ijk, item["gt_grid"], item)
 
+    def _predict_coarse(self, item: dict, steps: int | None, seed: int):
+        """The coarse level: (ijk (V, 3), labels (V,), occupancy probability (V,) of each voxel and
+        all its ancestors, the product of their sigmoids)."""
+        vol, _, _ = self.conditioner(item, item["lift_grid"])
+        z = self.sample_latent(vol, (1, self.cfg.vae.latent_channels, *vol.shape[2:]), steps, seed)
+        occ_levels, occ_final, lab = self.vae.decode(z * self.vae.latent_std)
+        ijks, labs = prune_decode(occ_levels, occ_final, lab)
+        ijk = ijks[0]
+        logp = F.logsigmoid(occ_final[0])[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        for logits in occ_levels:
+            s = occ_final.shape[-1] // logits.shape[-1]
+            p = ijk // s
+            logp = logp + F.logsigmoid(logits[0])[p[:, 0], p[:, 1], p[:, 2]]
+        return ijk, labs[0], logp.exp()
+
     def predict(self, item: dict, steps: int | None = None, seed: int = 0, coarse=None):
         """One sample -> (ijk (V, 3) int64 in the level's box voxels, labels (V,)). coarse: the
         fine level's latent grid (ijk, labels) at the coarse voxel size (default: the item's
         ground truth, which evaluates the fine level alone)."""
         self._check_level(item)
+        if not self.fine:
+            ijk, labels, _ = self._predict_coarse(item, steps, seed)
+            return ijk, labels
         vol, _, _ = self.conditioner(item, item["lift_grid"])
         lat = self.cfg.vae.latent_channels
-        if not self.fine:
-            z = self.sample_latent(vol, (1, lat, *vol.shape[2:]), steps, seed)
-            occ_levels, occ_final, lab = self.vae.decode(z * self.vae.latent_std)
-            ijks, labs = prune_decode(occ_levels, occ_final, lab)
-            return ijks[0], labs[0]
         sites, site_labels = coarse if coarse is not None else (item["coarse_gt_ijk"], item["coarse_gt_labels"])
         if not len(sites):
             return torch.zeros(0, 3, dtype=torch.int64), torch.zeros(0, dtype=torch.int64)

@@ -125,6 +125,13 @@ def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(setup):
     lidar = conv.convert(frames, seed=0, sky=False)
     assert "sky_panorama" not in lidar.channels and "sky_panorama" in full.channels
     np.testing.assert_array_equal(lidar.params, full.params)
+    near = conv.convert(frames, seed=0, sky=False, max_range=30.0)
+    centres = full.voxel_centers() + full.origin
+    inside = np.linalg.norm(centres[:, :2], axis=1) <= 30.0
+    assert 0 < near.num_voxels == int(inside.sum()) < full.num_voxels
+    np.testing.assert_array_equal(near.ijk, full.ijk[inside])
+    with pytest.raises(InputError, match="max_range"):
+        conv.convert(frames, max_range=-1.0)
 
 
 def _moved(frames: Frames, offset) -> Frames:

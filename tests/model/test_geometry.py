@@ -546,3 +546,25 @@ def test_confidence_is_the_share_of_samples_holding_each_voxel(data):
     assert observed.dtype == torch.bool and torch.equal(observed, observed_voxels(first, item["gt_grid"], item))
     with pytest.raises(InputError, match="k: expected at least one sample"):
         model.predict_with_confidence(item, k=0)
+
+
+def test_the_predictors_confidence_is_its_decoders_occupancy_probability(data):
+    """mode predictor: no samples to count; the confidence of a voxel is the product of the
+    decoder's occupancy probabilities of the voxel and of its ancestors (each > 0.5 where kept)."""
+    _, item = _geometry_item(data)
+    torch.manual_seed(0)
+    model = GeometryNet(GeometryModelConfig(**MODEL, mode="predictor")).eval()
+    with torch.no_grad():
+        ijk, labels, conf, _ = model.predict_with_confidence(item, k=4)
+        first, _ = model.predict(item)
+        vol, _, _ = model.conditioner(item, item["lift_grid"])
+        z = model.sample_latent(vol, (1, model.cfg.vae.latent_channels, *vol.shape[2:]))
+        occ_levels, occ_final, _ = model.vae.decode(z * model.vae.latent_std)
+    assert torch.equal(ijk, first) and len(ijk) > 0
+    dense = torch.sigmoid(occ_final[0])
+    for logits in occ_levels:  # every coarser level upsampled to the voxel grid, multiplied in
+        s = occ_final.shape[-1] // logits.shape[-1]
+        dense = dense * torch.sigmoid(logits[0]).repeat_interleave(s, 0).repeat_interleave(s, 1).repeat_interleave(s, 2)
+    want = dense[ijk[:, 0], ijk[:, 1], ijk[:, 2]].float()
+    torch.testing.assert_close(conf, want, rtol=1e-5, atol=1e-6)
+    assert bool((conf > 0.5 ** (len(occ_levels) + 1)).all()) and bool((conf <= 1).all())

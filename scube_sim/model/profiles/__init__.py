@@ -1,0 +1,1 @@
+"""Shipped converter profiles (YAML): `model.converter.load_profile` reads them by name."""
