@@ -222,3 +222,36 @@ def test_bad_input_gives_clear_errors(setup, tmp_path):
     r = CliRunner().invoke(app, ["convert", str(setup["sample"]), "--profile", str(setup["profile"]),
                                  "-o", str(tmp_path / "x.ply")])
     assert r.exit_code == 2 and ".npz" in r.output
+
+
+def test_real_frames_convert_and_a_lidar_only_log_is_refused(setup, shared_data):
+    """The nuScenes demo keyframe's six 1600 x 900 cameras meet the network at the profile's focal
+    length and convert; an Argoverse 2 sample (LiDAR only here) gets a clear error."""
+    from tests.conftest import require
+
+    root = require(shared_data / "nuscenes-mmdet3d-demo" / "n015-2018-07-24-11-22-45+0800.pkl").parent
+    frames = open_frames(root, "nuscenes", 0)
+    assert len(frames) == 6 and frames.metadata["dataset"] == "nuscenes"
+    conv = Converter(setup["profile"])
+    item = frames_item(frames, conv.profile.geometry)
+    np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.01)
+    vs = conv.convert(frames, seed=0, sky=False)
+    assert np.isfinite(vs.params).all() and vs.metadata["cameras"] == frames.names
+    assert vs.channel("observed").shape == (vs.num_voxels,)
+    av2 = require(shared_data / "argoverse2-sensor-log-7fab2350")
+    with pytest.raises(InputError, match="no camera images"):
+        open_frames(av2, "argoverse2", 0)
+
+
+def test_one_camera_and_twenty_cameras_convert(setup):
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    one = Frames(frames.images[:1], frames.ego_pose, 0.0, {"sample": "one"})
+    assert np.isfinite(conv.convert(one, seed=0).params).all()
+    many = []
+    for i in range(20):  # the rig's cameras again and again, each a new name
+        im = copy.deepcopy(frames.images[i % len(frames.images)])
+        im.name = f"cam{i:02d}"
+        many.append(im)
+    vs = conv.convert(Frames(many, frames.ego_pose, 0.0, {"sample": "twenty"}), seed=0)
+    assert np.isfinite(vs.params).all() and len(vs.metadata["cameras"]) == 20
