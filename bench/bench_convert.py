@@ -115,8 +115,9 @@ def main(argv=None) -> None:
         print(r)
     variants = {"full (sky, one geometry sample)": {},
                 "LiDAR only (no sky)": {"sky": False},
-                "LiDAR only, within 60 m": {"sky": False, "max_range": 60.0},
-                f"confidence over K = {args.k}": {"confidence": True, "k": args.k}}
+                "LiDAR only, within 60 m": {"sky": False, "max_range": 60.0}}
+    if conv.geometry.cfg.mode == "diffusion":  # a single-step predictor draws no samples to count
+        variants[f"confidence over K = {args.k}"] = {"confidence": True, "k": args.k}
     per: dict[str, list[dict]] = {name: [] for name in variants}
     folders = folders[: args.samples]
     _run(conv, open_frames(folders[0]))  # warm-up: first-call allocations

@@ -244,6 +244,7 @@ class Converter:
             self._hashes = {k: _sha256(v) for k, v in self._paths.items()}
         return self._hashes
 
+    @torch.no_grad()
     def predict_voxels(self, frames: Frames, *, steps: int | None = None, seed: int = 0, k: int = 1):
         """The geometry stage: -> (ijk (V, 3) int64 chunk voxels from CHUNK_CORNER, labels (V,),
         confidence (V,) float32 (the share of k samples holding the voxel; 1 when k = 1),
@@ -257,6 +258,7 @@ class Converter:
                             / cfg.voxel_size).to(torch.int64)
         return ijk + shift, labels, conf, observed, float(cfg.voxel_size)
 
+    @torch.no_grad()
     def gaussians(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, voxel_size: float,
                   sky: bool = True) -> VoxSplat:
         """The appearance stage on given voxels -> a VoxSplat in the chunk frame (with its sky

@@ -7,7 +7,10 @@ from __future__ import annotations
 import pytest
 import torch
 
+from scube_sim.datasets import open_dataset
 from scube_sim.model.appearance import evaluate_item
+from scube_sim.model.converter import Converter, shipped_profiles
+from scube_sim.model.geometry import GeometryNet
 from scube_sim.model.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, shipped_checkpoints
 from scube_sim.model.config import stage_configs
 from scube_sim.model.stages import get_stage
@@ -59,3 +62,37 @@ def test_the_coarse_structure_vae_reconstructs_a_held_out_world(tmp_path):
     with torch.no_grad():
         m = stage.evaluate(model, [items])
     assert m["iou"] > 0.8 and m["chamfer_q50"] < 0.25, m
+
+
+def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_path):
+    """Each shipped profile's checkpoints resolve; the cpu profile's geometry stage, on a freshly
+    generated held-out world, predicts a grid closer to the ground truth (IoU) than the same
+    network with its image and 3D layers untrained (the frozen VAE kept)."""
+    assert "cpu" in shipped_profiles()
+    conv = Converter("cpu")
+    cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
+                        fine_voxel_m=0.2, coarse_factor=4)
+    generate_dataset(tmp_path, "test", 1, cfg, progress=False)
+    sample = open_dataset("worlds", tmp_path, split="test", eval_frames=False)[0]
+    gt = sample.ground_truth.coarse
+    truth = dict(zip(map(tuple, gt.ijk.astype(int).tolist()), gt.labels.astype(int).tolist()))
+
+    def scores(c: Converter) -> tuple[float, float]:
+        """(IoU, the share of predicted voxels that the ground truth holds with the same label)."""
+        ijk, labels, conf, observed, _ = c.predict_voxels(sample.frames)
+        assert bool(((conf > 0) & (conf <= 1)).all()) and 0 < float(observed.float().mean()) < 1
+        keys = list(map(tuple, ijk.tolist()))
+        both = sum(k in truth for k in keys)
+        same = sum(truth.get(k) == lab for k, lab in zip(keys, labels.tolist()))
+        return both / (len(keys) + len(truth) - both), same / max(len(keys), 1)
+
+    trained = scores(conv)
+    torch.manual_seed(0)
+    fresh = GeometryNet(conv.geometry.cfg).eval()
+    fresh.vae.load_state_dict(conv.geometry.vae.state_dict())
+    conv.geometry = fresh
+    untrained = scores(conv)
+    # occupancy: the untrained network decodes the VAE's zero latent, a plausible ground already
+    # (measured: IoU 0.334 against 0.296, same-label share 0.72 against 0.17)
+    assert trained[0] > untrained[0], (trained, untrained)
+    assert trained[1] > untrained[1] + 0.2, (trained, untrained)
