@@ -249,10 +249,23 @@ def _flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
+def _with_todays_defaults(config: dict, stage: Stage, path: Path) -> dict:
+    """A checkpoint's stored config resolved again by today's classes: a setting added since the
+    run began takes its default, which is what the run did, so it does not count as a change."""
+    try:
+        run = config_from_dict(config, f"{path} (config)")
+        model_cfg, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
+    except ConfigError:  # a config today's classes refuse: compare it as stored, key by key
+        return config
+    out = resolved_config(run, model_cfg, data_cfg)
+    out["train"]["ranks"] = config.get("train", {}).get("ranks", out["train"].get("ranks"))
+    return out
+
+
 def _check_resumable(ck: dict, stage: Stage, resolved: dict, path: Path) -> None:
     if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
         raise CheckpointError(f"{path}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
-    old, new = _flatten(ck["config"]), _flatten(resolved)
+    old, new = _flatten(_with_todays_defaults(ck["config"], stage, path)), _flatten(resolved)
     for key in sorted(set(old) | set(new)):
         if key not in RESUMABLE_KEYS and old.get(key) != new.get(key):
             raise ConfigError(f"{path}: the run was started with {key} = {old.get(key)!r}, this config has "

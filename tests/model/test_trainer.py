@@ -24,7 +24,7 @@ from torch.utils.data import Dataset
 
 from scube_sim.config import ConfigError, StrictModel
 from scube_sim.errors import NotFoundError
-from scube_sim.model.checkpoint import load_checkpoint, seed_everything
+from scube_sim.model.checkpoint import load_checkpoint, save_checkpoint, seed_everything
 from scube_sim.model.config import load_config
 from scube_sim.model.stages import Stage, StageError, get_stage, register_stage, stage_names
 from scube_sim.model.trainer import TrainingError, train
@@ -203,6 +203,24 @@ def test_resume_may_extend_the_run_but_not_change_it(tmp_path, data_dir):
 
     other = load_config(write_config(tmp_path / "other.yaml", model={"dropout": 0.2}, epochs=2, lr=0.01))
     with pytest.raises(ConfigError, match=r"last\.pt: the run was started with train\.lr = 0\.05"):
+        train(TOY, other, data_dir, tmp_path / "run", resume=True, progress=False)
+
+
+def test_a_run_from_before_a_setting_existed_resumes_at_its_default(tmp_path, data_dir):
+    """A checkpoint whose stored config lacks a setting added since (here: dropout, at its
+    default) is the same run as today's config with that default; another value is a change."""
+    short = load_config(write_config(tmp_path / "short.yaml", epochs=1))
+    res = train(TOY, short, data_dir, tmp_path / "run", progress=False)
+    ck = load_checkpoint(res.last)
+    default = ck["config"]["model"].pop("dropout")
+    save_checkpoint(res.last, {k: v for k, v in ck.items() if k not in ("format", "version")})
+    more = load_config(write_config(tmp_path / "more.yaml", epochs=2))
+    assert train(TOY, more, data_dir, tmp_path / "run", resume=True, progress=False).step == 8
+    ck = load_checkpoint(res.last)
+    ck["config"]["model"].pop("dropout")
+    save_checkpoint(res.last, {k: v for k, v in ck.items() if k not in ("format", "version")})
+    other = load_config(write_config(tmp_path / "other.yaml", model={"dropout": default + 0.25}, epochs=3))
+    with pytest.raises(ConfigError, match=r"model\.dropout"):
         train(TOY, other, data_dir, tmp_path / "run", resume=True, progress=False)
 
 
