@@ -409,6 +409,7 @@ def fidelity_cmd(
     raw: bool = typer.Option(False, "--raw", help="compare with the sweep as measured (undo motion compensation): tests the motion model"),
     static_from: str = typer.Option("", "--static-from", help="sample indices whose sweeps find returns on moving objects; adds [static rays] rows"),
     assume_single_origin: bool = typer.Option(False, "--assume-single-origin", help="trace a sweep that looks merged from several LiDARs from its stated origin anyway"),
+    ground_plane: bool = typer.Option(False, "--ground-plane", help="add a flat road plane under the ego as a floor row"),
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
 
@@ -421,7 +422,7 @@ def fidelity_cmd(
         vs = VoxSplat.load(scene)
         res = run_fidelity(ds, vs, sample=sample, sensor=sensor, mode=mode, baselines=baselines, noise=noise,
                            static_from=_int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."),
-                           assume_single_origin=assume_single_origin)
+                           assume_single_origin=assume_single_origin, ground_plane=ground_plane)
         paths = write_report(res, output)
         typer.echo(res.markdown())
         typer.echo(f"-> {paths['markdown']}, {paths['png']}")

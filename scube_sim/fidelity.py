@@ -38,6 +38,8 @@ from .lidar.config import LidarConfig
 from .lidar.model import Lidar
 from .lidar.pattern import channels_by_elevation, replay_pattern
 from .mesh import TriangleMesh
+from .labels import label_id
+from .raytrace.posed import place_scene
 from .raytrace.tracer import Tracer
 from .reconstruct import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
 from .transforms import invert_pose
@@ -376,6 +378,7 @@ def poisson_mesh(points: np.ndarray, normals: np.ndarray, *, depth: int = 10, or
 # --- the report ------------------------------------------------------------------------------
 
 CLASS_ROW = "voxsplat, class reflectivity"
+GROUND_ROW = "baseline: flat ground plane (the road under the ego)"
 
 METRIC_COLUMNS = (("median_abs_m", "median |dr| [cm]", 100), ("p90_abs_m", "p90 |dr| [cm]", 100),
                   ("hit_agreement", "hit agreement [%]", 100), ("chamfer_m", "Chamfer [cm]", 100),
@@ -422,10 +425,22 @@ def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensor
     return moving
 
 
+def ground_plane_mesh(ego_pose: np.ndarray, ego_height: float = 0.0, half_size: float = 250.0) -> TriangleMesh:
+    """A flat square of road, 2 * half_size metres wide, `ego_height` metres below the ego frame's
+    origin (its z = -ego_height plane), world frame: the floor any scene must beat."""
+    h = float(half_size)
+    z = -float(ego_height)
+    corners = np.array([[-h, -h, z], [h, -h, z], [h, h, z], [-h, h, z]])
+    pose = np.asarray(ego_pose, np.float64)
+    world = corners @ pose[:3, :3].T + pose[:3, 3]
+    return TriangleMesh(world - pose[:3, 3], [[0, 1, 2], [0, 2, 3]], labels=np.full(2, label_id("road")),
+                        origin=pose[:3, 3].copy())
+
+
 def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str = "max_response",
                  baselines: bool = True, noise: bool = False, min_range: float = 1.0, seed: int = 0,
                  static_from: list[int] | None = None, raw: bool = False, progress=None,
-                 assume_single_origin: bool = False) -> FidelityResult:
+                 assume_single_origin: bool = False, ground_plane: bool = False) -> FidelityResult:
     """Compare a VoxSplat `scene` with the real sweep of `sensor` in `ds[sample]`, next to the
     two baselines (0.1 m voxel cubes and an open3d Poisson surface of the points the scene was
     built from: rebuilt here from the build options stored in the scene), all traced on the
@@ -438,7 +453,9 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     A cloud merged from several LiDARs (`LidarSweep.merged`) is traced ray by ray from each
     point's own sensor, with that sensor's model (`Sample.lidars` under its origin's name, else
     the merged sweep's). A sweep without origins whose geometry shows several is refused
-    (`datasets.origins`), unless `assume_single_origin`."""
+    (`datasets.origins`), unless `assume_single_origin`. ground_plane: add the row of a flat
+    road plane under the ego (`ground_plane_mesh`, the frames' ``ego_height_m`` below it). A scene in a chunk frame (the
+    converter's: metadata ``frame: chunk`` and ``chunk_to_world``) is placed in the world by it."""
     step = progress or (lambda msg: None)
     smp = ds[sample]
     sweep = smp.sweep(sensor)
@@ -467,7 +484,8 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     rows, images = {}, {"real": range_image(rays, rays.range)}
     step("tracing the VoxSplat")
     tracer = Tracer(scene, mode=mode)
-    sim = simulate(tracer)
+    placed = place_scene(tracer, scene)  # a converted scene lives in its chunk frame
+    sim = simulate(placed)
     sims = {"voxsplat": sim}
     images["voxsplat"] = range_image(rays, sim.range)
     intensity_images = {"real": range_image(rays, np.where(rays.hit, rays.intensity, np.nan))}
@@ -475,7 +493,7 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         # Before/after in one run: the same tracer without the measured reflectance.
         measured, tracer.reflectance = tracer.reflectance, None
         try:
-            sims[CLASS_ROW] = simulate(tracer)
+            sims[CLASS_ROW] = simulate(placed)
         finally:
             tracer.reflectance = measured
         intensity_images["voxsplat"] = range_image(rays, sim.intensity)
@@ -487,9 +505,13 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         intensity_images["voxsplat"] = range_image(rays, sim.intensity)
         notes.append("intensity: the scene carries no measured reflectance: class reflectivity x cos incidence")
     if not sweep.motion_compensated:
-        sims["voxsplat, no motion model"] = simulate(tracer, distortion=False)
+        sims["voxsplat, no motion model"] = simulate(placed, distortion=False)
         notes.append("raw sweep: 'voxsplat' fires each ray from the sensor pose at its own time (per-point "
                      "offsets, real pose stream); 'no motion model' fires all from the sweep-time pose")
+    if ground_plane:
+        step("tracing the flat ground plane")
+        height = float((smp.frames.metadata if smp.frames is not None else {}).get("ego_height_m", 0.0))
+        sims[GROUND_ROW] = simulate(Tracer(ground_plane_mesh(smp.ego_pose, height)))
     build = scene.metadata.get("build") if isinstance(scene.metadata, dict) else None
     if baselines and build is not None and scene.metadata.get("dataset") == ds.name:
         step("building the baselines")

@@ -49,7 +49,9 @@ class Frames:
     """Posed camera images around one reference instant.
 
     images: list of CameraImage; ego_pose (4, 4) float64 ego-to-world at `timestamp`;
-    metadata: free-form provenance (dataset, sample id, ...)."""
+    metadata: free-form provenance (dataset, sample id, ...); ``ego_height_m``, where an adapter
+    knows it, is the ego frame's origin height above the road in metres (0 where the ego frame
+    sits on the road, as in nuScenes and the worlds; KITTI's is its Velodyne, 1.73 m up)."""
 
     images: list[CameraImage]
     ego_pose: np.ndarray

@@ -39,6 +39,10 @@ from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, i
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "HDL-64E"
+# The Velodyne's height above the road on the KITTI car (Geiger et al., "Vision meets Robotics: The
+# KITTI Dataset", IJRR 2013, the sensor setup figure: 1.73 m). The ego frame here is the Velodyne
+# frame, so Frames carry it as ``ego_height_m`` (the converter's chunk starts at road level).
+VELODYNE_HEIGHT_M = 1.73
 
 # KITTI calib text (object-benchmark format): key -> count of numbers. Shapes after reading:
 # P0..P3 (3, 4) projection matrices of the rectified cameras, R0_rect (3, 3), Tr_* (3, 4).
@@ -253,7 +257,8 @@ class KittiRawDataset:
                                                     str(self.calib_path), "P2")
         cam_to_world = pose @ np.linalg.inv(self.velo_to_rect) @ rect_to_cam2
         frames = Frames([CameraImage("image_02", rgb, intr, cam_to_world, t)], pose, t,
-                        {"dataset": self.name, "frame": stem, "root": str(self.root)})
+                        {"dataset": self.name, "frame": stem, "root": str(self.root),
+                         "ego_height_m": VELODYNE_HEIGHT_M})
         meta = {"dataset": self.name, "frame": stem, "calib": str(self.calib_path), "poses": self.poses_mode,
                 "timestamps": "frame number x 0.1 s (10 Hz); the set has none"}
         if self.poses_mode == "icp":
@@ -341,7 +346,8 @@ class KittiObjectDataset:
                                                     f"{at}.images.CAM2.cam2img")
         rect_to_velo = np.linalg.inv(lidar2cam)
         frames = Frames([CameraImage("CAM2", rgb, intr, rect_to_velo @ rect_to_cam2, 0.0)], np.eye(4), 0.0,
-                        {"dataset": self.name, "frame": stem, "fov_cropped": True})
+                        {"dataset": self.name, "frame": stem, "fov_cropped": True,
+                         "ego_height_m": VELODYNE_HEIGHT_M})
 
         classes = _class_names(raw.get("metainfo"))
         boxes, nlp = [], []

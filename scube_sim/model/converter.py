@@ -7,7 +7,8 @@ shipped ones are `profiles/<name>.yaml` in this package (`cpu` is the default), 
 YAML file given by path (`ConverterProfile`).
 
 Frames: the chunk frame is the frames' ego frame at their reference instant (x forward, y left,
-z up, metres), as the worlds define it: ``Frames.ego_pose`` is chunk_to_world. The VoxSplat lives
+z up, metres), as the worlds define it: ``Frames.ego_pose`` is chunk_to_world, moved down to the
+road by ``Frames.metadata["ego_height_m"]`` where an adapter's ego frame is above it (KITTI's). The VoxSplat lives
 in that frame (origin CHUNK_CORNER) with ``chunk_to_world`` in its metadata, as
 `worlds.groundtruth.gt_voxsplat` writes the ground truth, so the simulator places both the same
 way. Poses are composed in float64 before anything is cast to float32, so frames 10^6 m from the
@@ -163,6 +164,21 @@ def _distortion(im) -> np.ndarray:
                      f"'opencv' cameras")
 
 
+def chunk_to_world(frames: Frames) -> np.ndarray:
+    """(4, 4) float64 the chunk frame of `frames`: their ego frame moved down to the road by the
+    metadata's ``ego_height_m`` (0 where absent), so the box's z range sits where it was trained."""
+    h = frames.metadata.get("ego_height_m", 0.0)
+    try:
+        h = float(h)
+    except (TypeError, ValueError):
+        h = float("nan")
+    if not np.isfinite(h):
+        raise InputError(f"frames.metadata ego_height_m: expected a finite number of metres, got {frames.metadata.get('ego_height_m')!r}")
+    down = np.eye(4)
+    down[2, 3] = -h
+    return np.asarray(frames.ego_pose, np.float64) @ down
+
+
 def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
     """The item a stage's network reads, from `frames` (module docstring): ``images`` (N, 3, H, W)
     float32 in [0, 1], zero-padded to the largest; ``intrinsics`` (N, 3, 3) of the resized
@@ -177,7 +193,7 @@ def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) 
     names = frames.names
     if len(set(names)) != len(names):
         raise InputError(f"frames: camera names must be unique, got {names}")
-    to_chunk = invert_pose(frames.ego_pose)
+    to_chunk = invert_pose(chunk_to_world(frames))
     cams = []
     for im in frames.images:
         intr = im.intrinsics
@@ -204,7 +220,7 @@ def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) 
     w = max(int(c["image_size"][1]) for c in cams)
     n = len(cams)
     item = {"images": torch.zeros(n, 3, h, w), "valid": torch.zeros(n, h, w, dtype=torch.bool),
-            "camera_names": names, "chunk_to_world": torch.from_numpy(np.array(frames.ego_pose, np.float64)),
+            "camera_names": names, "chunk_to_world": torch.from_numpy(chunk_to_world(frames)),
             "sample": str(frames.metadata.get("sample", frames.metadata.get("name", "frames")))}
     for key in ("intrinsics", "distortion", "image_size", "cam_to_chunk"):
         item[key] = torch.stack([c[key] for c in cams])

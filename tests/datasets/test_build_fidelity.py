@@ -40,10 +40,13 @@ def nus_scene(shared_data, tmp_path_factory):
 
 def test_nuscenes_same_pose_beats_both_baselines(nus_scene, tmp_path):
     root, scene = nus_scene
-    res = run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "-o", tmp_path)
+    res = run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "-o", tmp_path, "--ground-plane")
     assert res.exit_code == 0, res.output
     rows = json.loads((tmp_path / "report.json").read_text())["rows"]
     vs, cubes, poisson = rows["voxsplat"], rows[CUBES], rows[POISSON]
+    # the floor: a flat road at the ego's z = 0 returns the ground rings and nothing standing
+    ground = rows["baseline: flat ground plane (the road under the ego)"]
+    assert vs["hit_agreement"] > ground["hit_agreement"] and vs["median_abs_m"] < ground["median_abs_m"]
     # The issue's bar: Poisson's median and the cubes' p90 at once.
     assert vs["median_abs_m"] < poisson["median_abs_m"] and vs["p90_abs_m"] < cubes["p90_abs_m"]
     assert vs["median_abs_m"] <= 0.013 and vs["p90_abs_m"] <= 0.10

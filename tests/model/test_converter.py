@@ -255,3 +255,23 @@ def test_one_camera_and_twenty_cameras_convert(setup):
         many.append(im)
     vs = conv.convert(Frames(many, frames.ego_pose, 0.0, {"sample": "twenty"}), seed=0)
     assert np.isfinite(vs.params).all() and len(vs.metadata["cameras"]) == 20
+
+
+def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(setup):
+    """Frames whose ego frame sits ego_height_m above the road (KITTI's Velodyne) convert as the
+    same frames with the ego pose lowered by that height: the chunk starts at road level."""
+    conv = Converter(setup["profile"])
+    frames = _frames(setup)
+    raised = copy.deepcopy(frames)
+    lift = np.eye(4)
+    lift[2, 3] = 1.5
+    raised.ego_pose = raised.ego_pose @ lift
+    raised.metadata["ego_height_m"] = 1.5
+    a, b = conv.convert(frames, seed=0), conv.convert(raised, seed=0)
+    np.testing.assert_array_equal(a.ijk, b.ijk)
+    np.testing.assert_allclose(a.params, b.params, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(np.array(a.metadata["chunk_to_world"]), np.array(b.metadata["chunk_to_world"]),
+                               rtol=0, atol=1e-9)
+    raised.metadata["ego_height_m"] = "tall"
+    with pytest.raises(InputError, match="ego_height_m"):
+        conv.convert(raised)
