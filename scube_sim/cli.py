@@ -67,7 +67,7 @@ def lidar_cmd(
     sensor: str = typer.Option(..., "--sensor", "-s", help="preset name (see `scube-sim sensors`) or a sensor YAML path"),
     output: Path = typer.Option(..., "-o", "--output", help="point cloud to write: .pcd, .ply, .bin (KITTI) or .npz"),
     pose: str = typer.Option("0,0,0,0,0,0", "--pose", help="sensor pose in the scene frame: x,y,z,roll,pitch,yaw (m, deg)"),
-    mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (entry for VoxSplats, soft for 3DGS .ply)"),
+    mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (a VoxSplat's own trace_mode, else entry; soft for 3DGS .ply)"),
     backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex: the Embree engine of the reference core (default: the faster one)"),
     core: Optional[str] = typer.Option(None, "--core", help="compiled | reference (default: compiled where built; env SCUBE_SIM_CORE)"),
     threads: int = typer.Option(0, "--threads", help="the compiled core's threads (0: all cores)"),
@@ -91,7 +91,7 @@ def lidar_cmd(
         cfg = load_lidar_config(sensor)
         t0 = time.perf_counter()
         sc = load_scene(scene)
-        m = mode if mode != "auto" else ("entry" if isinstance(sc, VoxSplat) else "soft")
+        m = mode if mode != "auto" else (sc.metadata.get("trace_mode", "entry") if isinstance(sc, VoxSplat) else "soft")
         if core not in (None, "compiled", "reference"):
             raise CliError(f"--core: expected compiled or reference, got {core!r}")
         tracer = Tracer(sc, backend=backend or DEFAULT_BACKEND, mode=m, k=k, core=core, threads=threads)

@@ -35,7 +35,6 @@ DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
 REGION = (np.array([-10.24, -25.6, -3.23]), np.array([40.96, 25.6, 40.0]))
 
 
-CONVERTED_MODE = "soft"  # how the demo traces converted scenes (`_convert_and_compare`)
 # The worlds datasets' image scale of the rig presets (the converter's training images).
 FRAMES_SCALE = DatasetConfig().image_scale
 
@@ -161,11 +160,12 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
     conv = Converter(profile)
     scene = conv.convert(frames, seed=seed)
     times["convert 5 cameras"] = time.perf_counter() - t
-    # soft: the converter's Gaussians are camera-trained blobs about half a voxel wide whose
-    # opacity matters; at hard opacity their 3-sigma shells are 2-3 m slabs (the sensor sits
-    # inside the ground's). The ground truth's are thin surfels fitted for hard opacity (`entry`).
+    # the converter's own trace mode (soft: its Gaussians are camera-trained blobs; at hard opacity
+    # the sensor sits inside the ground's 3-sigma shells); the ground truth's are thin surfels
+    # fitted for hard opacity (`entry`)
+    mode = scene.metadata.get("trace_mode", "entry")
     t = time.perf_counter()
-    sweep = lidar.scan(Tracer(scene, mode=CONVERTED_MODE), pose, seed=seed)
+    sweep = lidar.scan(Tracer(scene, mode=mode), pose, seed=seed)
     times["LiDAR sweep (converted)"] = time.perf_counter() - t
     t = time.perf_counter()
     scene.save(out / "converted.npz")
@@ -173,7 +173,7 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
     write_pcd(out / "mesh_sweep.pcd", mesh_sweep.points, viewpoint=pose_world)
     ref = mesh_sweep.range_image()
     rows = {"ground-truth VoxSplat, entry": sweep_agreement(ref, gt_sweep.range_image(), rays),
-            f"converted, {CONVERTED_MODE}": sweep_agreement(ref, sweep.range_image(), rays)}
+            f"converted, {mode}": sweep_agreement(ref, sweep.range_image(), rays)}
     conv_img = sweep.range_image()
     fidelity_png(out / "converted_range.png",
                  {"mesh (ground truth)": ref, "converted VoxSplat": conv_img, "error (converted - mesh)": conv_img - ref},

@@ -49,6 +49,10 @@ from .geometry import GeometryDataConfig, GeometryNet
 from .trainer import load_model
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
+# How a converted scene is traced (metadata ``trace_mode``, which `scube-sim lidar --mode auto`
+# and the demo read): its Gaussians are camera-trained blobs about half a voxel wide whose opacity
+# matters; at hard opacity their 3-sigma shells are slabs metres thick.
+TRACE_MODE = "soft"
 DEFAULT_PROFILE = "cpu"
 
 
@@ -339,6 +343,7 @@ class Converter:
             "seed": int(seed),
             "confidence_samples": int(k),
             "geometry_mode": self.geometry.cfg.mode,
+            "trace_mode": TRACE_MODE,
             "confidence_kind": ("decoder occupancy probability" if self.geometry.cfg.mode == "predictor"
                                 else f"share of {k} geometry samples"),
             "cameras": list(frames.names),

@@ -101,6 +101,11 @@ def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(s
     assert (vs.channel("confidence") == 1.0).all()  # one sample: confidence 1
     assert vs.channel("sky_panorama").shape == (8, 16, 3)
     assert vs.channel("reflectance").shape == (vs.num_voxels, 2)
+    # `lidar --mode auto` traces a converted scene in the mode it names (soft)
+    assert m["trace_mode"] == "soft"
+    r = CliRunner().invoke(app, ["lidar", str(outs[0]), "--sensor", "vlp16", "--pose", "0,0,1.8,0,0,0",
+                                 "-o", str(tmp_path / "s.pcd")])
+    assert r.exit_code == 0 and "mode soft" in r.output, r.output
 
 
 def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(setup):
