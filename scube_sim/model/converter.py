@@ -44,7 +44,7 @@ from ..voxsplat import SCALE, VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance import AppearanceNet, first_hit_voxels
 from .checkpoint import resolve_checkpoint
-from .data import resize_bilinear, scale_intrinsics
+from .data import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
 from .geometry import GeometryDataConfig, GeometryNet
 from .trainer import load_model
 
@@ -156,18 +156,6 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _distortion(im) -> np.ndarray:
-    intr = im.intrinsics
-    if intr.model == "pinhole" or not intr.dist:
-        return np.zeros(5)
-    if intr.model == "opencv":
-        d = np.zeros(5)
-        d[: len(intr.dist)] = intr.dist
-        return d
-    raise InputError(f"camera {im.name!r}: distortion model {intr.model!r}; the converter takes 'pinhole' or "
-                     f"'opencv' cameras")
-
-
 def chunk_to_world(frames: Frames) -> np.ndarray:
     """(4, 4) float64 the chunk frame of `frames`: their ego frame moved down to the road by the
     metadata's ``ego_height_m`` (0 where absent), so the box's z range sits where it was trained."""
@@ -211,14 +199,12 @@ def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) 
         rgb = torch.from_numpy(np.array(im.image, np.uint8)).permute(2, 0, 1).to(torch.float32) / 255.0
         cam = {"images": resize_bilinear(rgb, new).clamp(0.0, 1.0),
                "intrinsics": torch.from_numpy(scale_intrinsics(intr.K, size, new).astype(np.float32)),
-               "distortion": torch.from_numpy(_distortion(im).astype(np.float32)),
+               "distortion": torch.from_numpy(camera_distortion(im).astype(np.float32)),
                "image_size": torch.tensor(new, dtype=torch.int64),
                # composed in float64: the world's coordinates may be large, the chunk's are small
                "cam_to_chunk": torch.from_numpy((to_chunk @ im.cam_to_world).astype(np.float32))}
         if with_sky and im.sky is not None:
-            idx_r = np.minimum((np.arange(new[0]) + 0.5) * size[0] / new[0], size[0] - 1).astype(int)
-            idx_c = np.minimum((np.arange(new[1]) + 0.5) * size[1] / new[1], size[1] - 1).astype(int)
-            cam["sky"] = torch.from_numpy(np.asarray(im.sky, bool)[idx_r][:, idx_c].copy())
+            cam["sky"] = torch.from_numpy(resize_nearest(np.asarray(im.sky, bool), new))
         cams.append(cam)
     h = max(int(c["image_size"][0]) for c in cams)
     w = max(int(c["image_size"][1]) for c in cams)

@@ -147,13 +147,17 @@ def resize_nearest(a: np.ndarray, size: tuple[int, int]) -> np.ndarray:
 # --- one sample -----------------------------------------------------------------------------------
 
 
-def _distortion(im: CameraImage) -> np.ndarray:
+def camera_distortion(im: CameraImage) -> np.ndarray:
+    """(5,) float64 OpenCV [k1, k2, p1, p2, k3] of a pinhole or OpenCV camera (zeros for pinhole;
+    shorter OpenCV lists padded with zeros); an InputError for any other lens model."""
     intr = im.intrinsics
     if intr.model == "pinhole" or not intr.dist:
         return np.zeros(5)
     if intr.model == "opencv":
-        return np.asarray(intr.dist, np.float64)
-    raise InputError(f"camera {im.name!r}: distortion model {intr.model!r}; the training data takes "
+        d = np.zeros(5)
+        d[: len(intr.dist)] = intr.dist
+        return d
+    raise InputError(f"camera {im.name!r}: distortion model {intr.model!r}; the networks take "
                      f"'pinhole' or 'opencv' cameras")
 
 
@@ -170,7 +174,7 @@ def _camera(im: CameraImage, to_chunk: np.ndarray, t0: float, cfg: DataConfig, w
     return {
         "images": resize_bilinear(rgb, new).clamp(0.0, 1.0),
         "intrinsics": torch.from_numpy(scale_intrinsics(intr.K, size, new).astype(np.float32)),
-        "distortion": torch.from_numpy(_distortion(im).astype(np.float32)),
+        "distortion": torch.from_numpy(camera_distortion(im).astype(np.float32)),
         "image_size": torch.tensor(new, dtype=torch.int64),
         # float64 until the end: world coordinates are large, the chunk's are small
         "cam_to_chunk": torch.from_numpy((to_chunk @ im.cam_to_world).astype(np.float32)),
@@ -329,5 +333,5 @@ def collate(items: list[dict]) -> dict:
     return batch
 
 
-__all__ = ["CAMERA_KEYS", "DataConfig", "WorldsTorchDataset", "collate", "item_generator", "nearest_index",
+__all__ = ["CAMERA_KEYS", "DataConfig", "WorldsTorchDataset", "camera_distortion", "collate", "item_generator", "nearest_index",
            "resize_bilinear", "resize_nearest", "scale_intrinsics", "target_size"]

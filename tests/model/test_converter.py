@@ -36,7 +36,7 @@ APP = {"gaussians_per_voxel": 2, "image_channels": 8, "widths": [8, 16], "pe_fre
 APP_DATA = {"level": "coarse", "image_scale": 1.0}
 
 
-def _train(stage, model, data_cfg, data, out, tmp, steps=2, lr=1e-3):
+def _train(stage, model, data_cfg, data, out, steps=2, lr=1e-3):
     cfg = {"stage": stage, "train": {"seed": 0, "steps": steps, "batch_size": 1, "lr": lr, "threads": 1},
            "model": model, "data": data_cfg}
     train(stage, config_from_dict(cfg), data, out, progress=False)
@@ -52,9 +52,9 @@ def setup(tmp_path_factory):
         generate_dataset(data, split, 1, TINY, progress=False)
     # the VAE overfits the one training world, so that even an untrained denoiser's latents decode
     # to a grid of that world's kind (not an empty one)
-    vae = _train("geometry-vae", {"vae": VAE}, GEO_DATA, data, tmp / "vae", tmp, steps=40, lr=1e-2)
-    geo = _train("geometry", {**GEO, "vae_checkpoint": str(vae)}, GEO_DATA, data, tmp / "geo", tmp)
-    app_ck = _train("appearance", APP, APP_DATA, data, tmp / "app", tmp)
+    vae = _train("geometry-vae", {"vae": VAE}, GEO_DATA, data, tmp / "vae", steps=40, lr=1e-2)
+    geo = _train("geometry", {**GEO, "vae_checkpoint": str(vae)}, GEO_DATA, data, tmp / "geo")
+    app_ck = _train("appearance", APP, APP_DATA, data, tmp / "app")
     fx = float(open_dataset("worlds", data, split="test")[0].frames.images[0].intrinsics.K[0, 0])
     profile = tmp / "tiny.yaml"
     profile.write_text(yaml.safe_dump({"geometry": {"checkpoint": str(geo), "focal_px": fx},
