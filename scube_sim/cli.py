@@ -578,18 +578,26 @@ def train_cmd(
 
 @app.command("eval")
 def eval_cmd(
-    stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to"),
+    stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
+                                "appearance), or sensor-to-sensor: the whole converter, end to end"),
     data: Path = typer.Option(..., "--data", help="dataset folder"),
-    checkpoint: str = typer.Option(..., "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
-                                   "checkpoint's name (appearance-cpu)"),
+    checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
+                                             "checkpoint's name (appearance-cpu); a stage's evaluation needs it"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
                                           "config to change from the checkpoint's (repeatable; VALUE is YAML), "
                                           "e.g. eval_frames=true"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    profile: str = typer.Option("cpu", "--profile", help="sensor-to-sensor: converter profile (shipped name or YAML)"),
+    sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
+    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="sensor-to-sensor: the split's first N samples"),
+    gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="sensor-to-sensor: the ground-truth VoxSplat's voxel (m)"),
+    seed: int = typer.Option(0, "--seed", min=0, help="sensor-to-sensor: converter and LiDAR seed"),
 ) -> None:
-    """Evaluate a checkpoint on one split of a dataset folder."""
+    """Evaluate a checkpoint on one split of a dataset folder; `eval sensor-to-sensor` converts
+    each held-out worlds sample's cameras and sweeps a LiDAR through the result against the same
+    LiDAR on the world's mesh (model/sensor_to_sensor.py)."""
 
     def body():
         import json
@@ -599,6 +607,12 @@ def eval_cmd(
         from .atomic import atomic_path
         from .model.stages import get_stage
         from .model.trainer import evaluate
+
+        if stage == "sensor-to-sensor":
+            _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress)
+            return
+        if checkpoint is None:
+            raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
 
         overrides = {}
         for opt in data_option:
@@ -622,6 +636,35 @@ def eval_cmd(
             typer.echo(f"-> {output}")
 
     _run(body)
+
+
+def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, limit: int | None, gt_voxel: float,
+                           seed: int, output: Path | None, progress: bool) -> None:
+    import json
+
+    from rich.progress import track
+
+    from .atomic import atomic_path
+    from .model.sensor_to_sensor import evaluate_split
+
+    if not gt_voxel > 0:
+        raise CliError(f"--gt-voxel: expected a positive voxel size in metres, got {gt_voxel}")
+    bar = (lambda xs: track(xs, description="sensor to sensor")) if progress else None
+    res = evaluate_split(data, split=split, profile=profile, sensor=sensor, limit=limit, gt_voxel=gt_voxel,
+                         seed=seed, progress=bar)
+    if output is not None:
+        with atomic_path(output) as tmp:
+            tmp.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
+    typer.echo(f"{res['samples_n']} {split} samples, profile {res['profile']}, {res['sensor']}, against the mesh; "
+               f"ground-truth VoxSplat at {gt_voxel:g} m")
+    typer.echo(f"{'ahead':>6s} {'rays':>7s} {'scene':<22s} {'split':<7s} {'median |dr|':>11s} {'p90 |dr|':>9s} "
+               f"{'hits':>7s} {'Chamfer':>8s}")
+    for r in res["rows"]:
+        typer.echo(f"{r['ahead_m']:5.0f}m {r['rays']:7d} {r['scene']:<22s} {r['split']:<7s} {r['median_m']:9.3f} m "
+                   f"{r['p90_m']:7.3f} m {100 * r['hit_agreement']:6.1f}% {r['chamfer_m']:6.3f} m")
+    typer.echo("stages (mean per sample): " + ", ".join(f"{k} {v:.4g}" for k, v in res["stages"].items()))
+    if output is not None:
+        typer.echo(f"-> {output}")
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):

@@ -1,0 +1,86 @@
+"""`scube-sim eval sensor-to-sensor`'s measures against hand-made answers (range images, point
+sets, poses, voxel look-ups), and the whole evaluation on a tiny worlds sample through the CLI:
+the ground-truth VoxSplat's sweep meets its voxel size's error bound on the mesh's rays."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from scube_sim.cli import app
+from scube_sim.errors import InputError
+from scube_sim.model.sensor_to_sensor import ahead_poses, evaluate_split, geometric_lidar, seen_points, sweep_metrics
+from scube_sim.voxsplat import voxel_keys
+from scube_sim.worlds.groundtruth import CHUNK_CORNER
+
+from .test_converter import setup  # noqa: F401  (the tiny worlds dataset and profile, module scope)
+
+
+def test_sweep_metrics_on_hand_made_range_images_and_parallel_planes():
+    ref = np.full((4, 10), 10.0, np.float32)
+    cand = ref.copy()
+    cand[0] += 0.5          # ten rays 0.5 m long
+    cand[1, :5] = np.nan    # five rays without a return
+    rays = np.ones_like(ref, bool)
+    rays[3] = False         # not compared
+    g = np.stack(np.meshgrid(np.arange(20.0), np.arange(20.0), [0.0]), -1).reshape(-1, 3)
+    m = sweep_metrics(ref, cand, rays, g, g + [0, 0, 0.3])
+    assert m["rays"] == 30
+    assert m["hit_agreement"] == pytest.approx(25 / 30)
+    # 25 rays return on both: 10 at 0.5 m, 15 at 0
+    assert m["median_m"] == pytest.approx(0.0) and m["p90_m"] == pytest.approx(0.5)
+    assert m["chamfer_m"] == pytest.approx(0.3)  # planes 0.3 m apart, the same grid
+    none = sweep_metrics(ref, np.full_like(ref, np.nan), rays, g, g[:0])
+    assert none["hit_agreement"] == 0 and np.isnan(none["median_m"]) and np.isnan(none["chamfer_m"])
+
+
+def test_ahead_poses_move_the_sensor_along_the_ego_heading_in_the_world():
+    lidar = geometric_lidar("vlp16")
+    yaw90 = np.array([[0.0, -1, 0, 100], [1, 0, 0, 200], [0, 0, 1, 5], [0, 0, 0, 1]])
+    p0, p20 = ahead_poses(lidar, yaw90, (0.0, 20.0))
+    np.testing.assert_allclose(p20.world[:3, 3] - p0.world[:3, 3], [0, 20, 0], atol=1e-12)
+    np.testing.assert_allclose(p20.chunk[:3, 3] - p0.chunk[:3, 3], [20, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(p0.chunk, lidar.mount)
+    # the geometric sensor: no noise, no drops, one return
+    assert lidar.config.noise.range_sigma_m == 0 and lidar.config.drop.random_rate == 0
+    assert lidar.config.beam.return_mode == "strongest"
+
+
+def test_seen_points_look_up_the_fine_voxel_of_each_point():
+    ijk = np.array([[0, 0, 0], [5, 6, 7], [5, 6, 8]])
+    voxels = {"fine_ijk": ijk, "fine_visible": np.array([True, True, False]), "fine_voxel_size": np.float64(0.2)}
+    pts = CHUNK_CORNER + np.array([[0.1, 0.1, 0.1], [1.05, 1.25, 1.45], [1.05, 1.25, 1.65], [3.0, 3.0, 3.0]])
+    np.testing.assert_array_equal(seen_points(pts, voxels), [True, True, False, False])
+    assert voxel_keys(ijk).dtype == np.int64
+
+
+def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(setup, tmp_path):  # noqa: F811
+    out = tmp_path / "s2s.json"
+    r = CliRunner().invoke(app, ["eval", "sensor-to-sensor", "--data", str(setup["data"]), "--profile",
+                                 str(setup["profile"]), "--sensor", "vlp16", "--gt-voxel", "0.8", "--limit", "1",
+                                 "--no-progress", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["samples_n"] == 1 and res["split"] == "test"
+    rows = {(x["scene"], x["ahead_m"], x["split"]): x for x in res["rows"]}
+    assert {k[1] for k in rows} == {0.0, 20.0, 60.0}
+    for ahead in (0.0, 20.0, 60.0):
+        for scene in ("ground-truth VoxSplat", "converted"):
+            a, s, u = (rows[(scene, ahead, k)] for k in ("all", "seen", "unseen"))
+            assert a["rays"] == s["rays"] + u["rays"] > 1000
+        gt = rows[("ground-truth VoxSplat", ahead, "all")]
+        # the ground truth's surfels lie on the mesh: range error well inside a voxel, every ray returns
+        assert gt["median_m"] < 0.8 / 4 and gt["hit_agreement"] > 0.99 and gt["chamfer_m"] < 0.8 / 2
+    st = res["stages"]
+    assert st["seconds"] > 0 and st["peak_mb"] > 0 and np.isfinite(st["input_psnr_db"])
+    assert "median |dr|" in r.output and "converted" in r.output
+
+
+def test_eval_sensor_to_sensor_names_a_missing_split(setup, tmp_path):  # noqa: F811
+    with pytest.raises(InputError, match="nosuch"):
+        evaluate_split(setup["data"], split="nosuch", profile=setup["profile"])
+    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(setup["data"])])
+    assert r.exit_code != 0 and "--checkpoint" in r.output
