@@ -12,22 +12,18 @@ from typing import Callable
 
 import numpy as np
 
-from .camera.frames import CameraImage, Frames
-from .camera.render import render_camera
-from .camera.rig import load_rig
+from .camera.frames import Frames
 from .io.ply3dgs import write_3dgs_ply
 from .io.pointcloud import write_pcd
 from .io.usd import export_usd
 from .lidar.config import load_lidar_config
 from .lidar.model import Lidar
-from .mesh import TriangleMesh
 from .raytrace.tracer import Tracer
 from .transforms import invert_pose, transform_points
 from .viz import bev_compare_png, bev_png, fidelity_png, mosaic_png
-from .worlds.dataset import DatasetConfig
+from .worlds.dataset import DatasetConfig, render_frames
 from .worlds.generator import WorldConfig, generate_world
 from .worlds.groundtruth import gt_voxsplat
-from .worlds.textures import albedo
 
 # The embedded default scenario (the same as scenarios/urban-block.yaml).
 DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
@@ -53,21 +49,6 @@ def sweep_agreement(reference: np.ndarray, candidate: np.ndarray, rays: np.ndarr
             "hit_agreement": float(both.sum() / n) if n else float("nan")}
 
 
-def demo_frames(world, chunk_to_world: np.ndarray, rig_name: str = "waymo-5", scale: float = FRAMES_SCALE) -> Frames:
-    """The rig's camera images of `world` at T (its ego pose at time 0), rendered at the worlds
-    datasets' scale, with sky masks, as the converter's input."""
-    rig = load_rig(rig_name)
-    tracers = [Tracer(world.static)] + ([Tracer(TriangleMesh.concatenate(world.actor_meshes_at(0.0)))]
-                                        if world.actors else [])
-    images = []
-    for c in rig.cameras:
-        intr = c.intrinsics().scaled(scale)
-        pose = chunk_to_world @ c.cam_to_ego()
-        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
-        images.append(CameraImage(c.name, r["rgb"], intr, pose, 0.0, sky=r["sky"]))
-    return Frames(images, chunk_to_world, 0.0, {"sample": "demo", "rig": rig_name})
-
-
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
              world: WorldConfig | None = None, echo: Callable[[str], None] = print,
              profile: str | None = "cpu") -> dict:
@@ -86,7 +67,7 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     times["generate world"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    frames = demo_frames(w, chunk_to_world)
+    frames = render_frames(w, "waymo-5", 0.0, FRAMES_SCALE)
     mosaic_png(out / "views.png", {im.name: im.image for im in frames.images},
                title=f"{wcfg.style} world, seed {wcfg.seed}: the Waymo-like rig at T")
     times["render 5 cameras"] = time.perf_counter() - t

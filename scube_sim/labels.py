@@ -65,6 +65,8 @@ LABELS: tuple[Label, ...] = (
 )
 
 NUM_LABELS = len(LABELS)
+# The surfaces a vehicle stands on: kept when a moving actor's voxels are cut out of a scene.
+GROUND_LABEL_NAMES = ("road", "lane_marker", "curb", "other_ground", "walkable", "sidewalk", "terrain")
 LABEL_NAMES: tuple[str, ...] = tuple(lab.name for lab in LABELS)
 LABEL_IDS: dict[str, int] = {lab.name: lab.id for lab in LABELS}
 LABEL_COLORS = np.array([lab.color for lab in LABELS], dtype=np.uint8)  # (NUM_LABELS, 3)

@@ -24,6 +24,7 @@ float32 never has to hold large world coordinates (float32 at 1e6 m resolves onl
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 import warnings
@@ -266,6 +267,20 @@ class VoxSplat:
     def voxel_centers(self) -> np.ndarray:
         """(V, 3) float64 voxel centres, local frame, metres."""
         return (self.ijk.astype(np.float64) + 0.5) * self.voxel_size
+
+    def select_voxels(self, keep) -> "VoxSplat":
+        """A new VoxSplat of the voxels `keep` ((V,) bool mask or indices, in order): their
+        parameters, labels, logits and per-voxel / per-Gaussian channels; scene channels and
+        metadata as they are (copied)."""
+        keep = np.asarray(keep)
+        idx = np.flatnonzero(keep) if keep.dtype == bool else keep.astype(np.int64)
+        if keep.dtype == bool and keep.shape != (self.num_voxels,):
+            raise InputError(f"select_voxels: expected a ({self.num_voxels},) mask, got shape {keep.shape}")
+        channels = {name: Channel(ch.per, ch.data if ch.per == "scene" else ch.data[idx])
+                    for name, ch in self.channels.items()}
+        return VoxSplat(self.ijk[idx], self.params[idx], self.voxel_size, self.origin.copy(), self.valid[idx],
+                        self.labels[idx], None if self.logits is None else self.logits[idx], self.offset_range,
+                        copy.deepcopy(self.metadata), channels)
 
     def means(self) -> np.ndarray:
         """(V, M, 3) float64 activated means, local frame."""

@@ -43,6 +43,26 @@ model units x output_scale (on surfaces with measured reflectance: the sensor's 
 metres from the beam origin; azimuth: radians, beam direction CCW from +x; label: semantic id;
 instance: actor id (0 = static scene); column: firing column; return_id: 0 first/only, 1 second."""
 
+PROVENANCE_FIELDS = [("observed", np.uint8), ("confidence", np.float32)]
+CONVERTED_POINT_DTYPE = np.dtype(POINT_DTYPE.descr + PROVENANCE_FIELDS)
+"""A return from a scene that holds inferred surfaces (a converted VoxSplat): POINT_DTYPE and
+observed (1: an input camera saw the voxel the return came from, or the surface was not inferred:
+a mesh, an actor, a ground-truth or measured VoxSplat; 0: the converter filled it in) and
+confidence (the converter's per-voxel confidence, metadata ``confidence_kind``; 1 where nothing
+was inferred). A sweep has these fields only when its scene holds such surfaces."""
+
+
+def point_dtype(provenance: bool) -> np.dtype:
+    """The sweep's point records: CONVERTED_POINT_DTYPE where the scene holds inferred surfaces."""
+    return CONVERTED_POINT_DTYPE if provenance else POINT_DTYPE
+
+
+def scene_has_provenance(scene) -> bool:
+    """Whether a Tracer, a list of them, or a time-aware scene holds inferred surfaces."""
+    if isinstance(scene, (list, tuple)):
+        return any(scene_has_provenance(s) for s in scene)
+    return bool(getattr(scene, "has_provenance", False))
+
 
 
 @dataclass
@@ -194,8 +214,8 @@ class Lidar:
         d_sub, o_sub, t_sub = self._sub_rays()
         static = pose_fn is None and np.array_equal(pose_start, pose_end)
         o_w, d_w, poses = self._world_rays(d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start)
-        hit, rng_sub, label, instance, cos_inc, color, measured = self._trace(tracer, o_w, d_w, o_sub, d_sub,
-                                                                              t_start + t_sub)
+        hit, rng_sub, label, instance, cos_inc, color, measured, prov = self._trace(tracer, o_w, d_w, o_sub,
+                                                                                    d_sub, t_start + t_sub)
         refl, inten = self._intensity(hit, rng_sub, label, cos_inc, color, measured)
         n_pulse, s = len(pat), self._sub_w.shape[0]
         pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
@@ -206,7 +226,8 @@ class Lidar:
                                                            cos_inc[rep], refl[rep], label[rep])
         echo_range = self._range_noise(rng, echo_range)
         ref = pose_start if cfg.motion.reference == "start" else pose_end
-        out = self._points(pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses)
+        out = self._points(pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses,
+                           prov if scene_has_provenance(tracer) else None)
         return Sweep(out, float(t_start), float(t_end), pose_start, pose_end, ref, cfg.motion.output,
                      cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, n_pulse)
 
@@ -285,7 +306,7 @@ class Lidar:
 
     def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times):
         """The ego body and the scene: per sub-ray hit, range (m), label, instance, |cos| of the
-        incidence angle, colour and measured reflectance (NaN: none)."""
+        incidence angle, colour, measured reflectance (NaN: none) and (observed, confidence)."""
         cfg = self.config
         t_far = np.full(o_w.shape[0], cfg.range.max_m, np.float64)
         t_body = np.full(o_w.shape[0], np.inf)
@@ -315,7 +336,8 @@ class Lidar:
             instance = np.where(body, 0, instance)
             cos_inc = np.where(body, 1.0, cos_inc)
             measured = np.where(body, np.nan, measured)
-        return hit, rng_sub, label, instance, cos_inc, hits.color, measured
+            hits.observed[body], hits.confidence[body] = 1, 1.0
+        return hit, rng_sub, label, instance, cos_inc, hits.color, measured, (hits.observed, hits.confidence)
 
     def _intensity(self, hit, rng_sub, label, cos_inc, color, measured):
         """Per sub-ray reflectivity and return strength: the sensor's response to the measured
@@ -367,8 +389,9 @@ class Lidar:
             echo_range = np.round(echo_range / nz.quantization_m) * nz.quantization_m
         return np.maximum(echo_range, 0.0)
 
-    def _points(self, pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses):
-        """The sweep's POINT_DTYPE records, in the output frame of `motion`."""
+    def _points(self, pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses, prov=None):
+        """The sweep's records, in the output frame of `motion`: POINT_DTYPE, or with `prov`
+        (per sub-ray observed, confidence) CONVERTED_POINT_DTYPE."""
         cfg, pat = self.config, self.pattern
         self._distinct_fire_times()  # knows whether the pattern has beam offsets
         # offsets + range * direction, in place; np.take: a row gather at a fraction of `[pulse]`'s
@@ -382,7 +405,7 @@ class Lidar:
             p_out = transform_points(rel[of_pulse[pulse]], p_sensor)
         else:
             p_out = p_sensor
-        out = np.empty(pulse.shape[0], POINT_DTYPE)  # every field is written below (the dtype has no padding)
+        out = np.empty(pulse.shape[0], point_dtype(prov is not None))  # every field is written below (no padding)
         out["x"], out["y"], out["z"] = p_out[:, 0], p_out[:, 1], p_out[:, 2]
         out["intensity"] = strength * cfg.intensity.output_scale
         out["ring"] = pat.ring[pulse]
@@ -393,6 +416,9 @@ class Lidar:
         out["instance"] = instance[rep]
         out["column"] = pat.column[pulse]
         out["return_id"] = rid
+        if prov is not None:
+            out["observed"] = prov[0][rep]
+            out["confidence"] = prov[1][rep]
         return out
 
     def _echoes(self, hit, rng_sub, inten, n_pulse, s):

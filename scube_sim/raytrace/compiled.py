@@ -113,7 +113,8 @@ class CompiledCore:
         out = Hits(hit=np.empty(n, bool), t=np.empty(n), points=np.empty((n, 3)), normals=np.empty((n, 3), np.float32),
                    gaussian=np.empty(n, np.int64), voxel=np.empty(n, np.int64), face=np.full(n, -1, np.int64),
                    label=np.empty(n, np.int16), instance=np.zeros(n, np.int32), color=np.empty((n, 3), np.float32),
-                   alpha=np.empty(n, np.float32), reflectance=np.full(n, np.nan, np.float32))
+                   alpha=np.empty(n, np.float32), reflectance=np.full(n, np.nan, np.float32),
+                   observed=np.ones(n, np.uint8), confidence=np.ones(n, np.float32))
         s = prepared.scene
         f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, prepared.lo, prepared.hi)]
         casts, tests, unfinished = _core.trace(

@@ -16,7 +16,10 @@ class Hits:
     (-1: none); face int64 (mesh triangle, -1 otherwise); label int16; instance int32;
     color float32 (N, 3) in [0, 1]; alpha float32 accumulated opacity (1 for hard hits);
     reflectance float32 measured reflectance of the surface hit (the VoxSplat `reflectance`
-    channel), NaN where the scene has none.
+    channel), NaN where the scene has none. observed uint8 and confidence float32: a converted
+    VoxSplat's ``observed`` and ``confidence`` channels of the voxel hit (1 where an input camera
+    saw it; the converter's confidence in it); 1 and 1.0 on every other surface (meshes,
+    ground-truth or measured VoxSplats: nothing there was inferred) and on misses.
     """
 
     hit: np.ndarray
@@ -31,6 +34,8 @@ class Hits:
     color: np.ndarray
     alpha: np.ndarray
     reflectance: np.ndarray
+    observed: np.ndarray
+    confidence: np.ndarray
 
     @classmethod
     def empty(cls, n: int) -> "Hits":
@@ -40,7 +45,8 @@ class Hits:
             voxel=np.full(n, -1, np.int64), face=np.full(n, -1, np.int64),
             label=np.zeros(n, np.int16), instance=np.zeros(n, np.int32),
             color=np.zeros((n, 3), np.float32), alpha=np.zeros(n, np.float32),
-            reflectance=np.full(n, np.nan, np.float32),
+            reflectance=np.full(n, np.nan, np.float32), observed=np.ones(n, np.uint8),
+            confidence=np.ones(n, np.float32),
         )
 
 

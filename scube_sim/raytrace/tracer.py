@@ -64,6 +64,9 @@ class Tracer:
     A VoxSplat's `reflectance` channel (measured reflectance per Gaussian) is copied into each
     hit's `reflectance` (NaN where the scene has none); the attribute `reflectance` holds it per
     kept Gaussian ((G,) float32, None without the channel; set None to trace without it).
+    A converted VoxSplat's ``observed`` and ``confidence`` channels (per voxel) go into each hit's
+    `observed` and `confidence` the same way; `provenance` holds them ((V,) uint8, (V,) float32,
+    or None: the scene inferred nothing) and `has_provenance` says whether there are any.
     """
 
     accepts_times = False  # a static scene: per-ray fire times change nothing
@@ -139,6 +142,7 @@ class Tracer:
         self.origin = mesh.origin.copy()
         self.mesh = mesh
         self.reflectance = None
+        self.provenance = None
         self._face_normals = mesh.face_normals()
         self._face_offset = np.einsum("ij,ij->i", self._face_normals, mesh.vertices[mesh.faces[:, 0]])
         v = mesh.vertices
@@ -149,6 +153,7 @@ class Tracer:
 
     def _build_gaussians(self, scene, labels) -> None:
         refl = None
+        self.provenance = None
         floor = self.soft_alpha_min if self.mode == "soft" else self.opacity_floor
         if isinstance(scene, VoxSplat):
             scene.check_finite()
@@ -159,6 +164,9 @@ class Tracer:
             self.num_voxels = scene.num_voxels
             if "reflectance" in scene.channels:
                 refl = scene.channel("reflectance")[g.voxel, g.slot].astype(np.float32)  # gaussians() order
+            if "observed" in scene.channels and "confidence" in scene.channels:
+                self.provenance = (np.asarray(scene.channel("observed"), np.uint8),
+                                   np.asarray(scene.channel("confidence"), np.float32))
             keep, owned = slice(None), True
         else:
             g = scene
@@ -245,7 +253,16 @@ class Tracer:
         if self.reflectance is not None:
             on = out.hit & (out.gaussian >= 0)
             out.reflectance[on] = self.reflectance[out.gaussian[on]]
+        if self.provenance is not None:
+            on = out.hit & (out.voxel >= 0)
+            out.observed[on] = self.provenance[0][out.voxel[on]]
+            out.confidence[on] = self.provenance[1][out.voxel[on]]
         return out
+
+    @property
+    def has_provenance(self) -> bool:
+        """Whether hits can carry an inferred surface's observed / confidence (module docstring)."""
+        return self.provenance is not None
 
     # --- meshes ------------------------------------------------------------------------------
     def _trace_mesh(self, o, d, tmin, tmax) -> Hits:

@@ -9,7 +9,7 @@ repository). `build_run` turns a scenario into a ready `Simulator`, its pose sou
     seed: 0
     duration_s: 8              # default: the trajectory's span
     tick_hz: 10
-    scene:                     # exactly one of world / voxsplat / ply / chunks
+    scene:                     # exactly one of world / voxsplat / ply / chunks / frames
       world: {style: boulevard, seed: 5, layout: straight, length_m: 200}
       representation: voxsplat # or mesh (the world's exact triangles)
       voxel_size: 0.4
@@ -20,11 +20,19 @@ repository). `build_run` turns a scenario into a ready `Simulator`, its pose sou
       - {preset: hdl64e}
     effects: {noise: true, drops: true, motion_distortion: true, divergence: true}
     outputs: {files: [pcd], usd: replay.usdc}
+
+`scene.frames` converts camera frames into the scene (`scube_sim.convert`, the converter's
+profile) on first use and caches the result under -o/scene_chunks/: either `path` (a worlds sample
+folder, or any adapter's folder with `dataset` and `sample`; the string shorthand `frames: PATH`)
+or `world` (a generated world whose `rig` cameras are rendered at time 0; the world's ego path and
+moving actors then drive the run, and the actors' voxels are cut out of the converted scene,
+`sim.converted`).
 """
 
 from __future__ import annotations
 
 import copy
+import hashlib
 import json
 import os
 import warnings
@@ -43,10 +51,13 @@ from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
 from ..run_manifest import RunManifest, sha256_file
 from ..scene_file import load_scene
+from ..voxsplat import VoxSplat
+from ..worlds.dataset import render_frames
 from ..worlds.generator import World, WorldConfig, generate_world
 from ..worlds.groundtruth import chunk_frames, gt_voxsplat
 from .can import CanPoseSource, CanTrajectory
 from .contracts import PoseSource
+from .converted import DEFAULT_MODE, remove_boxes, scene_part
 from .sim_scene import ChunkSet, ChunkSpec, Part, SimScene
 from .simulator import LidarSensor, Simulator
 from .sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
@@ -61,22 +72,47 @@ class ChunkEntry(StrictModel):
     pose: Mount = Mount()  # chunk-to-world: metres and degrees
 
 
+class FramesSpec(StrictModel):
+    """scene.frames (module docstring): exactly one of `path` and `world`."""
+
+    path: str | None = None
+    dataset: str | None = None
+    sample: int = Field(default=0, ge=0)
+    world: WorldConfig | None = None
+    rig: str = "waymo-5"
+    profile: str = "cpu"
+    max_range_m: float | None = Field(default=None, gt=0)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.path is None) == (self.world is None):
+            raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
+        return self
+
+
 class SceneSpec(StrictModel):
     world: WorldConfig | None = None
     representation: Literal["voxsplat", "mesh"] = "voxsplat"
     voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
-    depth: Literal["entry", "max_response", "soft"] = "max_response"
+    # None: a VoxSplat file's own trace mode (metadata trace_mode; converted scenes: soft), else max_response
+    depth: Literal["entry", "max_response", "soft"] | None = None
     chunk_spacing_m: float = Field(default=96.0, gt=10, le=102.4)
     voxsplat: str | None = None
     ply: str | None = None
     chunks: list[ChunkEntry] | None = None
+    frames: FramesSpec | None = None
+
+    @field_validator("frames", mode="before")
+    @classmethod
+    def _frames_path(cls, v):
+        return {"path": v} if isinstance(v, str) else v  # `frames: PATH` is the path alone
 
     @model_validator(mode="after")
     def _one_source(self):
-        given = [k for k in ("world", "voxsplat", "ply", "chunks") if getattr(self, k) is not None]
+        given = [k for k in ("world", "voxsplat", "ply", "chunks", "frames") if getattr(self, k) is not None]
         if len(given) != 1:
-            raise ValueError(f"give exactly one of world, voxsplat, ply or chunks (got {given or 'none'})")
+            raise ValueError(f"give exactly one of world, voxsplat, ply, chunks or frames (got {given or 'none'})")
         return self
 
 
@@ -324,34 +360,108 @@ def build_scene(sc: Scenario, base: Path, out: Path, *, reach: float, progress=N
     and loaded within `reach` metres of the ego, plus its actors), a VoxSplat / PLY file, or a
     list of VoxSplat chunks."""
     spec = sc.scene
-    tracer_kw = {"mode": spec.depth}
+    tracer_kw = {"mode": spec.depth or DEFAULT_MODE}
     if spec.world is not None:
-        wcfg = spec.world
-        need = (sc.duration_s or wcfg.duration_s) + 1.0
-        if wcfg.duration_s < need and sc.trajectory.source == "world":
-            wcfg = wcfg.model_copy(update={"duration_s": need})
-        world = generate_world(wcfg)
+        world = generate_world(_world_for_run(sc, spec.world))
         static, chunks = [], None
         if spec.representation == "mesh":
             static.append(Part(Tracer(world.static), name="world"))
         else:
             chunks = ChunkSet(_world_chunks(world, spec, out, progress), reach, tracer_kw)
-        actors = []
-        if sc.actors == "world":
-            actors = [Part(Tracer(a.mesh), pose_fn=track_pose_fn(a.times, a.poses), instance=a.instance,
-                           label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
-        scene = SimScene(static=static, actors=actors, chunks=chunks, static_boxes=world.boxes_static)
+        scene = SimScene(static=static, actors=_world_actors(sc, world), chunks=chunks,
+                         static_boxes=world.boxes_static)
         return BuiltScene(scene, world=world)
+    if spec.frames is not None:
+        return _frames_scene(sc, base, out, progress)
     if spec.voxsplat is not None or spec.ply is not None:
         path = resolve_path(spec.voxsplat or spec.ply, base)
         file_scene = load_scene(path)
-        return BuiltScene(SimScene(static=[Part(Tracer(file_scene, **tracer_kw), name=path.stem)]),
-                          file_scene=file_scene)
+        if isinstance(file_scene, VoxSplat):  # placed by its chunk pose, traced in its own mode
+            part = scene_part(file_scene, name=path.stem, mode=spec.depth)
+        else:
+            part = Part(Tracer(file_scene, **tracer_kw), name=path.stem)
+        return BuiltScene(SimScene(static=[part]), file_scene=file_scene)
     specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in spec.chunks]
     for s in specs:
         if not s.path.is_file():
             raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
     return BuiltScene(SimScene(chunks=ChunkSet(specs, reach, tracer_kw)))
+
+
+def _world_for_run(sc: Scenario, wcfg: WorldConfig) -> WorldConfig:
+    """The world's config with its duration stretched to cover the run (plus a second)."""
+    need = (sc.duration_s or wcfg.duration_s) + 1.0
+    if wcfg.duration_s < need and sc.trajectory.source == "world":
+        wcfg = wcfg.model_copy(update={"duration_s": need})
+    return wcfg
+
+
+def _world_actors(sc: Scenario, world: World) -> list[Part]:
+    """The world's moving actors as instanced parts (none with `actors: none`)."""
+    if sc.actors != "world":
+        return []
+    return [Part(Tracer(a.mesh), pose_fn=track_pose_fn(a.times, a.poses), instance=a.instance,
+                 label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
+
+
+def _frames_scene(sc: Scenario, base: Path, out: Path, progress=None) -> BuiltScene:
+    """scene.frames: the frames converted (cached in out/scene_chunks/converted.npz), the moving
+    actors' voxels cut out (`sim.converted.remove_boxes`), the actors traced as instances."""
+    from ..model.checkpoint import resolve_checkpoint
+    from ..model.converter import Converter, load_profile, open_frames  # torch: only for converted scenes
+
+    f = sc.scene.frames
+    world, actors, static_boxes = None, [], []
+    if f.world is not None:
+        world = generate_world(_world_for_run(sc, f.world))
+        if progress:
+            progress(f"rendering the {f.rig} cameras of the world")
+        frames = render_frames(world, f.rig)
+        actors, static_boxes = _world_actors(sc, world), world.boxes_static
+    else:
+        path = resolve_path(f.path, base)
+        if not path.exists():
+            raise ConfigError(f"scene.frames.path: {path}: no such folder")
+        frames = open_frames(path, f.dataset, f.sample)
+    folder = out / "scene_chunks"
+    folder.mkdir(parents=True, exist_ok=True)
+    npz, meta_path = folder / "converted.npz", folder / "converted.json"
+    profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
+    # the converter's whole input and settings, its weights included (a retrained checkpoint at
+    # the same path converts again)
+    key = {"frames": frames_digest(frames), "spec": f.model_dump(mode="json"), "seed": sc.seed,
+           "profile": profile.model_dump(mode="json"),
+           "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
+                           for stage in ("geometry", "appearance")}}
+    if _cache_entry_valid(npz, meta_path, key):
+        scene = VoxSplat.load(npz)
+    else:
+        if progress:
+            progress(f"converting {len(frames)} camera images (profile {profile.name})")
+        scene = Converter(profile).convert(frames, seed=sc.seed, sky=False, max_range=f.max_range_m)
+        scene.save(npz)
+        with atomic_path(meta_path) as tmp:
+            Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(npz)}))
+    scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
+    if progress and removed:
+        progress(f"removed {removed} voxels of {len(actors)} moving actors from the converted scene")
+    part = scene_part(scene, name="converted", mode=sc.scene.depth)
+    return BuiltScene(SimScene(static=[part], actors=actors, static_boxes=static_boxes), world=world,
+                      file_scene=scene)
+
+
+def frames_digest(frames) -> str:
+    """sha256 of the frames' images, intrinsics and poses (the converter's whole input)."""
+    h = hashlib.sha256()
+    for im in frames.images:
+        h.update(im.name.encode())
+        h.update(np.ascontiguousarray(im.image).tobytes())
+        h.update(np.asarray(im.intrinsics.K, np.float64).tobytes())
+        h.update(np.asarray(im.intrinsics.dist or (), np.float64).tobytes())
+        h.update(np.asarray(im.cam_to_world, np.float64).tobytes())
+    h.update(np.asarray(frames.ego_pose, np.float64).tobytes())
+    h.update(json.dumps({str(k): str(v) for k, v in frames.metadata.items()}, sort_keys=True).encode())
+    return h.hexdigest()
 
 
 def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSource:

@@ -99,6 +99,12 @@ class SimScene:
         loaded = self.chunks.loaded_parts() if self.chunks is not None else []
         return self.static + loaded + self.actors
 
+    @property
+    def has_provenance(self) -> bool:
+        """Whether a part now in the scene is a converted VoxSplat whose hits carry observed /
+        confidence (`Tracer.has_provenance`)."""
+        return any(getattr(p.tracer, "has_provenance", False) for p in self.parts())
+
     def update(self, time: float, ego_position: np.ndarray | None = None) -> None:
         """Advance to a tick: the default time for moving parts, and chunk loading around the ego."""
         self.time = float(time)
@@ -166,7 +172,8 @@ class SimScene:
         inst = np.where(h.instance != 0, h.instance, np.int32(part.instance)).astype(best.instance.dtype)
         fields = (("hit", h.hit), ("t", h.t), ("normals", nrm), ("gaussian", h.gaussian), ("voxel", h.voxel),
                   ("face", h.face), ("label", h.label), ("instance", inst), ("color", h.color),
-                  ("alpha", h.alpha), ("reflectance", h.reflectance))
+                  ("alpha", h.alpha), ("reflectance", h.reflectance), ("observed", h.observed),
+                  ("confidence", h.confidence))
         if dense:  # masked copies over all rays: no index arrays
             for name, src in fields:
                 dst = getattr(best, name)

@@ -53,11 +53,15 @@ class WorldConfig(StrictModel):
 
     @classmethod
     def from_yaml(cls, path) -> "WorldConfig":
-        """Read a scenario file's `scene.world` section (or a top-level `world:` section, or a
-        file that is only that section)."""
+        """Read a scenario file's `scene.world` section (or `scene.frames.world`, the world whose
+        cameras a converted scene starts from; or a top-level `world:` section, or a file that is
+        only that section)."""
         data = load_yaml(path)
         if isinstance(data, dict) and isinstance(data.get("scene"), dict) and "world" in data["scene"]:
             return validate_model(cls, data["scene"]["world"], f"{path} (scene.world)", "world settings")
+        frames = data.get("scene", {}).get("frames") if isinstance(data, dict) and isinstance(data.get("scene"), dict) else None
+        if isinstance(frames, dict) and "world" in frames:
+            return validate_model(cls, frames["world"], f"{path} (scene.frames.world)", "world settings")
         if isinstance(data, dict) and "world" in data:
             return validate_model(cls, data["world"], f"{path} (world)", "world settings")
         return validate_model(cls, data, str(path), "world settings")

@@ -50,7 +50,7 @@ def test_scenario_errors_name_the_key(tmp_path):
     with pytest.raises(ConfigError, match=r"s.yaml: sead: unknown key"):
         load_scenario(bad)
     two = write(tmp_path, TINY.replace("representation: mesh", "representation: mesh\n  voxsplat: x.npz"), "two.yaml")
-    with pytest.raises(ConfigError, match="exactly one of world, voxsplat, ply or chunks"):
+    with pytest.raises(ConfigError, match="exactly one of world, voxsplat, ply, chunks or frames"):
         load_scenario(two)
     can = write(tmp_path, TINY.replace("{source: world}", "{source: can}"), "can.yaml")
     with pytest.raises(ConfigError, match="trajectory: .*'can' section"):

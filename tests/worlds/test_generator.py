@@ -425,7 +425,8 @@ def test_scenarios_load(path):
 
     cfg = WorldConfig.from_yaml(path)
     data = yaml.safe_load(path.read_text())
-    raw = data["scene"]["world"] if "scene" in data else data["world"]
+    scene = data.get("scene", {})
+    raw = scene["world"] if "world" in scene else scene["frames"]["world"] if "frames" in scene else data["world"]
     for key, value in raw.items():
         assert getattr(cfg, key) == value
     assert cfg.style in STYLES

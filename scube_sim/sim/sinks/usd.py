@@ -11,8 +11,10 @@ Layout (upAxis Z, metersPerUnit 1, default prim ``/World``)::
                                          t_ref) sampled at each sweep's t_end; scube_sim:tStart,
                                          scube_sim:tRef (double), scube_sim:sweepIndex (int) likewise
           Points                 Points  points (float3[], sensor frame), extent, and vertex
-                                         primvars intensity ring label time instance, sampled at
-                                         the same times; widths constant (not sampled)
+                                         primvars intensity ring label time instance (and observed
+                                         confidence where the sensor's first sweep has them: a
+                                         converted scene's), sampled at the same times; widths
+                                         constant (not sampled)
 
 Time base: one for all sensors, time code = (t - run.start_time) * run.time_codes_per_second
 (the stage's timeCodesPerSecond; framesPerSecond is set the same); startTimeCode / endTimeCode
@@ -57,7 +59,7 @@ from ...io.usd import (
     vec3f,
     write_layer,
 )
-from ...lidar.model import POINT_DTYPE
+from ...lidar.model import CONVERTED_POINT_DTYPE, PROVENANCE_FIELDS
 from ...transforms import check_pose
 from ..frame import Frame
 from .base import RunInfo, Sink
@@ -92,6 +94,7 @@ class _Track:
     chunk_first: float | None = None
     chunk_last: float | None = None
     clips: list = field(default_factory=list)  # (asset path, first tc, last tc)
+    primvars: tuple = ()  # the point fields written as primvars on this sensor's Points
 
 
 class UsdSink(Sink):
@@ -111,7 +114,7 @@ class UsdSink(Sink):
         check_usd_suffix(Path("clip" + clip_suffix))
         if int(frames_per_clip) < 1:
             raise InputError(f"UsdSink: frames_per_clip must be >= 1, got {frames_per_clip}")
-        unknown = set(primvars) - set(POINT_DTYPE.names) | set(primvars) & {"x", "y", "z"}
+        unknown = set(primvars) - set(CONVERTED_POINT_DTYPE.names) | set(primvars) & {"x", "y", "z"}
         if unknown:
             raise InputError(f"UsdSink: primvars {sorted(unknown)} are not LiDAR point fields (besides x y z)")
         self.clips = bool(clips)
@@ -180,7 +183,9 @@ class UsdSink(Sink):
         if self._chunk is not None:
             _add_specs(self._chunk, [entry])
 
-    def _define_sensor(self, name: str, info: dict) -> _Track:
+    def _define_sensor(self, name: str, info: dict, fields=()) -> _Track:
+        """The sensor's prims; `fields`: the first sweep's point fields (a converted scene's
+        observed / confidence become primvars where present; later sweeps without them write 1)."""
         from pxr import Tf, UsdGeom
 
         prim_name = Tf.MakeValidIdentifier(name)
@@ -204,14 +209,15 @@ class UsdSink(Sink):
                                 ("scube_sim:sweepIndex", "Int")):
             self._declare(prim, attr, type_name)
         pts_path = f"{path}/{POINTS_NAME}"
+        primvars = self.primvars + tuple(f for f, _ in PROVENANCE_FIELDS if f in fields and f not in self.primvars)
         add_points_prim(self._stage, pts_path, width=self.point_width,
-                        primvars={f: POINT_DTYPE[f] for f in self.primvars}, who="UsdSink")
+                        primvars={f: CONVERTED_POINT_DTYPE[f] for f in primvars}, who="UsdSink")
         self._register(pts_path, "points", "Point3fArray", custom=False)
         self._register(pts_path, "extent", "Float3Array", custom=False)
-        for f in self.primvars:
-            self._register(pts_path, f"primvars:{Tf.MakeValidIdentifier(f)}", primvar_type(POINT_DTYPE[f])[0],
-                           custom=False)
-        track = self._tracks[path] = _Track(path, name)
+        for f in primvars:
+            self._register(pts_path, f"primvars:{Tf.MakeValidIdentifier(f)}",
+                           primvar_type(CONVERTED_POINT_DTYPE[f])[0], custom=False)
+        track = self._tracks[path] = _Track(path, name, primvars=primvars)
         return track
 
     # ---------------------------------------------------------------- writing
@@ -243,7 +249,7 @@ class UsdSink(Sink):
             path = f"{SENSORS_PATH}/{Tf.MakeValidIdentifier(s.name)}"
             track = self._tracks.get(path)
             if track is None:
-                track = self._define_sensor(s.name, {"kind": s.kind})
+                track = self._define_sensor(s.name, {"kind": s.kind}, np.asarray(s.points).dtype.names or ())
             elif track.name != s.name:
                 raise InputError(f"UsdSink: sensors {track.name!r} and {s.name!r} map to the same prim {path}")
             stc = self._tc(s.t_end)
@@ -262,9 +268,10 @@ class UsdSink(Sink):
             pp = f"{path}/{POINTS_NAME}"
             ops.append((track, f"{pp}.points", stc, vec3f(xyz)))
             ops.append((track, f"{pp}.extent", stc, vec3f(points_extent(xyz, self.point_width))))
-            for f in self.primvars:
-                _, vt_array, np_type = primvar_type(POINT_DTYPE[f])
-                value = vt_array.FromNumpy(np.ascontiguousarray(pts[f], dtype=np_type))
+            for f in track.primvars:
+                _, vt_array, np_type = primvar_type(CONVERTED_POINT_DTYPE[f])
+                col = pts[f] if f in pts.dtype.names else np.ones(len(pts), np_type)  # nothing inferred
+                value = vt_array.FromNumpy(np.ascontiguousarray(col, dtype=np_type))
                 ops.append((track, f"{pp}.primvars:{Tf.MakeValidIdentifier(f)}", stc, value))
 
         layer = self._target_layer()
