@@ -82,11 +82,14 @@ class FramesSpec(StrictModel):
     rig: str = "waymo-5"
     profile: str = "cpu"
     max_range_m: float | None = Field(default=None, gt=0)
+    route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
 
     @model_validator(mode="after")
     def _one_source(self):
         if (self.path is None) == (self.world is None):
             raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
+        if self.route and self.world is None:
+            raise ValueError("route: needs world (the rig is rendered at each chunk along its road)")
         return self
 
 
@@ -372,7 +375,7 @@ def build_scene(sc: Scenario, base: Path, out: Path, *, reach: float, progress=N
                          static_boxes=world.boxes_static)
         return BuiltScene(scene, world=world)
     if spec.frames is not None:
-        return _frames_scene(sc, base, out, progress)
+        return _frames_scene(sc, base, out, reach, progress)
     if spec.voxsplat is not None or spec.ply is not None:
         path = resolve_path(spec.voxsplat or spec.ply, base)
         file_scene = load_scene(path)
@@ -404,50 +407,86 @@ def _world_actors(sc: Scenario, world: World) -> list[Part]:
                  label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
 
 
-def _frames_scene(sc: Scenario, base: Path, out: Path, progress=None) -> BuiltScene:
-    """scene.frames: the frames converted (cached in out/scene_chunks/converted.npz), the moving
-    actors' voxels cut out (`sim.converted.remove_boxes`), the actors traced as instances."""
+def _frames_scene(sc: Scenario, base: Path, out: Path, reach: float, progress=None) -> BuiltScene:
+    """scene.frames: the frames converted (cached in out/scene_chunks/), the moving actors' voxels
+    cut out (`sim.converted.remove_boxes`), the actors traced as instances. With `route`, one
+    conversion per chunk along the world's road, loaded as a `ChunkSet`."""
     from ..model.checkpoint import resolve_checkpoint
-    from ..model.converter import Converter, load_profile, open_frames  # torch: only for converted scenes
+    from ..model.converter import TRACE_MODE, load_profile, open_frames  # torch: only for converted scenes
 
     f = sc.scene.frames
-    world, actors, static_boxes = None, [], []
-    if f.world is not None:
-        world = generate_world(_world_for_run(sc, f.world))
-        if progress:
-            progress(f"rendering the {f.rig} cameras of the world")
-        frames = render_frames(world, f.rig)
-        actors, static_boxes = _world_actors(sc, world), world.boxes_static
-    else:
+    profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
+    # the converter's settings, its weights included (a retrained checkpoint at the same path
+    # converts again); each entry adds its frames' digest
+    key = {"spec": f.model_dump(mode="json"), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
+           "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
+                           for stage in ("geometry", "appearance")}}
+    folder = out / "scene_chunks"
+    folder.mkdir(parents=True, exist_ok=True)
+    if f.world is None:
         path = resolve_path(f.path, base)
         if not path.exists():
             raise ConfigError(f"scene.frames.path: {path}: no such folder")
         frames = open_frames(path, f.dataset, f.sample)
-    folder = out / "scene_chunks"
-    folder.mkdir(parents=True, exist_ok=True)
-    npz, meta_path = folder / "converted.npz", folder / "converted.json"
-    profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
-    # the converter's whole input and settings, its weights included (a retrained checkpoint at
-    # the same path converts again)
-    key = {"frames": frames_digest(frames), "spec": f.model_dump(mode="json"), "seed": sc.seed,
-           "profile": profile.model_dump(mode="json"),
-           "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
-                           for stage in ("geometry", "appearance")}}
-    if _cache_entry_valid(npz, meta_path, key):
-        scene = VoxSplat.load(npz)
-    else:
+        scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
+        part = scene_part(scene, name="converted", mode=sc.scene.depth)
+        return BuiltScene(SimScene(static=[part]), file_scene=scene)
+    world = generate_world(_world_for_run(sc, f.world))
+    actors = _world_actors(sc, world)
+    if not f.route:
         if progress:
-            progress(f"converting {len(frames)} camera images (profile {profile.name})")
-        scene = Converter(profile).convert(frames, seed=sc.seed, sky=False, max_range=f.max_range_m)
-        scene.save(npz)
-        with atomic_path(meta_path) as tmp:
-            Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(npz)}))
-    scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
-    if progress and removed:
-        progress(f"removed {removed} voxels of {len(actors)} moving actors from the converted scene")
-    part = scene_part(scene, name="converted", mode=sc.scene.depth)
-    return BuiltScene(SimScene(static=[part], actors=actors, static_boxes=static_boxes), world=world,
-                      file_scene=scene)
+            progress(f"rendering the {f.rig} cameras of the world")
+        frames = render_frames(world, f.rig)
+        scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
+        scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
+        if progress and removed:
+            progress(f"removed {removed} voxels of {len(actors)} moving actors from the converted scene")
+        part = scene_part(scene, name="converted", mode=sc.scene.depth)
+        return BuiltScene(SimScene(static=[part], actors=actors, static_boxes=world.boxes_static), world=world,
+                          file_scene=scene)
+    specs = []
+    for i, (t, pose) in enumerate(route_stops(world, sc.scene.chunk_spacing_m)):
+        if progress:
+            progress(f"route chunk {i + 1}: rendering the {f.rig} cameras at {t:.1f} s")
+        frames = render_frames(world, f.rig, t, ego_pose=pose)
+        scene = _cached_conversion(folder / f"converted_{i:03d}", frames, key, profile, sc.seed, f.max_range_m,
+                                   progress)
+        scene, _ = remove_boxes(scene, [a.box_at(t) for a in actors])
+        cut = folder / f"converted_{i:03d}_without_actors.npz"  # derived each run from the cached one
+        scene.save(cut)
+        specs.append(ChunkSpec(cut, np.asarray(scene.metadata["chunk_to_world"], np.float64)))
+    chunks = ChunkSet(specs, reach, {"mode": sc.scene.depth or TRACE_MODE})
+    return BuiltScene(SimScene(actors=actors, chunks=chunks, static_boxes=world.boxes_static), world=world)
+
+
+def route_stops(world: World, spacing_m: float) -> list[tuple[float, np.ndarray]]:
+    """(time, chunk-to-world pose) per route chunk (`worlds.groundtruth.chunk_frames`): the rig is
+    held at the chunk's origin at the instant the ego passes nearest to it (the actors are where
+    they are then; a chunk beyond the ego's path gets its last instant)."""
+    pos = np.asarray(world.ego_poses)[:, :3, 3]
+    out = []
+    for pose in chunk_frames(world, spacing_m):
+        i = int(np.argmin(np.linalg.norm(pos[:, :2] - pose[:2, 3], axis=1)))
+        out.append((float(world.ego_times[i]), np.asarray(pose, np.float64)))
+    return out
+
+
+def _cached_conversion(stem: Path, frames, key: dict, profile, seed: int, max_range, progress=None) -> VoxSplat:
+    """`frames` converted with `profile`, or the conversion cached at STEM.npz / STEM.json when
+    its key (`key` and the frames' digest) matches and its checksum holds."""
+    from ..model.converter import Converter
+
+    npz, meta_path = stem.with_suffix(".npz"), stem.with_suffix(".json")
+    key = {**key, "frames": frames_digest(frames)}
+    if _cache_entry_valid(npz, meta_path, key):
+        return VoxSplat.load(npz)
+    if progress:
+        progress(f"converting {len(frames)} camera images (profile {profile.name})")
+    scene = Converter(profile).convert(frames, seed=seed, sky=False, max_range=max_range)
+    scene.save(npz)
+    with atomic_path(meta_path) as tmp:
+        Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(npz)}))
+    return scene
 
 
 def frames_digest(frames) -> str:

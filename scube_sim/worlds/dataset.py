@@ -128,11 +128,12 @@ class _SceneAt:
 
 
 def render_frames(world, rig_name: str = "waymo-5", t_ref: float = 0.0, image_scale: float | None = None,
-                  scene_at: _SceneAt | None = None) -> Frames:
+                  scene_at: _SceneAt | None = None, ego_pose: np.ndarray | None = None) -> Frames:
     """The rig's camera images of `world` around `t_ref` as the datasets render them (each camera
     at its own time offset, the ego and actors where they are then; `image_scale` of the rig's
     resolution, default the datasets'), with sky masks: the converter's input. Frames' ego pose
-    is the ego's at `t_ref` (the chunk frame)."""
+    is the ego's at `t_ref` (the chunk frame). ego_pose: (4, 4) ego-to-world to hold the rig at
+    instead of the ego's path (a route's chunk origin); the actors still move with time."""
     rig = load_rig(rig_name)
     scale = DatasetConfig().image_scale if image_scale is None else float(image_scale)
     scene_at = scene_at or _SceneAt(world)
@@ -140,10 +141,12 @@ def render_frames(world, rig_name: str = "waymo-5", t_ref: float = 0.0, image_sc
     for cam in rig.cameras:
         intr = cam.intrinsics().scaled(scale)
         t_cam = t_ref + cam.time_offset_s
-        pose = world.ego_pose_at(t_cam) @ cam.cam_to_ego()
+        ego = world.ego_pose_at(t_cam) if ego_pose is None else np.asarray(ego_pose, np.float64)
+        pose = ego @ cam.cam_to_ego()
         r = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
         images.append(CameraImage(cam.name, r["rgb"], intr, pose, t_cam, sky=r["sky"]))
-    return Frames(images, world.ego_pose_at(t_ref), float(t_ref),
+    return Frames(images, world.ego_pose_at(t_ref) if ego_pose is None else np.asarray(ego_pose, np.float64),
+                  float(t_ref),
                   {"rig": rig_name, "world": json.dumps(world.config.model_dump(mode="json"), sort_keys=True)})
 
 

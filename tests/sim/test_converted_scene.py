@@ -141,3 +141,39 @@ def _held_trajectory(tmp_path, setup):  # noqa: F811
     np.savez(path, times=np.array([0.0, 1.0]), poses=np.stack([frames.ego_pose, frames.ego_pose]))
     return path
 
+
+
+def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(setup, tmp_path):  # noqa: F811
+    from scube_sim.sim.scenario import build_scene, route_stops
+    from scube_sim.worlds.generator import WorldConfig, generate_world
+    from scube_sim.worlds.groundtruth import chunk_frames
+
+    # the ego drives 120 m: past both chunk origins (20 m and 116 m along the road)
+    world = {"style": "suburban", "seed": 3, "layout": "straight", "length_m": 220, "duration_s": 12,
+             "ego_speed_mps": 10}
+    scen = tmp_path / "route.yaml"
+    scen.write_text(yaml.safe_dump({
+        "name": "route", "duration_s": 0.2,
+        "scene": {"frames": {"world": world, "route": True, "profile": str(setup["profile"])}},
+        "trajectory": {"source": "world"}, "sensors": [{"preset": "vlp16"}]}))
+    sc, base = load_scenario(scen)
+    built = build_scene(sc, base, tmp_path / "out", reach=100.0)
+    specs = built.scene.chunks.chunks
+    w = generate_world(WorldConfig(**{**world, "duration_s": built.world.config.duration_s}))
+    poses = chunk_frames(w, sc.scene.chunk_spacing_m)
+    assert len(specs) == len(poses) == 2
+    for spec, pose in zip(specs, poses):
+        np.testing.assert_allclose(spec.chunk_to_world, pose, atol=1e-9)
+        assert spec.path.is_file()
+    stops = route_stops(w, sc.scene.chunk_spacing_m)
+    # each stop's instant is when the ego is nearest the chunk origin: within half a tick's travel
+    for t, pose in stops:
+        assert np.linalg.norm(w.ego_pose_at(t)[:2, 3] - pose[:2, 3]) < 2.0
+    assert stops[0][0] < stops[1][0]
+    for i in range(2):
+        assert (tmp_path / "out" / "scene_chunks" / f"converted_{i:03d}.npz").is_file()
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump({"name": "b", "scene": {"frames": {"path": "x", "route": True}},
+                                   "sensors": [{"preset": "vlp16"}]}))
+    with pytest.raises(ConfigError, match="route: needs world"):
+        load_scenario(bad)
