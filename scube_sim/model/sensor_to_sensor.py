@@ -141,7 +141,7 @@ def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
         pred = torch.from_numpy(views[im.name]).permute(2, 0, 1)
         img = torch.from_numpy(np.asarray(im.image, np.float32) / (255.0 if im.image.dtype == np.uint8 else 1.0))
         gt = resize_bilinear(img.permute(2, 0, 1), pred.shape[1:])
-        vals.append(psnr(pred, gt))
+        vals.append(psnr(pred[None], gt[None]))  # (1, 3, H, W)
     return float(np.mean(vals)) if vals else float("nan")
 
 

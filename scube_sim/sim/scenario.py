@@ -26,7 +26,9 @@ profile) on first use and caches the result under -o/scene_chunks/: either `path
 folder, or any adapter's folder with `dataset` and `sample`; the string shorthand `frames: PATH`)
 or `world` (a generated world whose `rig` cameras are rendered at time 0; the world's ego path and
 moving actors then drive the run, and the actors' voxels are cut out of the converted scene,
-`sim.converted`).
+`sim.converted`). With `world` and `route: true`, a long road is converted chunk by chunk
+(`scene.chunk_spacing_m` apart), each from the rig held at the chunk's origin when the ego passes
+it (`route_stops`), and loaded as a `ChunkSet` within the sensors' reach.
 """
 
 from __future__ import annotations
