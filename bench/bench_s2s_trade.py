@@ -3,7 +3,7 @@ against seconds, on held-out worlds samples (`model.sensor_to_sensor`), a table 
 
 Knobs (each changed alone from the shipped `cpu` profile): the geometry stage's input resolution
 (its images resized to half the training focal length), the appearance stage's, the Gaussians'
-size cap (`max_scale_voxels`), the conversion range (`max_range`), the trace mode of the converted
+size cap (`max_scale_voxels`), M (the most opaque Gaussians kept per voxel), the conversion range (`max_range`), the trace mode of the converted
 scene (soft vs hard `max_response`), and with `--diffusion CKPT` a diffusion geometry stage
 instead of the single-step predictor at 1 and 10 DDIM steps. Every variant runs on the same
 samples in the same process; the ground truth (world, mesh sweeps, ground-truth VoxSplat rows) is
@@ -43,6 +43,9 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
             update={"max_scale_voxels": 0.5})}), {}, None),
         ("Gaussians capped at 2 voxels", base.model_copy(update={"appearance": a.model_copy(
             update={"max_scale_voxels": 2.0})}), {}, None),
+        ("M = 2 (the two most opaque per voxel)", base.model_copy(update={"appearance": a.model_copy(
+            update={"gaussians_per_voxel": 2})}), {}, None),
+        ("M = 1", base.model_copy(update={"appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
         ("converted within 60 m", base, {"max_range": 60.0}, None),
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
     ]

@@ -268,6 +268,24 @@ class VoxSplat:
         """(V, 3) float64 voxel centres, local frame, metres."""
         return (self.ijk.astype(np.float64) + 0.5) * self.voxel_size
 
+    def keep_slots(self, m: int) -> "VoxSplat":
+        """A new VoxSplat with the `m` most opaque valid Gaussians of each voxel (M = m; ties to
+        the lower slot; slots beyond a voxel's valid ones stay invalid), their per-Gaussian
+        channels with them. Fewer Gaussians trace faster; `m` >= M returns this one."""
+        if not isinstance(m, (int, np.integer)) or m < 1:
+            raise InputError(f"keep_slots: expected a number of Gaussians per voxel >= 1, got {m!r}")
+        if m >= self.gaussians_per_voxel:
+            return self
+        score = np.where(self.valid, self.opacities(), -1.0)
+        order = np.argsort(-score, axis=1, kind="stable")[:, :m]
+        rows = np.arange(self.num_voxels)[:, None]
+        channels = {name: Channel(ch.per, ch.data[rows, order] if ch.per == "gaussian" else ch.data)
+                    for name, ch in self.channels.items()}
+        return VoxSplat(self.ijk.copy(), self.params[rows, order], self.voxel_size, self.origin.copy(),
+                        self.valid[rows, order], self.labels.copy(),
+                        None if self.logits is None else self.logits.copy(), self.offset_range,
+                        copy.deepcopy(self.metadata), channels)
+
     def select_voxels(self, keep) -> "VoxSplat":
         """A new VoxSplat of the voxels `keep` ((V,) bool mask or indices, in order): their
         parameters, labels, logits and per-voxel / per-Gaussian channels; scene channels and

@@ -106,3 +106,31 @@ def test_a_missing_channel_array_names_the_key(tmp_path):
                 zout.writestr(item, zin.read(item.filename))
     with pytest.raises(InputError, match=r"cut\.npz: missing key 'channel\.confidence'"):
         VoxSplat.load(tmp_path / "cut.npz")
+
+
+def test_keep_slots_keeps_the_most_opaque_valid_gaussians_with_their_channels():
+    from scube_sim.splat_params import opacities_to_raw
+
+    vs = _scene(v=3, m=4)
+    alpha = np.array([[0.2, 0.9, 0.5, 0.7], [0.3, 0.3, 0.8, 0.1], [0.6, 0.95, 0.4, 0.99]])
+    vs.params[..., 3] = opacities_to_raw(alpha)
+    vs.valid[2, 3] = False  # the most opaque slot of voxel 2 is empty: never kept
+    vs.set_channel("reflectance", np.arange(12, dtype=np.float32).reshape(3, 4) / 12)
+    vs.set_channel("confidence", np.array([0.1, 0.5, 0.9], np.float32))
+    two = vs.keep_slots(2)
+    assert two.gaussians_per_voxel == 2 and two.num_voxels == 3
+    want = [[1, 3], [2, 0], [1, 0]]  # by opacity, ties (voxel 1: 0.3, 0.3) to the lower slot
+    np.testing.assert_allclose(two.opacities(), np.take_along_axis(alpha, np.array(want), 1), rtol=1e-5)
+    np.testing.assert_array_equal(two.channel("reflectance"),
+                                  np.take_along_axis(vs.channel("reflectance"), np.array(want), 1))
+    np.testing.assert_array_equal(two.channel("confidence"), vs.channel("confidence"))
+    assert two.valid.all() and vs.keep_slots(4) is vs
+    with pytest.raises(InputError, match="keep_slots"):
+        vs.keep_slots(0)
+    # select_voxels: the voxels asked for, in order, with per-voxel and per-Gaussian channels
+    sub = vs.select_voxels(np.array([False, True, True]))
+    np.testing.assert_array_equal(sub.ijk, vs.ijk[1:])
+    np.testing.assert_array_equal(sub.channel("reflectance"), vs.channel("reflectance")[1:])
+    np.testing.assert_array_equal(sub.channel("confidence"), vs.channel("confidence")[1:])
+    with pytest.raises(InputError, match="select_voxels"):
+        vs.select_voxels(np.array([True]))

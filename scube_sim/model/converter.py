@@ -73,13 +73,16 @@ class GeometryProfile(StageProfile):
 
 
 class AppearanceProfile(StageProfile):
-    """sky_size: (rows, columns) of the sky panorama channel. max_scale_voxels: each Gaussian's
+    """sky_size: (rows, columns) of the sky panorama channel. gaussians_per_voxel: keep only the
+    M most opaque Gaussians of each voxel (`VoxSplat.keep_slots`; None: all the checkpoint's).
+    max_scale_voxels: each Gaussian's
     standard deviations are capped at this many voxels (None: as predicted). The camera loss
     tolerates a few wide, faint Gaussians that fill background; a LiDAR tracing at hard opacity
     sees each as a wall k standard deviations out, and one around the sensor hides everything."""
 
     sky_size: tuple[int, int] = (128, 256)
     max_scale_voxels: float | None = Field(default=1.0, gt=0)
+    gaussians_per_voxel: int | None = Field(default=None, ge=1)  # keep the M most opaque (None: all)
 
 
 class ConverterProfile(StrictModel):
@@ -283,6 +286,8 @@ class Converter:
         if cap is not None:
             scale = scene.params[..., SCALE]
             scene.params[..., SCALE] = np.minimum(scale, np.float32(np.log(cap * voxel_size)))
+        if self.profile.appearance.gaussians_per_voxel is not None:
+            scene = scene.keep_slots(self.profile.appearance.gaussians_per_voxel)
         return scene
 
     @torch.no_grad()

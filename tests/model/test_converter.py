@@ -280,3 +280,14 @@ def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(setup):
     raised.metadata["ego_height_m"] = "tall"
     with pytest.raises(InputError, match="ego_height_m"):
         conv.convert(raised)
+
+
+def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(setup):
+    prof = load_profile(setup["profile"])
+    one = prof.model_copy(update={"appearance": prof.appearance.model_copy(update={"gaussians_per_voxel": 1})})
+    frames = _frames(setup)
+    full = Converter(prof).convert(frames, seed=0, sky=False)
+    cut = Converter(one).convert(frames, seed=0, sky=False)
+    assert full.gaussians_per_voxel == 2 and cut.gaussians_per_voxel == 1
+    np.testing.assert_array_equal(cut.ijk, full.ijk)
+    np.testing.assert_allclose(cut.opacities()[:, 0], np.where(full.valid, full.opacities(), -1).max(1), rtol=1e-6)
