@@ -101,7 +101,7 @@ def main(argv=None) -> None:
             both = np.isfinite(a) & np.isfinite(b) & (np.abs(xa - mid) <= HALF_OVERLAP) & (np.abs(xb - mid) <= HALF_OVERLAP)
             d = np.abs(a - b)[both]
             ea, eb = np.abs(a - m)[both & np.isfinite(m)], np.abs(b - m)[both & np.isfinite(m)]
-            seams.append({"seam": f"{i}|{i + 1}", "scene": kind, "rays": int(both.sum()),
+            seams.append({"seam": f"{i} to {i + 1}", "scene": kind, "rays": int(both.sum()),
                           "median_between_chunks_m": round(float(np.median(d)), 3) if d.size else None,
                           "p90_between_chunks_m": round(float(np.percentile(d, 90)), 3) if d.size else None,
                           "median_vs_mesh_first_m": round(float(np.median(ea)), 3) if ea.size else None,
