@@ -1,7 +1,8 @@
 """3DGS initialisation from a converted scene (the SCube paper's Table 2, issue 13): a short 3D
 Gaussian optimisation on the worlds' camera views, started from our export (`scube-sim export
 scene.npz --to ply --max-gaussians N`: the N Gaussians with the largest opacity x area) or from N
-random Gaussians in the converted chunk's box; PSNR on held-out views after the same steps.
+random Gaussians in the paper's box ((-20 m, 20 m)^3 around each input camera); PSNR on held-out
+views after the same steps.
 
 A straight urban world without moving actors (a static scene: 3DGS fits one). Input: the waymo-5
 rig's five images at T, converted with the shipped profile, exported to a 3DGS PLY and read back
@@ -9,8 +10,9 @@ rig's five images at T, converted with the shipped profile, exported to a 3DGS P
 instants; the ego moves on); held-out: T+5 and T+10. Both runs optimise the same parameters (means,
 log-scales, rotations, opacity logits, colours) with Adam at 3DGS's learning rates, one view per
 step in the same order, L1 on the non-sky pixels; no densification or pruning (identical for
-both), black background. Random init: uniform means in the box, 3DGS's opacity 0.1, scales of
-half the mean spacing, random colours. Images at `--scale` of the rig (CPU time).
+both), black background. Random init: uniform means in the paper's box, 3DGS's opacity 0.1,
+scales of half the mean spacing, random colours. The export keeps its own scales and opacities
+(what a 3DGS trainer reading the PLY starts from). Images at `--scale` of the rig (CPU time).
 
 Not part of `make bench`. Run: `python -m bench.bench_gs_init [--steps 200] [--scale 0.125]`
 Results: bench/results/gs_init.{json,md}, docs/gs_init.png.
@@ -34,12 +36,13 @@ from scube_sim.model.splat_render import rasterization
 from scube_sim.transforms import invert_pose
 from scube_sim.worlds.dataset import render_frames
 from scube_sim.worlds.generator import WorldConfig, generate_world
-from scube_sim.worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
+from scube_sim.worlds.groundtruth import CHUNK_SIZE
 
 from .common import BENCH_DIR, write_results
 
 REPO = BENCH_DIR.parent
 TRAIN_T = (0.0, 0.2, 0.7)
+PAPER_BOX_M = 20.0  # SCube section 4.4: random points uniform in (-20 m, 20 m)^3 around each camera
 HELD_OUT_T = (0.5, 1.0)
 LR = {"means": 1.6e-4 * CHUNK_SIZE, "log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "colors": 2.5e-3}
 
@@ -97,13 +100,18 @@ def params_from(g) -> dict:
             "colors": torch.tensor(np.clip(g.colors, 0, 1), dtype=torch.float32)}
 
 
-def random_params(n: int, seed: int) -> dict:
+def random_params(n: int, cameras: np.ndarray, seed: int) -> dict:
+    """n Gaussians uniform in the paper's box: (-20 m, 20 m)^3 around each input camera (positions
+    (C, 3), chunk frame), n / C per camera."""
     rng = np.random.default_rng(seed)
-    lo, hi = CHUNK_CORNER, CHUNK_CORNER + CHUNK_SIZE * np.array([1.0, 1.0, 0.25])
+    per = np.array_split(np.arange(n), len(cameras))
+    means = np.concatenate([c + rng.uniform(-PAPER_BOX_M, PAPER_BOX_M, (len(i), 3)) for c, i in zip(cameras, per)])
+    # 3DGS's initial scale: about the mean distance between neighbours in the union of the boxes
+    lo, hi = means.min(0), means.max(0)
     spacing = float(np.prod(hi - lo) / n) ** (1 / 3)
     q = np.zeros((n, 4))
     q[:, 0] = 1
-    return {"means": torch.tensor(rng.uniform(lo, hi, (n, 3)), dtype=torch.float32),
+    return {"means": torch.tensor(means, dtype=torch.float32),
             "log_scales": torch.full((n, 3), float(np.log(0.5 * spacing))),
             "quats": torch.tensor(q, dtype=torch.float32),
             "opacity_logits": torch.full((n,), float(np.log(0.1 / 0.9))),
@@ -130,7 +138,9 @@ def main(argv=None) -> None:
     train = views(world, TRAIN_T, args.scale, to_chunk)
     held = views(world, HELD_OUT_T, args.scale, to_chunk)
     rows, curves = [], {}
-    for name, p in (("converted scene export", params_from(g)), ("random in the chunk box", random_params(len(g), 0))):
+    cameras = np.stack([(to_chunk @ im.cam_to_world)[:3, 3] for im in frames.images])
+    for name, p in (("converted scene export", params_from(g)),
+                    ("random, (-20 m, 20 m)^3 around each camera", random_params(len(g), cameras, 0))):
         t = time.perf_counter()
         curve = optimise(p, train, held, args.steps, name)
         curves[name] = curve

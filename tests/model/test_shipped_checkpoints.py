@@ -9,7 +9,7 @@ import torch
 
 from scube_sim.datasets import open_dataset
 from scube_sim.model.appearance import evaluate_item
-from scube_sim.model.converter import Converter, shipped_profiles
+from scube_sim.model.converter import Converter, load_profile, shipped_profiles
 from scube_sim.model.geometry import GeometryNet
 from scube_sim.model.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, shipped_checkpoints
 from scube_sim.model.config import stage_configs
@@ -68,7 +68,12 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_
     """Each shipped profile's checkpoints resolve; the cpu profile's geometry stage, on a freshly
     generated held-out world, predicts a grid closer to the ground truth (IoU) than the same
     network with its image and 3D layers untrained (the frozen VAE kept)."""
-    assert "cpu" in shipped_profiles()
+    assert {"cpu", "cpu-lidar"} <= set(shipped_profiles())
+    for name in shipped_profiles():
+        prof = load_profile(name)
+        assert prof.name == name
+        for stage in (prof.geometry, prof.appearance):
+            assert resolve_checkpoint(stage.checkpoint).is_file()
     conv = Converter("cpu")
     cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
                         fine_voxel_m=0.2, coarse_factor=4)
