@@ -69,7 +69,7 @@ def plot(rows: list[dict], path: Path) -> None:
         xs = np.array([r["seconds"] for r in rows])
         ys = np.array([r[key] for r in rows])
         for i, (r, x, y) in enumerate(zip(rows, xs, ys)):
-            ax.scatter([x], [y], color=f"C{i % 10}", label=f"{i + 1}: {r['variant']}")
+            ax.scatter([x], [y], color=plt.cm.tab20(i % 20), label=f"{i + 1}: {r['variant']}")
             ax.annotate(str(i + 1), (x, y), textcoords="offset points", xytext=(4, 3), fontsize=8)
         # the Pareto front: no other variant both faster and better
         better = (lambda u, v: u <= v) if key == "median_m" else (lambda u, v: u >= v)
