@@ -82,7 +82,7 @@ class FramesSpec(StrictModel):
     sample: int = Field(default=0, ge=0)
     world: WorldConfig | None = None
     rig: str = "waymo-5"
-    profile: str = "cpu"
+    profile: str = "cpu-lidar"  # the loop simulates LiDAR: one Gaussian per voxel (docs/converter.md)
     max_range_m: float | None = Field(default=None, gt=0)
     route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
 
