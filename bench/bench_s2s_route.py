@@ -152,11 +152,7 @@ def main(argv=None) -> None:
 def _x_image(sweep, to_chunk: np.ndarray, shape) -> np.ndarray:
     """Each return's x in the chunk frame, as a range image (NaN: no return)."""
     out = np.full(shape, np.nan)
-    row_of_ring = np.empty(sweep.channels, np.int64)
-    row_of_ring[np.argsort(-sweep.ring_elevation_deg, kind="stable")] = np.arange(sweep.channels)
-    p = sweep.points
-    xyz = transform_points(to_chunk, sweep.xyz().astype(np.float64))
-    out[row_of_ring[p["ring"]], p["column"]] = xyz[:, 0]
+    out[sweep.pixels()] = transform_points(to_chunk, sweep.xyz().astype(np.float64))[:, 0]
     return out
 
 

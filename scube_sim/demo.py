@@ -13,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from .camera.frames import Frames
+from .fidelity import sweep_agreement
 from .io.ply3dgs import write_3dgs_ply
 from .io.pointcloud import write_pcd
 from .io.usd import export_usd
@@ -33,20 +34,6 @@ REGION = (np.array([-10.24, -25.6, -3.23]), np.array([40.96, 25.6, 40.0]))
 
 # The worlds datasets' image scale of the rig presets (the converter's training images).
 FRAMES_SCALE = DatasetConfig().image_scale
-
-
-def sweep_agreement(reference: np.ndarray, candidate: np.ndarray, rays: np.ndarray) -> dict:
-    """A candidate sweep against a reference sweep of the same rays: range images (rings,
-    columns) (NaN: no return) and `rays` (rings, columns) bool, the reference's returns compared
-    (e.g. those inside the region both scenes cover). Returns median and p90 |range error| in
-    metres over the rays where both return, `hit_agreement` the share of `rays` the candidate
-    returns too, and `rays` the count."""
-    both = rays & np.isfinite(candidate) & np.isfinite(reference)
-    err = np.abs(reference - candidate)[both]
-    n = int(rays.sum())
-    return {"rays": n, "median_m": float(np.median(err)) if err.size else float("nan"),
-            "p90_m": float(np.percentile(err, 90)) if err.size else float("nan"),
-            "hit_agreement": float(both.sum() / n) if n else float("nan")}
 
 
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
@@ -106,10 +93,8 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     a, b = mesh_sweep.range_image(), sweep.range_image()
     pts_c = transform_points(pose, mesh_sweep.xyz().astype(np.float64))
     inside = np.all((pts_c >= REGION[0] + 0.5) & (pts_c < REGION[1] - 0.5), axis=1)
-    row = np.empty(mesh_sweep.channels, np.int64)
-    row[np.argsort(-mesh_sweep.ring_elevation_deg, kind="stable")] = np.arange(mesh_sweep.channels)
     mask = np.zeros(a.shape, bool)
-    mask[row[mesh_sweep.points["ring"][inside]], mesh_sweep.points["column"][inside]] = True
+    mask[mesh_sweep.pixels(mesh_sweep.points[inside])] = True
     both = mask & np.isfinite(b)
     err = np.abs(a - b)[both]
     echo(f"world: {wcfg.style}, seed {wcfg.seed}, {w.layout.kind}; {mesh.num_faces} triangles, {len(w.actors)} moving actors")
@@ -161,10 +146,7 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
                  title=f"{lidar.config.name}: the converted scene against the mesh, ray for ray",
                  mismatch=np.isfinite(ref) != np.isfinite(conv_img))
     err = np.abs(np.nan_to_num(conv_img - ref, nan=np.inf))
-    ring_row = np.empty(sweep.channels, np.int64)
-    ring_row[np.argsort(-sweep.ring_elevation_deg, kind="stable")] = np.arange(sweep.channels)
-    pts = sweep.points
-    per_point = err[ring_row[pts["ring"]], pts["column"]]
+    per_point = err[sweep.pixels()]
     bev_compare_png(out / "converted_bev.png",
                     {"mesh (ground truth)": (mesh_sweep.xyz(), None), "ground-truth VoxSplat": (gt_sweep.xyz(), None),
                      "converted from the cameras, |range error|": (sweep.xyz(), np.minimum(per_point, 5.0))},

@@ -335,6 +335,20 @@ def compare(rays: RealRays, sim: SimRays, *, taus=(0.05, 0.20), mask: np.ndarray
     return out
 
 
+def sweep_agreement(reference: np.ndarray, candidate: np.ndarray, rays: np.ndarray) -> dict:
+    """A candidate sweep against a reference sweep of the same rays: range images (rings,
+    columns) (NaN: no return) and `rays` (rings, columns) bool, the reference's returns compared
+    (e.g. those inside the region both scenes cover). Returns median and p90 |range error| in
+    metres over the rays where both return, `hit_agreement` the share of `rays` the candidate
+    returns too, and `rays` the count."""
+    both = rays & np.isfinite(candidate) & np.isfinite(reference)
+    err = np.abs(reference - candidate)[both]
+    n = int(rays.sum())
+    return {"rays": n, "median_m": float(np.median(err)) if err.size else float("nan"),
+            "p90_m": float(np.percentile(err, 90)) if err.size else float("nan"),
+            "hit_agreement": float(both.sum() / n) if n else float("nan")}
+
+
 def range_image(rays: RealRays, values: np.ndarray) -> np.ndarray:
     """(rows, cols) float32 image of per-ray values (NaN where no ray or no value; the nearest
     value where several rays share a cell)."""

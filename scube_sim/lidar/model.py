@@ -96,16 +96,23 @@ class Sweep:
         p = self.points
         return np.stack([p["x"], p["y"], p["z"]], axis=1)
 
+    def pixels(self, points: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Each point's (row, column) in `range_image` (rows by decreasing elevation): two (N,)
+        int64 arrays, for `points` (default all of this sweep's). Spinning patterns only."""
+        if self.columns <= 0:
+            raise InputError("range_image: needs a spinning pattern (an emitter table has no columns)")
+        p = self.points if points is None else points
+        row_of_ring = np.empty(self.channels, np.int64)
+        row_of_ring[np.argsort(-self.ring_elevation_deg, kind="stable")] = np.arange(self.channels)
+        return row_of_ring[p["ring"]], p["column"].astype(np.int64)
+
     def range_image(self, field: str = "range", return_id: int = 0) -> np.ndarray:
         """(rings, columns) float32 view, rows by decreasing elevation (top beam first), NaN
         where a ray gave no return. Spinning patterns only."""
-        if self.columns <= 0:
-            raise InputError("range_image: needs a spinning pattern (an emitter table has no columns)")
-        row_of_ring = np.empty(self.channels, np.int64)
-        row_of_ring[np.argsort(-self.ring_elevation_deg, kind="stable")] = np.arange(self.channels)
-        img = np.full((self.channels, self.columns), np.nan, np.float32)
         p = self.points[self.points["return_id"] == return_id]
-        img[row_of_ring[p["ring"]], p["column"]] = p[field]
+        rows, cols = self.pixels(p)
+        img = np.full((self.channels, self.columns), np.nan, np.float32)
+        img[rows, cols] = p[field]
         return img
 
 

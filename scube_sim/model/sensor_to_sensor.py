@@ -32,7 +32,7 @@ import torch
 
 from ..camera.rig import load_rig
 from ..errors import InputError
-from ..fidelity import fidelity_config
+from ..fidelity import fidelity_config, sweep_agreement
 from ..lidar.config import Drop, load_lidar_config
 from ..lidar.model import Lidar
 from ..memory import peak_mb, reset_peak
@@ -81,13 +81,6 @@ def ahead_poses(lidar: Lidar, chunk_to_world: np.ndarray, ahead: Sequence[float]
     return out
 
 
-def _pixels(sweep) -> tuple[np.ndarray, np.ndarray]:
-    """Each point's (row, column) in `sweep.range_image()` (rows by decreasing elevation)."""
-    row_of_ring = np.empty(sweep.channels, np.int64)
-    row_of_ring[np.argsort(-sweep.ring_elevation_deg, kind="stable")] = np.arange(sweep.channels)
-    return row_of_ring[sweep.points["ring"]], sweep.points["column"].astype(np.int64)
-
-
 def _mean_nn(a: np.ndarray, b: np.ndarray) -> float:
     from scipy.spatial import cKDTree
 
@@ -101,13 +94,7 @@ def sweep_metrics(ref_img: np.ndarray, cand_img: np.ndarray, rays: np.ndarray, r
     """A candidate sweep against the reference over the rays `rays` (rings, columns) bool where
     the reference returns: median / p90 |range error| (m) where both return, hit agreement (share
     of `rays` the candidate returns too), Chamfer (m) between the point sets (N, 3) given."""
-    both = rays & np.isfinite(cand_img) & np.isfinite(ref_img)
-    err = np.abs(ref_img - cand_img)[both]
-    n = int(rays.sum())
-    return {"rays": n,
-            "median_m": float(np.median(err)) if err.size else float("nan"),
-            "p90_m": float(np.percentile(err, 90)) if err.size else float("nan"),
-            "hit_agreement": float(both.sum() / n) if n else float("nan"),
+    return {**sweep_agreement(ref_img, cand_img, rays),
             "chamfer_m": 0.5 * (_mean_nn(ref_xyz, cand_xyz) + _mean_nn(cand_xyz, ref_xyz))}
 
 
@@ -210,7 +197,7 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
     for p in poses:
         m = lidar.scan(mesh_tracer, p.world, seed=seed)
         pts = transform_points(to_chunk @ p.world, m.xyz().astype(np.float64))
-        rr, cc = _pixels(m)
+        rr, cc = m.pixels()
         inside = _inside_chunk(pts)
         seen = seen_points(pts, voxels)
         img_shape = (m.channels, m.columns)
@@ -230,7 +217,7 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
 def _rows(scene: str, ahead: float, ref: dict, sweep, pose_chunk: np.ndarray) -> list[dict]:
     img = sweep.range_image()
     pts = transform_points(pose_chunk, sweep.xyz().astype(np.float64))
-    rr, cc = _pixels(sweep)
+    rr, cc = sweep.pixels()
     inside = _inside_chunk(pts)
     out = []
     for split, mask in ref["masks"].items():

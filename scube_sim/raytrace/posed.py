@@ -38,14 +38,21 @@ class PosedScene:
         return hits
 
 
-def place_scene(tracer: TraceableScene, scene) -> TraceableScene:
-    """`tracer` of a VoxSplat `scene` as a world-frame scene: wrapped in a `PosedScene` when the
-    scene says it lives in a chunk frame (metadata ``frame: chunk`` and ``chunk_to_world``, as the
-    converter and the worlds' ground truth write), itself otherwise."""
+def scene_to_world(scene) -> np.ndarray | None:
+    """(4, 4) float64 pose in the world of a scene that says it lives in a chunk frame (metadata
+    ``frame: chunk`` and ``chunk_to_world``, as the converter and the worlds' ground truth write);
+    None for a scene in world coordinates."""
     meta = getattr(scene, "metadata", None) or {}
     if meta.get("frame") == "chunk" and meta.get("chunk_to_world") is not None:
-        return PosedScene(tracer, np.asarray(meta["chunk_to_world"], np.float64))
-    return tracer
+        return np.asarray(meta["chunk_to_world"], np.float64)
+    return None
 
 
-__all__ = ["PosedScene", "place_scene"]
+def place_scene(tracer: TraceableScene, scene) -> TraceableScene:
+    """`tracer` of a VoxSplat `scene` as a world-frame scene: wrapped in a `PosedScene` where
+    `scene_to_world` gives a pose, itself otherwise."""
+    pose = scene_to_world(scene)
+    return tracer if pose is None else PosedScene(tracer, pose)
+
+
+__all__ = ["PosedScene", "place_scene", "scene_to_world"]

@@ -16,6 +16,7 @@ import numpy as np
 from ..boxes import Box, points_in_boxes
 from ..camera.frames import Frames
 from ..labels import GROUND_LABEL_NAMES, LABEL_IDS
+from ..raytrace.posed import scene_to_world
 from ..raytrace.tracer import Tracer
 from ..transforms import transform_points
 from ..voxsplat import VoxSplat
@@ -23,17 +24,7 @@ from .sim_scene import Part, SimScene
 
 DEFAULT_MODE = "max_response"  # scenes that name no trace mode (ground-truth and measured VoxSplats)
 
-__all__ = ["remove_boxes", "scene_part", "scene_to_world", "simulated_scene"]
-
-
-def scene_to_world(scene: VoxSplat) -> np.ndarray | None:
-    """(4, 4) float64 the scene frame's pose in the world where the scene names one (metadata
-    ``frame: chunk`` with ``chunk_to_world``, as the converter and the worlds' ground truth
-    write), else None (the scene is in world coordinates)."""
-    meta = scene.metadata or {}
-    if meta.get("frame") == "chunk" and meta.get("chunk_to_world") is not None:
-        return np.asarray(meta["chunk_to_world"], np.float64)
-    return None
+__all__ = ["remove_boxes", "scene_part", "simulated_scene"]
 
 
 def scene_part(scene: VoxSplat, *, name: str = "scene", mode: str | None = None, tracer_kw: dict | None = None) -> Part:
