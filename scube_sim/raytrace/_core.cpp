@@ -66,6 +66,7 @@ struct Contribution {
   double t;  // max-response distance
   double alpha;
   double log1m;  // log(1 - alpha)
+  double cum;    // log transmittance after this entry (the round's base plus the log1m so far)
   int64_t g;
 };
 
@@ -126,10 +127,15 @@ class GaussianScene {
   // means (G, 3), quats (G, 4) wxyz of any norm, scales (G, 3) (positive), opacity (G,) float64;
   // k sigma; pad (m): the float32 slack of rays against the boxes. Derives, per Gaussian, what
   // the traversal reads (mean, world-to-unit-frame matrix A = S^-1 R^T, flat axis, opacity, packed
-  // together) and its k-sigma box padded by `pad`, with the formulas of transforms.py and
+  // together) and its box padded by `pad`, with the formulas of transforms.py and
   // gaussian_math.py (a zero or non-finite quaternion is the identity).
-  GaussianScene(Arr<double> means, Arr<double> quats, Arr<double> scales, Arr<double> opacity, double k, double pad)
-      : k_(k), kk_(k * k), pad_(pad) {
+  // alpha_min > 0 builds a scene for soft mode only: each box reaches only as far as the
+  // Gaussian's response can reach alpha_min (opacity * exp(-d2 / 2) >= alpha_min, so
+  // d2 <= 2 log(opacity / alpha_min), at most k^2; 3DGRT's adaptive bounds), so a faint Gaussian
+  // is tested only where it can contribute. The exact tests are the same either way.
+  GaussianScene(Arr<double> means, Arr<double> quats, Arr<double> scales, Arr<double> opacity, double k, double pad,
+                double alpha_min)
+      : k_(k), kk_(k * k), pad_(pad), alpha_min_(alpha_min) {
     n_ = means.shape(0);
     if (means.ndim() != 2 || means.shape(1) != 3) throw std::invalid_argument("means: expected (G, 3)");
     if (quats.ndim() != 2 || quats.shape(0) != n_ || quats.shape(1) != 4)
@@ -157,15 +163,22 @@ class GaussianScene {
         if (sc[c] < sc[flat]) flat = c;
       G[12] = R[flat], G[13] = R[3 + flat], G[14] = R[6 + flat];
       G[15] = opp[i];
+      // The box reaches `reach` sigmas; the relative margin covers the rounding of log and exp
+      // at the edge of the soft reach. lo_ / hi_ stay the k-sigma bounds in either case.
+      double reach = k;
+      if (alpha_min > 0.0) {
+        const double r2 = 2.0 * std::log(opp[i] / alpha_min);
+        reach = r2 < k * k ? std::sqrt(std::max(r2, 0.0)) * (1.0 + 1e-7) : k;
+      }
       float* b = box_.data() + 6 * i;
       for (int r = 0; r < 3; ++r) {
         double v = 0.0;
         for (int c = 0; c < 3; ++c) v += (R[3 * r + c] * R[3 * r + c]) * (sc[c] * sc[c]);
-        const double half = k * std::sqrt(v);
+        const double sd = std::sqrt(v), half = reach * sd, khalf = k * sd;
         b[2 * r] = round_down((m[r] - half) - pad);
         b[2 * r + 1] = round_up((m[r] + half) + pad);
-        lo_[r] = std::min(lo_[r], static_cast<double>(b[2 * r]));
-        hi_[r] = std::max(hi_[r], static_cast<double>(b[2 * r + 1]));
+        lo_[r] = std::min(lo_[r], static_cast<double>(round_down((m[r] - khalf) - pad)));
+        hi_[r] = std::max(hi_[r], static_cast<double>(round_up((m[r] + khalf) + pad)));
       }
     }
     if (n_ == 0)
@@ -207,22 +220,31 @@ class GaussianScene {
     out[2] = A[6] * v[0] + A[7] * v[1] + A[8] * v[2];
   }
 
-  // The exact test of Gaussian g on ray (o, d): t* (max response), d2 (squared Mahalanobis
-  // distance there) and the half chord of the k-sigma ellipsoid (0 on a miss).
-  void exact(int64_t g, const double* o, const double* d, double& t_star, double& d2, double& half) const {
+  // The exact test of Gaussian g on ray (o, d): false when the ray misses the k-sigma ellipsoid;
+  // otherwise d2 (squared Mahalanobis distance at the max-response point) and t* (the max-response
+  // distance). The miss is decided without a division first, by a bound that never rejects what
+  // d2 <= k^2 accepts (the rounding of either side is below 1e-15 relative); what passes is
+  // computed with the formulas of gaussian_math, operation for operation.
+  bool exact(int64_t g, const double* o, const double* d, double& t_star, double& d2, double& aa) const {
     const double* m = geo_.data() + kGeo * g;
     const double w[3] = {o[0] - m[0], o[1] - m[1], o[2] - m[2]};
     double op[3], dp[3];
     apply(m + 3, w, op);
     apply(m + 3, d, dp);
     const double op0 = op[0], op1 = op[1], op2 = op[2], dp0 = dp[0], dp1 = dp[1], dp2 = dp[2];
-    const double aa = std::max(dp0 * dp0 + dp1 * dp1 + dp2 * dp2, 1e-300);
+    aa = std::max(dp0 * dp0 + dp1 * dp1 + dp2 * dp2, 1e-300);
+    const double c0 = op1 * dp2 - op2 * dp1, c1 = op2 * dp0 - op0 * dp2, c2 = op0 * dp1 - op1 * dp0;
+    const double cc = c0 * c0 + c1 * c1 + c2 * c2;
+    if (cc > kk_ * aa * (1.0 + 1e-12)) return false;
+    d2 = cc / aa;
+    if (!(d2 <= kk_)) return false;
     const double b = op0 * dp0 + op1 * dp1 + op2 * dp2;
     t_star = -b / aa;
-    const double c0 = op1 * dp2 - op2 * dp1, c1 = op2 * dp0 - op0 * dp2, c2 = op0 * dp1 - op1 * dp0;
-    d2 = (c0 * c0 + c1 * c1 + c2 * c2) / aa;
-    half = std::sqrt(std::max(kk_ - d2, 0.0) / aa);
+    return true;
   }
+
+  // The half chord of the k-sigma ellipsoid for a ray that passed `exact`.
+  double half_chord(double d2, double aa) const { return std::sqrt(std::max(kk_ - d2, 0.0) / aa); }
 
   // Outward unit normal of the ellipsoid level set through p: A^T A (p - mu), normalised.
   void ellipsoid_normal(int64_t g, const double* p, double* n) const {
@@ -348,16 +370,16 @@ class GaussianScene {
     const GaussianScene& s = *st.scene;
     const int64_t g = args->primID;
     RTCRayHit* rh = reinterpret_cast<RTCRayHit*>(args->rayhit);
-    double t_star, d2, half;
-    s.exact(g, st.o, st.d, t_star, d2, half);
+    double t_star, d2, aa;
     ++st.tests;
-    if (!(d2 <= s.kk_)) return;
+    if (!s.exact(g, st.o, st.d, t_star, d2, aa)) return;
     if (st.mode == kModeSoft) {
       s.add_contribution(st, rh, g, t_star, d2);
       return;
     }
     double t_hit;
     if (st.mode == kModeEntry) {
+      const double half = s.half_chord(d2, aa);
       const double t_in = t_star - half, t_out = t_star + half;
       if (!(t_out >= st.tmin && t_in <= st.tmax)) return;
       t_hit = std::max(t_in, st.tmin);  // a ray starting inside hits at once
@@ -388,14 +410,17 @@ class GaussianScene {
     const int last = std::min(n, st.cap - 1);
     for (int i = last; i > pos; --i) buf[i] = buf[i - 1];
     const double a = std::min(alpha, 0.999);
-    buf[pos] = Contribution{t_star, a, std::log1p(-a), g};
+    buf[pos] = Contribution{t_star, a, std::log1p(-a), 0.0, g};
     if (n < st.cap) st.count = n + 1;
     // Early termination inside the traversal: once the buffer's transmittance falls below the
     // threshold at entry j, nothing beyond j is composited (a nearer contribution found later
     // only moves that point nearer), so the buffer ends at j and the ray's far limit with it.
-    double log_tr = st.log_tr_base;
-    for (int i = 0; i < st.count; ++i) {
+    // The running sums before `pos` are unchanged (and all above the threshold, or the buffer
+    // would end there), so they are summed on from `pos`, in the same order as from the start.
+    double log_tr = pos > 0 ? buf[pos - 1].cum : st.log_tr_base;
+    for (int i = pos; i < st.count; ++i) {
       log_tr += buf[i].log1m;
+      buf[i].cum = log_tr;
       if (log_tr < st.log_t_min) {
         st.count = i + 1;
         st.cut = true;
@@ -412,12 +437,13 @@ class GaussianScene {
   std::vector<double> geo_;  // (G, kGeo): mean, A, flat axis, opacity
   double lo_[3], hi_[3];     // the boxes' bounds
   std::vector<float> box_;  // (G, 3, 2): lo, hi per axis, rounded outwards to float32
-  double k_, kk_, pad_;
+  double k_, kk_, pad_, alpha_min_;
   int64_t n_ = 0;
   RTCScene scene_ = nullptr;
 
  public:
   double pad() const { return pad_; }
+  double alpha_min() const { return alpha_min_; }
   const double* flat_axis(int64_t g) const { return geo_.data() + kGeo * g + 12; }
   py::tuple bounds() const {
     return py::make_tuple(py::make_tuple(lo_[0], lo_[1], lo_[2]), py::make_tuple(hi_[0], hi_[1], hi_[2]));
@@ -567,6 +593,9 @@ py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, 
   if (mode < kModeEntry || mode > kModeSoft) throw std::invalid_argument("mode: expected 0 (entry), 1 (max_response) or 2 (soft)");
   if (k_buffer < 1) throw std::invalid_argument("k_buffer: expected at least 1");
   check_rays(o, d, tmin, tmax, lo, hi);
+  if (s.alpha_min() > 0.0 && (mode != kModeSoft || soft_alpha_min < s.alpha_min()))
+    throw std::invalid_argument("this scene's boxes end at alpha_min " + std::to_string(s.alpha_min()) +
+                                ": it answers soft mode with soft_alpha_min >= that only");
   const int64_t n = o.shape(0), G = s.size();
   if (voxel.shape(0) != G || label.shape(0) != G || color.shape(0) != G)
     throw std::invalid_argument("attributes: expected one row per Gaussian");
@@ -639,10 +668,13 @@ PYBIND11_MODULE(_core, m) {
   m.doc() = "Compiled trace core: Embree user-geometry Gaussians with exact float64 tests (see _core.cpp).";
   m.attr("EMBREE_VERSION") = RTC_VERSION_STRING;
   py::class_<GaussianScene>(m, "GaussianScene")
-      .def(py::init<Arr<double>, Arr<double>, Arr<double>, Arr<double>, double, double>(), py::arg("means"),
+      .def(py::init<Arr<double>, Arr<double>, Arr<double>, Arr<double>, double, double, double>(), py::arg("means"),
            py::arg("quats"), py::arg("scales"), py::arg("opacity"), py::arg("k"), py::arg("pad"),
+           py::arg("alpha_min") = 0.0,
            "Build the BVH of G Gaussians: means (G, 3), quats (G, 4) wxyz, scales (G, 3) > 0, opacity (G,) "
-           "float64 (local frame, metres); k sigma; pad (m) the float32 slack of rays against the boxes.")
+           "float64 (local frame, metres); k sigma; pad (m) the float32 slack of rays against the boxes; "
+           "alpha_min > 0: a soft-mode-only scene whose boxes end where the response falls below it.")
+      .def_property_readonly("alpha_min", &GaussianScene::alpha_min)
       .def_property_readonly("size", &GaussianScene::size)
       .def("bounds", &GaussianScene::bounds, "((3,), (3,)): the padded boxes' lower and upper corners");
   m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");

@@ -76,12 +76,32 @@ def default_core_name() -> str:
 
 @dataclass
 class CompiledScene:
-    """The core's BVH and what the hits are filled from. lo, hi (3,): the search box."""
+    """The core's BVH and what the hits are filled from. lo, hi (3,): the search box (the k-sigma
+    bounds). `handle` answers every mode; a scene prepared for soft mode holds instead a
+    `soft_handle` whose boxes end where each Gaussian's response reaches `soft_alpha_min`, and
+    builds `handle` only if a hard mode is asked."""
 
-    handle: object
     scene: SceneGaussians
     lo: np.ndarray
     hi: np.ndarray
+    handle: object = None
+    soft_handle: object = None
+
+    def handle_for(self, opts: TraceOptions):
+        """The BVH that answers `opts` exactly (soft boxes only for soft mode at an alpha floor
+        at or above theirs), built on first use."""
+        soft = self.soft_handle
+        if soft is not None and opts.mode == "soft" and opts.soft_alpha_min >= soft.alpha_min:
+            return soft
+        if self.handle is None:
+            self.handle = _build(self.scene, 0.0)
+        return self.handle
+
+
+def _build(scene: SceneGaussians, alpha_min: float):
+    g = scene.gaussians
+    c64 = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
+    return _core.GaussianScene(*c64, float(scene.k), float(scene.pad), float(alpha_min))
 
 
 class CompiledCore:
@@ -95,9 +115,8 @@ class CompiledCore:
                                   "and a C++ compiler, then reinstall scube-sim, or use core='reference'")
 
     def prepare(self, scene: SceneGaussians) -> CompiledScene:
-        g = scene.gaussians
-        c64 = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
-        handle = _core.GaussianScene(*c64, float(scene.k), float(scene.pad))
+        soft = scene.soft_alpha_min is not None and scene.soft_alpha_min > 0
+        handle = _build(scene, scene.soft_alpha_min if soft else 0.0)
         # Attributes the hits copy, in the dtypes the extension reads without a copy per call.
         scene.voxel = np.ascontiguousarray(scene.voxel, np.int64)
         scene.labels = np.ascontiguousarray(scene.labels, np.int16)
@@ -105,7 +124,8 @@ class CompiledCore:
         lo, hi = (np.array(b, np.float64) for b in handle.bounds())
         # The search box reaches beyond the padded boxes, so a clipped ray never starts inside a
         # box it cannot then leave.
-        return CompiledScene(handle, scene, lo - 2.0 * scene.pad, hi + 2.0 * scene.pad)
+        return CompiledScene(scene, lo - 2.0 * scene.pad, hi + 2.0 * scene.pad,
+                             handle=None if soft else handle, soft_handle=handle if soft else None)
 
     def trace(self, prepared: CompiledScene, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits:
         n = o.shape[0]
@@ -118,7 +138,7 @@ class CompiledCore:
         s = prepared.scene
         f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, prepared.lo, prepared.hi)]
         casts, tests, unfinished = _core.trace(
-            prepared.handle, _MODE_CODES[opts.mode], *f64, s.voxel, s.labels, s.colors,
+            prepared.handle_for(opts), _MODE_CODES[opts.mode], *f64, s.voxel, s.labels, s.colors,
             out.hit, out.t, out.points, out.normals, out.gaussian, out.voxel, out.label, out.color, out.alpha,
             float(opts.soft_min_transmittance), float(opts.soft_alpha_min), float(opts.soft_hit_alpha),
             int(opts.k_buffer), int(opts.max_iterations), int(opts.threads))

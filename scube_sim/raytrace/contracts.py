@@ -90,7 +90,9 @@ class SceneGaussians:
 
     gaussians: the kept Gaussians (|scales| floored); k sigma; labels (G,) int16; colors (G, 3)
     float32; voxel (G,) int64 (-1: none); pad (m): the float32 slack rays need against bounds;
-    voxsplat: the source VoxSplat, if any (voxel-box proxies). The derived arrays (rot, a,
+    voxsplat: the source VoxSplat, if any (voxel-box proxies); soft_alpha_min: set when the
+    scene is built for soft mode: a core may then bound each Gaussian by where its response
+    reaches this alpha (it must still answer a hard mode exactly). The derived arrays (rot, a,
     flat_axis, aabb_lo / aabb_hi) are computed on first use: the compiled core derives its own in
     C++ and never asks for them."""
 
@@ -101,6 +103,7 @@ class SceneGaussians:
     voxel: np.ndarray
     pad: float
     voxsplat: VoxSplat | None = None
+    soft_alpha_min: float | None = None
 
     @property
     def mu(self) -> np.ndarray:

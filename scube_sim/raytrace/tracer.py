@@ -196,7 +196,8 @@ class Tracer:
         self.scene_gaussians = SceneGaussians(
             gaussians=g, k=self.k, labels=self.labels, colors=g.colors,
             voxel=g.voxel if g.voxel is not None else np.full(n, -1, np.int64), pad=self._pad,
-            voxsplat=scene if isinstance(scene, VoxSplat) else None)
+            voxsplat=scene if isinstance(scene, VoxSplat) else None,
+            soft_alpha_min=self.soft_alpha_min if self.mode == "soft" else None)
         self.prepared = self.core.prepare(self.scene_gaussians)
         self._lo, self._hi = self.prepared.lo, self.prepared.hi
         self.num_primitives = int(getattr(self.prepared, "num_faces", n))

@@ -157,6 +157,51 @@ def test_soft_k_buffer_size_changes_the_work_not_the_answer(rng):
     assert res[1][1] > res[3][1] > res[16][1] >= res[64][1]  # traversals
 
 
+def test_soft_boxes_end_where_the_response_reaches_alpha_min(rng):
+    """A tracer built for soft mode bounds each Gaussian where opacity * exp(-d2 / 2) reaches
+    soft_alpha_min (3DGRT's adaptive bounds): the same bytes as k-sigma boxes with fewer exact
+    tests; a hard mode or a lower alpha floor asked of it later is answered on k-sigma boxes."""
+    g, rots = random_scene(rng, n=400, spread=3.0, smin=0.05, smax=0.7)
+    g.opacities = np.exp(rng.uniform(np.log(0.001), 0.0, len(g)))  # many faint Gaussians
+    o, d = random_rays(rng, 3000, radius=7.0)
+    kw = dict(soft_hit_alpha=0.0, opacity_floor=1.0 / 255.0, **engine_kw("compiled"))
+    soft = Tracer(g, mode="soft", **kw)
+    ksigma = Tracer(g, mode="entry", **kw)
+    ksigma.mode = "soft"
+    a, b = soft.trace(o, d), ksigma.trace(o, d)
+    assert a.hit.sum() > 100
+    for name in a.__dataclass_fields__:
+        assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
+    assert soft.stats.exact_tests < 0.8 * ksigma.stats.exact_tests
+    # The soft-built tracer asked for a hard mode: exact against brute force.
+    soft.mode = "entry"
+    got = soft.trace(o, d)
+    want = brute_force_hard(o, d, g.means, rots, g.scales, K, "entry")
+    kept = g.opacities >= 1.0 / 255.0
+    want_kept = brute_force_hard(o, d, g.means[kept], rots[kept], g.scales[kept], K, "entry")
+    assert not np.array_equal(want, want_kept)  # the floor matters here
+    assert np.array_equal(got.hit, np.isfinite(want_kept))
+    np.testing.assert_allclose(got.t[got.hit], want_kept[got.hit], rtol=1e-9, atol=1e-9)
+    # A lower alpha floor than the boxes were built for: the k-sigma boxes answer it.
+    soft.mode, ksigma.soft_alpha_min, soft.soft_alpha_min = "soft", 1e-3, 1e-3
+    a, b = soft.trace(o, d), ksigma.trace(o, d)
+    assert a.t.tobytes() == b.t.tobytes() and a.alpha.tobytes() == b.alpha.tobytes()
+
+
+def test_the_core_refuses_a_hard_mode_on_soft_boxes(rng):
+    if not compiled.available():
+        pytest.skip(f"the compiled core is not built: {compiled.load_error()}")
+    g, _ = random_scene(rng, n=20)
+    c = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
+    scene = compiled._core.GaussianScene(*c, 3.0, 1e-6, 1.0 / 255.0)
+    assert scene.alpha_min == pytest.approx(1.0 / 255.0)
+    tr = Tracer(g, mode="soft", **engine_kw("compiled"))
+    o, d = random_rays(rng, 10)
+    with pytest.raises(ValueError, match="soft mode with soft_alpha_min"):
+        tr.core.trace(compiled.CompiledScene(tr.scene_gaussians, tr.prepared.lo, tr.prepared.hi, handle=scene),
+                      TraceOptions("entry"), o, d, np.zeros(10), np.full(10, 30.0), tr.stats)
+
+
 def test_compiled_core_and_embreex_in_one_process(rng):
     """embreex bundles its own Embree 4 and the compiled core links Debian's Embree 3: both load
     and trace side by side in one process."""
