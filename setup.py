@@ -1,17 +1,31 @@
-"""The compiled trace core (scube_sim/raytrace/_core.cpp) against Debian's Embree 3 (libembree-dev).
+"""The compiled trace core (scube_sim/raytrace/_core.cpp) against Embree 4 where its headers are
+found (Debian 13's libembree-dev), else Embree 3 (Debian 12's).
 
-Everything else about the package is in pyproject.toml. The extension is optional: where it cannot
-be built (no compiler, no Embree headers) the package still installs, and the tracer says once
-that it runs on the NumPy reference walk instead.
+EMBREE_INCLUDE_DIR / EMBREE_LIBRARY_DIR point the build at another Embree (searched first; the
+library directory also goes into the extension's run path). Everything else about the package is
+in pyproject.toml. The extension is optional: where it cannot be built (no compiler, no Embree
+headers) the package still installs, and the tracer says once that it runs on the NumPy
+reference walk instead.
 """
+
+import os
+from pathlib import Path
 
 from pybind11.setup_helpers import Pybind11Extension, build_ext
 from setuptools import setup
 
+include_dirs = [d for d in (os.environ.get("EMBREE_INCLUDE_DIR"),) if d]
+library_dirs = [d for d in (os.environ.get("EMBREE_LIBRARY_DIR"),) if d]
+embree4 = any(Path(d, "embree4", "rtcore.h").exists() for d in include_dirs + ["/usr/include", "/usr/local/include"])
+
 core = Pybind11Extension(
     "scube_sim.raytrace._core",
     ["scube_sim/raytrace/_core.cpp"],
-    libraries=["embree3"],
+    include_dirs=include_dirs,
+    library_dirs=library_dirs,
+    runtime_library_dirs=library_dirs,
+    libraries=["embree4" if embree4 else "embree3"],
+    define_macros=[("SCUBE_EMBREE4", "1")] if embree4 else [],
     cxx_std=17,
     extra_compile_args=["-O3"],
     optional=True,

@@ -14,8 +14,16 @@
 //
 // Frames: everything is in the scene's local frame (world = local + origin), float64, unit
 // directions; only Embree's traversal is float32.
+//
+// Builds against Embree 3 (Debian 12's libembree-dev) or Embree 4 (SCUBE_EMBREE4, set by setup.py
+// where embree4/rtcore.h is found): they differ here only in the ray query context and in how
+// rtcIntersect1 receives it.
 
+#if defined(SCUBE_EMBREE4)
+#include <embree4/rtcore.h>
+#else
 #include <embree3/rtcore.h>
+#endif
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
@@ -97,10 +105,19 @@ void rotation(const double* q, double* R) {
   R[6] = 2 * (xz - wy), R[7] = 2 * (yz + wx), R[8] = 1 - 2 * (xx + yy);
 }
 
-// Per-ray state, reached from the intersect callback through the context (Embree 3 passes the
+#if defined(SCUBE_EMBREE4)
+using QueryContext = RTCRayQueryContext;
+#else
+using QueryContext = RTCIntersectContext;
+#endif
+
+// Per-ray state, reached from the intersect callback through the context (Embree passes the
 // context it was given; ours extends it).
 struct RayState {
-  RTCIntersectContext ctx;  // must stay first
+  QueryContext ctx;  // must stay first
+#if defined(SCUBE_EMBREE4)
+  RTCIntersectArguments args;  // points at ctx
+#endif
   const GaussianScene* scene;
   double o[3], d[3];
   double t0;          // where the float32 Embree ray starts, along the float64 ray
@@ -291,6 +308,14 @@ class GaussianScene {
     return s + st.margin + 4e-7 * std::abs(s);
   }
 
+  void intersect1(RayState& st, RTCRayHit& rh) const {
+#if defined(SCUBE_EMBREE4)
+    rtcIntersect1(scene_, &rh, &st.args);
+#else
+    rtcIntersect1(scene_, &st.ctx, &rh);
+#endif
+  }
+
   // --- one ray -----------------------------------------------------------------------------
   void trace_hard_ray(RayState& st, double t_lo, double t_hi) const {
     st.best_t = kInf;
@@ -299,7 +324,7 @@ class GaussianScene {
     st.t0 = t_lo;
     RTCRayHit rh;
     init_ray(st, rh, 0.0, param_beyond(st, t_hi));
-    rtcIntersect1(scene_, &st.ctx, &rh);
+    intersect1(st, rh);
   }
 
   // Returns the number of traversals; depth / best / acc as composite_front_to_back.
@@ -328,7 +353,7 @@ class GaussianScene {
       RTCRayHit rh;
       const double s_near = std::isfinite(st.after_t) ? st.after_t - st.t0 - st.margin - 4e-7 * std::abs(st.after_t - st.t0) : 0.0;
       init_ray(st, rh, s_near, param_beyond(st, t_hi));
-      rtcIntersect1(scene_, &st.ctx, &rh);
+      intersect1(st, rh);
       bool stopped = false;
       for (int i = 0; i < st.count; ++i) {
         const Contribution& c = st.buf[i];
@@ -449,6 +474,16 @@ class GaussianScene {
     return py::make_tuple(py::make_tuple(lo_[0], lo_[1], lo_[2]), py::make_tuple(hi_[0], hi_[1], hi_[2]));
   }
 };
+
+void init_context(RayState& st) {
+#if defined(SCUBE_EMBREE4)
+  rtcInitRayQueryContext(&st.ctx);
+  rtcInitIntersectArguments(&st.args);
+  st.args.context = &st.ctx;
+#else
+  rtcInitIntersectContext(&st.ctx);
+#endif
+}
 
 // Runs fn(ray, state, thread) over rays in chunks on `threads` std::threads; each chunk's rays
 // are independent, so the result does not depend on which thread ran which chunk.
@@ -614,7 +649,7 @@ py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, 
     py::gil_scoped_release release;
     parallel_rays(n, nt, [&](int64_t lo, int64_t hi, int tid) {
       RayState st;
-      rtcInitIntersectContext(&st.ctx);
+      init_context(st);
       st.scene = &s;
       st.mode = mode;
       st.margin = 2.0 * s.pad();
