@@ -7,14 +7,16 @@ against the NumPy reference walk, all in one process on the same rays.
 - Compiled core: build time and peak memory; both hard depth modes at 1 and 2 threads; the whole
   `Lidar.scan` (HDL-64E, with every effect of the preset); x_mesh = sweep time / raw Embree first
   hit on the scene's source mesh (the street's, or the demo world's cropped to the fitted region;
-  the same rays; open3d multi-threaded for 2 threads, embreex for 1).
+  the same rays; open3d multi-threaded for 2 threads, embreex for 1). The compiled core's own
+  mesh engine (worlds and actors) is timed beside them ("raw compiled").
 - Exactness: rays whose hit differs (> 1 um) from an exhaustive listing of every proxy crossing
   (open3d list_intersections over the reference's octahedra, each crossing tested exactly), for
   both cores.
 - Reference walk (open3d, octahedra) on the 0.3 M and 1 M scenes: its build and sweeps, for the
   before / after ratio.
-- Soft mode on the shipped third-party splats (VLP-16 and HDL-64E rays), both cores, and the
-  compiled core's k-buffer at 16 and 64 against its default 256.
+- Soft mode on the shipped third-party splats (VLP-16 and HDL-64E rays), both cores, the
+  compiled core's k-buffer at 16 and 64 against its default 256, and its soft boxes (each
+  Gaussian bounded where its response reaches soft_alpha_min) against k-sigma boxes.
 
 Run: `make bench` (all benchmarks) or `python -m bench.bench_tracer [--quick]` (no 3.7 M scene).
 """
@@ -142,7 +144,7 @@ def run(quick: bool = False) -> list[dict]:
                 mesh_time[label, backend, s] = sec
                 mesh_ref[label, s] = mtr.trace_world(o, d, 0.0, rmax)
                 rows.append({"scene": f"{label} mesh ({m.num_faces} tris)", "gaussians": 0, "core": f"raw {backend}",
-                             "mode": "mesh first hit", "threads": 2 if backend == "open3d" else 1, "sensor": s,
+                             "mode": "mesh first hit", "threads": 1 if backend == "embreex" else 2, "sensor": s,
                              "rays": len(o), "sweep_s": sec, "Mrays_s": len(o) / sec / 1e6, "x_mesh": 1.0})
     scenes = [(f"street {v:g} m", v) for v in voxel_sizes] + [("demo world 0.2 m", None)]
     with Progress() as progress:
@@ -230,6 +232,13 @@ def soft_rows() -> list[dict]:
                 rows.append({"scene": fname, "gaussians": len(g), "core": f"compiled, k-buffer {kb}", "mode": "soft",
                              "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec,
                              "Mrays_s": len(d) / sec / 1e6})
+            # Without the soft boxes (each Gaussian bounded where its response reaches
+            # soft_alpha_min): a tracer built for a hard mode answers soft on k-sigma boxes.
+            tr = Tracer(g, mode="entry", opacity_floor=1.0 / 255.0, core="compiled")
+            tr.mode = "soft"
+            sec, _ = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent))
+            rows.append({"scene": fname, "gaussians": len(g), "core": "compiled, k-sigma boxes", "mode": "soft",
+                         "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec, "Mrays_s": len(d) / sec / 1e6})
             for core in ("compiled", "reference"):
                 t = time.perf_counter()
                 tr = Tracer(g, mode="soft", core=core, backend="open3d")

@@ -697,6 +697,100 @@ py::tuple trace(const GaussianScene& s, int mode, Arr<double> o, Arr<double> d, 
   return py::make_tuple(total_rounds, total_tests, total_unfinished);
 }
 
+// Triangle meshes (worlds, actors) on the same Embree device and threads: first hit per float32
+// ray up to its far limit, traversed in Embree's float32 (the caller refines in float64).
+class MeshScene {
+ public:
+  // vertices (V, 3) float32, faces (F, 3) int64 indices into them; local frame.
+  MeshScene(Arr<float> vertices, Arr<int64_t> faces) {
+    if (vertices.ndim() != 2 || vertices.shape(1) != 3) throw std::invalid_argument("vertices: expected (V, 3)");
+    if (faces.ndim() != 2 || faces.shape(1) != 3) throw std::invalid_argument("faces: expected (F, 3)");
+    const int64_t nv = vertices.shape(0);
+    nf_ = faces.shape(0);
+    const int64_t* fp = faces.data();
+    for (int64_t i = 0; i < 3 * nf_; ++i)
+      if (fp[i] < 0 || fp[i] >= nv) throw std::invalid_argument("faces: an index outside the vertices");
+    RTCDevice dev = shared_device();
+    scene_ = rtcNewScene(dev);
+    rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
+    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_MEDIUM);
+    if (nf_ > 0) {
+      RTCGeometry geom = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+      float* vb = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                                             3 * sizeof(float), static_cast<size_t>(nv)));
+      unsigned* ib = static_cast<unsigned*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
+                                                                   3 * sizeof(unsigned), static_cast<size_t>(nf_)));
+      if (!vb || !ib) throw std::runtime_error("Embree: could not allocate the mesh buffers");
+      std::copy(vertices.data(), vertices.data() + 3 * nv, vb);
+      for (int64_t i = 0; i < 3 * nf_; ++i) ib[i] = static_cast<unsigned>(fp[i]);
+      rtcCommitGeometry(geom);
+      rtcAttachGeometry(scene_, geom);
+      rtcReleaseGeometry(geom);
+      py::gil_scoped_release release;
+      rtcCommitScene(scene_);
+    }
+    RTCError err = rtcGetDeviceError(dev);
+    if (err != RTC_ERROR_NONE) throw std::runtime_error("Embree: mesh build failed (error " + std::to_string(err) + ")");
+  }
+
+  ~MeshScene() {
+    if (scene_) rtcReleaseScene(scene_);
+  }
+
+  MeshScene(const MeshScene&) = delete;
+  MeshScene& operator=(const MeshScene&) = delete;
+
+  int64_t size() const { return nf_; }
+
+  // o, d (N, 3) float32, far (N,) float32 -> t (N,) float32 (inf on a miss), prim (N,) int64 (-1).
+  void first_hit(Arr<float> o, Arr<float> d, Arr<float> far, py::array_t<float, py::array::c_style> t_out,
+                 py::array_t<int64_t, py::array::c_style> prim_out, int threads) const {
+    const int64_t n = o.shape(0);
+    if (o.ndim() != 2 || o.shape(1) != 3 || d.ndim() != 2 || d.shape(0) != n || d.shape(1) != 3)
+      throw std::invalid_argument("o, d: expected (N, 3) float32");
+    if (far.ndim() != 1 || far.shape(0) != n) throw std::invalid_argument("far: expected (N,)");
+    float* t = mutable_data(t_out, n, 1, "t");
+    int64_t* prim = mutable_data(prim_out, n, 1, "prim");
+    const float *op = o.data(), *dp = d.data(), *fp = far.data();
+    py::gil_scoped_release release;
+    parallel_rays(n, resolve_threads(threads), [&](int64_t lo, int64_t hi, int) {
+      RayState st;  // only its query context is used
+      init_context(st);
+      for (int64_t i = lo; i < hi; ++i) {
+        t[i] = std::numeric_limits<float>::infinity();
+        prim[i] = -1;
+        if (nf_ == 0) continue;
+        RTCRayHit rh;
+        rh.ray.org_x = op[3 * i], rh.ray.org_y = op[3 * i + 1], rh.ray.org_z = op[3 * i + 2];
+        rh.ray.dir_x = dp[3 * i], rh.ray.dir_y = dp[3 * i + 1], rh.ray.dir_z = dp[3 * i + 2];
+        rh.ray.tnear = 0.0f;
+        rh.ray.tfar = std::min(fp[i], std::numeric_limits<float>::max());
+        rh.ray.time = 0.0f;
+        rh.ray.mask = 0xFFFFFFFFu;
+        rh.ray.id = 0;
+        rh.ray.flags = 0;
+        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        if (!(rh.ray.tfar >= 0.0f)) continue;
+#if defined(SCUBE_EMBREE4)
+        rtcIntersect1(scene_, &rh, &st.args);
+#else
+        rtcIntersect1(scene_, &st.ctx, &rh);
+#endif
+        if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
+          t[i] = rh.ray.tfar;
+          prim[i] = rh.hit.primID;
+        }
+      }
+    });
+  }
+
+ private:
+  int64_t nf_ = 0;
+  RTCScene scene_ = nullptr;
+};
+
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
@@ -712,5 +806,12 @@ PYBIND11_MODULE(_core, m) {
       .def_property_readonly("alpha_min", &GaussianScene::alpha_min)
       .def_property_readonly("size", &GaussianScene::size)
       .def("bounds", &GaussianScene::bounds, "((3,), (3,)): the padded boxes' lower and upper corners");
+  py::class_<MeshScene>(m, "MeshScene")
+      .def(py::init<Arr<float>, Arr<int64_t>>(), py::arg("vertices"), py::arg("faces"),
+           "Build the BVH of a triangle mesh: vertices (V, 3) float32, faces (F, 3) int64 (local frame).")
+      .def_property_readonly("size", &MeshScene::size)
+      .def("first_hit", &MeshScene::first_hit, py::arg("o"), py::arg("d"), py::arg("far"), py::arg("t"),
+           py::arg("prim"), py::arg("threads") = 0,
+           "First hit per ray: o, d (N, 3), far (N,) float32; fills t (N,) float32 (inf: miss) and prim (N,) int64.");
   m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");
 }

@@ -1,8 +1,11 @@
 """Embree first-hit queries on triangle meshes, behind one interface (trimesh's ray/ pattern).
 
-Two engines: embreex (Embree 4 through Cython, one thread per call) and open3d's
-`RaycastingScene` (Embree inside, multi-threaded). Both take float32 rays in the mesh's frame and
-return the first hit up to a per-ray limit. The BVH is built once, at construction.
+Three engines: the compiled core's `MeshScene` (`_core.cpp`: the Embree device, threads and
+thread-count knob the Gaussian core uses; honours the far limit in traversal), embreex (Embree 4
+through Cython, one thread per call) and open3d's `RaycastingScene` (Embree inside,
+multi-threaded). All take float32 rays in the mesh's frame and return the first hit up to a
+per-ray limit; `threads` is the compiled engine's thread count (0: all cores; open3d's likewise;
+embreex has one). The BVH is built once, at construction.
 """
 
 from __future__ import annotations
@@ -10,11 +13,19 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError, ScubeSimError
+from . import compiled
 
-BACKENDS = ("open3d", "embreex")
+BACKENDS = ("open3d", "embreex", "compiled")
 # Measured by `make bench` (bench/bench_tracer.py): open3d's multi-threaded Embree sweeps faster on
-# this 2-core machine for every scene size and proxy of the reference walk; see README.
+# this 2-core machine for every scene size and proxy of the reference walk; see README. Meshes
+# themselves go to the compiled core where it is built (`default_mesh_backend`).
 DEFAULT_BACKEND = "open3d"
+
+
+def default_mesh_backend() -> str:
+    """The engine a mesh `Tracer` uses when none is named: the compiled core where it is built
+    (actors and worlds on the same core as the Gaussians), else `DEFAULT_BACKEND`."""
+    return "compiled" if compiled.default_core_name() == "compiled" else DEFAULT_BACKEND
 
 
 class BackendUnavailable(ScubeSimError, RuntimeError):
@@ -40,9 +51,9 @@ class EmbreexBackend:
             # embreex commits the BVH lazily on the first query: build it now, not mid-sweep.
             self._scene.run(np.zeros((1, 3), np.float32), np.array([[0, 0, 1]], np.float32))
 
-    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray):
+    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray, threads: int = 0):
         """(N, 3) float32 origins, unit dirs, (N,) far limits -> t (N,) float32 (inf on a miss),
-        prim (N,) int64 (-1 on a miss)."""
+        prim (N,) int64 (-1 on a miss). One thread whatever `threads` says."""
         n = origins.shape[0]
         if n == 0 or self.num_faces == 0:
             return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
@@ -76,11 +87,12 @@ class Open3DBackend:
             self._scene.cast_rays(o3d.core.Tensor(np.array([[0, 0, 0, 0, 0, 1]], np.float32)))
         self._o3d = o3d
 
-    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray):
+    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray, threads: int = 0):
         n = origins.shape[0]
         if n == 0 or self.num_faces == 0:
             return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
-        res = self._scene.cast_rays(self._o3d.core.Tensor(_o3d_rays(origins, dirs)), nthreads=self._nthreads)
+        nthreads = threads or self._nthreads
+        res = self._scene.cast_rays(self._o3d.core.Tensor(_o3d_rays(origins, dirs)), nthreads=nthreads)
         t = res["t_hit"].numpy()
         prim = res["primitive_ids"].numpy().astype(np.int64)
         miss = ~np.isfinite(t) | (t > t_far)
@@ -113,6 +125,28 @@ class Open3DBackend:
             lo = hi
 
 
+class CompiledMeshBackend:
+    """The compiled core's `MeshScene`: multi-threaded (the same bytes for any thread count);
+    honours the per-ray far limit in traversal."""
+
+    name = "compiled"
+    lists_all_hits = False
+
+    def __init__(self, vertices: np.ndarray, faces: np.ndarray):
+        if not compiled.available():
+            raise BackendUnavailable(f"the compiled tracer core is not built ({compiled.load_error()})")
+        self.num_faces = int(faces.shape[0])
+        self._scene = compiled._core.MeshScene(np.ascontiguousarray(vertices, np.float32),
+                                              np.ascontiguousarray(faces, np.int64).reshape(-1, 3))
+
+    def first_hit(self, origins: np.ndarray, dirs: np.ndarray, t_far: np.ndarray, threads: int = 0):
+        n = origins.shape[0]
+        t, prim = np.empty(n, np.float32), np.empty(n, np.int64)
+        self._scene.first_hit(np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(dirs, np.float32),
+                              np.ascontiguousarray(t_far, np.float32), t, prim, int(threads))
+        return t, prim
+
+
 def _o3d_rays(origins, dirs):
     rays = np.empty((origins.shape[0], 6), np.float32)
     rays[:, :3] = origins
@@ -121,9 +155,11 @@ def _o3d_rays(origins, dirs):
 
 
 def make_backend(name: str, vertices: np.ndarray, faces: np.ndarray):
-    """Build a backend by name ('open3d' or 'embreex') over a triangle mesh."""
+    """Build a backend by name ('open3d', 'embreex' or 'compiled') over a triangle mesh."""
     if name == "open3d":
         return Open3DBackend(vertices, faces)
     if name == "embreex":
         return EmbreexBackend(vertices, faces)
+    if name == "compiled":
+        return CompiledMeshBackend(vertices, faces)
     raise InputError(f"backend: expected one of {BACKENDS}, got {name!r}")

@@ -29,7 +29,7 @@ from ..mesh import TriangleMesh
 from ..voxsplat import Gaussians, VoxSplat
 from . import compiled
 from . import gaussian_math as gm
-from .backends import BACKENDS, DEFAULT_BACKEND, make_backend
+from .backends import BACKENDS, DEFAULT_BACKEND, default_mesh_backend, make_backend
 from .contracts import SceneGaussians, TraceCore, TraceOptions
 from .hits import Hits, TraceStats
 from .reference import ReferenceCore
@@ -55,8 +55,9 @@ class Tracer:
     threads: the compiled core's threads (0: all cores); soft_k_buffer: its soft contributions
     gathered per traversal (3DGRT's k-buffer; 256 measured fastest on the shipped splats, see
     `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
-    backend: 'open3d' or 'embreex', the Embree engine for meshes and for the reference core's
-    proxies. proxy: the reference core's 'octahedron' | 'icosahedron' (per Gaussian) or
+    backend: 'open3d', 'embreex' or 'compiled', the Embree engine for meshes and for the reference
+    core's proxies; default: meshes on the compiled core where it is built (the `threads` knob
+    applies), the reference core's proxies on open3d. proxy: the reference core's 'octahedron' | 'icosahedron' (per Gaussian) or
     'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
     the nearest exact hit; False stops each ray at the first exact hit found in proxy order
     (faster; its range error on overlapping Gaussians is measured by `make bench`).
@@ -75,7 +76,7 @@ class Tracer:
         self,
         scene: VoxSplat | Gaussians | TriangleMesh,
         *,
-        backend: str = DEFAULT_BACKEND,
+        backend: str | None = None,
         mode: str = "entry",
         k: float = 3.0,
         opacity_floor: float = 0.05,
@@ -90,8 +91,10 @@ class Tracer:
         threads: int = 0,
         soft_k_buffer: int = 256,
     ):
-        if backend not in BACKENDS:
+        if backend is not None and backend not in BACKENDS:
             raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+        if backend is None:
+            backend = default_mesh_backend() if isinstance(scene, TriangleMesh) else DEFAULT_BACKEND
         if mode not in MODES:
             raise InputError(f"mode: expected one of {MODES}, got {mode!r}")
         if not (np.isfinite(k) and k > 0):
@@ -271,7 +274,7 @@ class Tracer:
         out = Hits.empty(n)
         start = o + tmin[:, None] * d
         t32, prim = self._backend.first_hit(start.astype(np.float32), d.astype(np.float32),
-                                            (tmax - tmin).astype(np.float32))
+                                            (tmax - tmin).astype(np.float32), threads=self.threads)
         self.stats.casts += 1
         self.stats.rays_cast += n
         idx = np.nonzero(prim >= 0)[0]

@@ -15,6 +15,8 @@ from scube_sim.transforms import make_pose, pose_from_xyz_rpy
 from scube_sim.voxsplat import Gaussians, VoxSplat
 from scube_sim.worlds import primitives as pr
 
+from ..raytrace.engines import backend_kw
+
 WALL = label_id("building")
 
 
@@ -62,7 +64,7 @@ def test_plane_of_gaussians_at_10m_matches_the_plane_within_noise(backend):
     sigma = 0.02
     cfg = spinning(np.linspace(-15, 15, 16), columns=720, noise={"range_sigma_m": sigma},
                    intensity={"source": "constant"})
-    sweep = Lidar(cfg).scan(Tracer(g, backend=backend, mode="max_response"), np.eye(4), seed=3)
+    sweep = Lidar(cfg).scan(Tracer(g, **backend_kw(backend), mode="max_response"), np.eye(4), seed=3)
     p = sweep.points
     front = np.abs(p["azimuth"]) < np.deg2rad(40)
     assert front.sum() > 1000

@@ -25,3 +25,10 @@ def engine_kw(name: str) -> dict:
     if name == "compiled" and not compiled.available() and ALLOW_NO_CORE:
         pytest.skip(f"SCUBE_SIM_ALLOW_NO_CORE=1 and the compiled core is not built: {compiled.load_error()}")
     return dict(ENGINES[name])
+
+
+def backend_kw(name: str) -> dict:
+    """Tracer keyword arguments of a mesh engine (skips the compiled one where allowed to be absent)."""
+    if name == "compiled":
+        engine_kw("compiled")
+    return {"backend": name}

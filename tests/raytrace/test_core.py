@@ -202,6 +202,35 @@ def test_the_core_refuses_a_hard_mode_on_soft_boxes(rng):
                       TraceOptions("entry"), o, d, np.zeros(10), np.full(10, 30.0), tr.stats)
 
 
+def test_meshes_go_to_the_compiled_core_the_same_bytes_for_any_thread_count(rng):
+    """Worlds and actors (triangle meshes) trace on the compiled core by default: the same hits as
+    the other Embree engines (refined in float64), the same bytes for any thread count, the far
+    limit honoured, a bad face index named."""
+    from scube_sim.raytrace.backends import make_backend
+    from scube_sim.worlds.street import street_scene
+
+    engine_kw("compiled")
+    mesh = street_scene()
+    assert Tracer(mesh).backend_name == "compiled"
+    o = np.tile([0.0, -2.0, 1.8], (20_000, 1)) + rng.normal(scale=0.2, size=(20_000, 3))
+    d = rng.normal(size=(20_000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    got = [Tracer(mesh, threads=t).trace(o, d, 0.0, 80.0) for t in (1, 2, 5)]
+    for h in got[1:]:
+        for name in h.__dataclass_fields__:
+            assert getattr(h, name).tobytes() == getattr(got[0], name).tobytes(), name
+    ref = Tracer(mesh, backend="open3d").trace(o, d, 0.0, 80.0)
+    assert got[0].hit.sum() > 10_000 and np.mean(got[0].hit == ref.hit) > 0.999
+    both = got[0].hit & ref.hit
+    assert np.median(np.abs(got[0].t[both] - ref.t[both])) < 1e-9
+    backend = make_backend("compiled", mesh.vertices.astype(np.float32), mesh.faces)
+    far = np.where(got[0].hit, got[0].t - 0.01, 80.0).astype(np.float32)
+    t, prim = backend.first_hit(o.astype(np.float32) - mesh.origin.astype(np.float32), d.astype(np.float32), far)
+    assert not np.any(prim[got[0].hit] >= 0)  # every first hit lies beyond its shortened limit
+    with pytest.raises(ValueError, match="faces: an index outside the vertices"):
+        make_backend("compiled", np.zeros((3, 3), np.float32), np.array([[0, 1, 3]]))
+
+
 def test_compiled_core_and_embreex_in_one_process(rng):
     """embreex bundles its own Embree 4 and the compiled core links Debian's Embree 3: both load
     and trace side by side in one process."""

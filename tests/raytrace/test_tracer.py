@@ -13,7 +13,7 @@ from scube_sim.raytrace.backends import BACKENDS
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.voxsplat import Gaussians, VoxSplat
 
-from .engines import ENGINES, engine_kw
+from .engines import ENGINES, backend_kw, engine_kw
 from .oracles import brute_force_hard, ellipsoid_quadratic, quat_from_axis_angle, rodrigues, sampled_soft_composite
 
 K = 3.0
@@ -151,7 +151,7 @@ def test_mesh_first_hit_is_exact(backend, rng):
     o = rng.uniform(-2, 2, (500, 3))
     d = (p0 + rng.uniform(-10, 10, (500, 1)) * u + rng.uniform(-10, 10, (500, 1)) * v) - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    h = Tracer(mesh, backend=backend).trace(o, d)
+    h = Tracer(mesh, **backend_kw(backend)).trace(o, d)
     t_true = ((p0 - o) @ n) / (d @ n)
     assert h.hit.all()
     np.testing.assert_allclose(h.t, t_true, rtol=1e-12)
@@ -206,12 +206,12 @@ def test_bad_inputs_raise_clear_errors():
 def test_empty_scene_misses_everything(backend):
     empty = Gaussians(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 3), np.float32))
     for engine in ENGINES:
-        kw = {**engine_kw(engine), "backend": backend}
+        kw = {**engine_kw(engine), **backend_kw(backend)}
         for mode in ("entry", "soft"):
             h = Tracer(empty, **kw, mode=mode).trace(np.zeros((4, 3)), np.eye(4, 3) + [0, 0, 1])
             assert not h.hit.any()
     mesh = TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-    assert not Tracer(mesh, backend=backend).trace(np.zeros((2, 3)), [[1, 0, 0], [0, 1, 0]]).hit.any()
+    assert not Tracer(mesh, **backend_kw(backend)).trace(np.zeros((2, 3)), [[1, 0, 0], [0, 1, 0]]).hit.any()
 
 
 @given(data=st.data())
