@@ -53,6 +53,10 @@ class TrainConfig(StrictModel):
     ranks: int = Field(default=1, ge=1)  # processes (torch.distributed, gloo backend)
     threads: int | None = Field(default=None, ge=1)  # torch intra-op threads per rank (None: torch's default)
     deterministic: bool = True  # torch.use_deterministic_algorithms during the run
+    # Warm start: the model's weights from this checkpoint (a path or a shipped checkpoint's name,
+    # the same stage and model config) at step 0, with a fresh optimiser and schedule (a
+    # fine-tune: for example a learning-rate decay after a run at a constant rate flattened).
+    init: str | None = None
 
     @field_validator("betas")
     @classmethod

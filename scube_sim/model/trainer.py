@@ -326,11 +326,25 @@ class _Loop:
         if job.resume:
             self._load(load_checkpoint(job.out_dir / LAST))
         else:
+            if tc.init is not None:
+                self._init_from(tc.init)
             if self.world > 1:  # identical start even if build_model is not reproducible
                 for t in self.model.state_dict().values():
                     dist.broadcast(t, 0)
             # Each rank's own stream for training-time randomness (dropout, noise).
             seed_everything(_derive_seed(tc.seed, rank))
+
+    def _init_from(self, name_or_path: str) -> None:
+        path = resolve_checkpoint(name_or_path)
+        ck = load_checkpoint(path)
+        if normalize_name(str(ck.get("stage"))) != normalize_name(self.stage.name):
+            raise CheckpointError(f"train.init: {path} is a checkpoint of stage {ck.get('stage')!r}, "
+                                  f"not {self.stage.name!r}")
+        try:
+            self.model.load_state_dict(ck["model"])
+        except (RuntimeError, KeyError) as exc:
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            raise CheckpointError(f"train.init: {path} does not fit this run's model: {first}") from None
 
     def _load(self, ck: dict) -> None:
         try:

@@ -712,8 +712,10 @@ class MeshScene {
       if (fp[i] < 0 || fp[i] >= nv) throw std::invalid_argument("faces: an index outside the vertices");
     RTCDevice dev = shared_device();
     scene_ = rtcNewScene(dev);
+    // Robust: no ray slips between two triangles sharing an edge. A high-quality BVH (spatial
+    // splits) for meshes, which are small beside the Gaussian scenes: faster sweeps, measured.
     rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
-    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_MEDIUM);
+    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_HIGH);
     if (nf_ > 0) {
       RTCGeometry geom = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
       float* vb = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,

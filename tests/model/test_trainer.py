@@ -206,6 +206,33 @@ def test_resume_may_extend_the_run_but_not_change_it(tmp_path, data_dir):
         train(TOY, other, data_dir, tmp_path / "run", resume=True, progress=False)
 
 
+def test_a_run_may_start_from_another_runs_weights(tmp_path, data_dir):
+    """train.init: the weights of a checkpoint at step 0 with a fresh optimiser (a fine-tune);
+    another stage's checkpoint or a missing file is named."""
+    from scube_sim.model.checkpoint import CheckpointError
+
+    first = train(TOY, load_config(write_config(tmp_path / "a.yaml", epochs=1)), data_dir, tmp_path / "a",
+                  progress=False)
+    # At a learning rate too small to move a float32 weight, the fine-tune keeps the init exactly.
+    still = load_config(write_config(tmp_path / "b.yaml", epochs=1, lr=1e-30, init=str(first.last)))
+    res = train(TOY, still, data_dir, tmp_path / "b", progress=False)
+    assert res.step == 4
+    assert_same_weights(weights(tmp_path / "b"), weights(tmp_path / "a"))
+    assert yaml.safe_load((tmp_path / "b" / "config.yaml").read_text())["train"]["init"] == str(first.last)
+    fresh = train(TOY, load_config(write_config(tmp_path / "c.yaml", epochs=1, lr=1e-30)), data_dir, tmp_path / "c",
+                  progress=False)
+    assert not torch.equal(weights(tmp_path / "c")["1.weight"], weights(tmp_path / "a")["1.weight"])
+    del fresh
+    ck = load_checkpoint(first.last)
+    ck["stage"] = "geometry-vae"
+    save_checkpoint(tmp_path / "other.pt", {k: v for k, v in ck.items() if k not in ("format", "version")})
+    for bad, match in ((tmp_path / "other.pt", "stage 'geometry-vae', not 'toy'"),
+                       (tmp_path / "none.pt", "none.pt: no such checkpoint file")):
+        cfg = load_config(write_config(tmp_path / "d.yaml", epochs=1, init=str(bad)))
+        with pytest.raises(CheckpointError, match=match):
+            train(TOY, cfg, data_dir, tmp_path / f"d-{bad.stem}", progress=False)
+
+
 def test_a_run_from_before_a_setting_existed_resumes_at_its_default(tmp_path, data_dir):
     """A checkpoint whose stored config lacks a setting added since (here: dropout, at its
     default) is the same run as today's config with that default; another value is a change."""
