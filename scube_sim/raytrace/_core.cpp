@@ -32,9 +32,11 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <stdexcept>
 #include <string>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 namespace py = pybind11;
@@ -58,6 +60,34 @@ RTCDevice shared_device() {
     return d;
   }();
   return device;
+}
+
+// A robust scene of one committed geometry (none: an empty scene), its BVH built with the GIL
+// released; `what` names it in the error.
+// A scene that releases itself (and, being a unique_ptr, cannot be copied).
+struct SceneRelease {
+  void operator()(RTCScene s) const { rtcReleaseScene(s); }
+};
+using ScenePtr = std::unique_ptr<std::remove_pointer_t<RTCScene>, SceneRelease>;
+
+ScenePtr build_scene(RTCGeometry geom, RTCBuildQuality quality, const char* what) {
+  RTCDevice dev = shared_device();
+  RTCScene scene = rtcNewScene(dev);
+  rtcSetSceneFlags(scene, RTC_SCENE_FLAG_ROBUST);  // no ray slips between primitives sharing a face
+  rtcSetSceneBuildQuality(scene, quality);
+  if (geom) {
+    rtcCommitGeometry(geom);
+    rtcAttachGeometry(scene, geom);
+    rtcReleaseGeometry(geom);
+    py::gil_scoped_release release;
+    rtcCommitScene(scene);
+  }
+  RTCError err = rtcGetDeviceError(dev);
+  if (err != RTC_ERROR_NONE) {
+    rtcReleaseScene(scene);
+    throw std::runtime_error(std::string("Embree: ") + what + " build failed (error " + std::to_string(err) + ")");
+  }
+  return ScenePtr(scene);
 }
 
 float round_down(double x) {
@@ -139,6 +169,30 @@ struct RayState {
   uint64_t tests;
 };
 
+// An Embree ray and an empty hit.
+void set_ray(RTCRayHit& rh, float ox, float oy, float oz, float dx, float dy, float dz, float tnear, float tfar) {
+  rh.ray.org_x = ox, rh.ray.org_y = oy, rh.ray.org_z = oz;
+  rh.ray.dir_x = dx, rh.ray.dir_y = dy, rh.ray.dir_z = dz;
+  rh.ray.tnear = tnear;
+  rh.ray.tfar = tfar;
+  rh.ray.time = 0.0f;
+  rh.ray.mask = 0xFFFFFFFFu;
+  rh.ray.id = 0;
+  rh.ray.flags = 0;
+  rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
+  rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+}
+
+// One ray through `scene` with the query context of `st`.
+void intersect1(RTCScene scene, RayState& st, RTCRayHit& rh) {
+#if defined(SCUBE_EMBREE4)
+  rtcIntersect1(scene, &rh, &st.args);
+#else
+  rtcIntersect1(scene, &st.ctx, &rh);
+#endif
+}
+
 class GaussianScene {
  public:
   // means (G, 3), quats (G, 4) wxyz of any norm, scales (G, 3) (positive), opacity (G,) float64;
@@ -200,33 +254,17 @@ class GaussianScene {
     }
     if (n_ == 0)
       for (int c = 0; c < 3; ++c) lo_[c] = hi_[c] = 0.0;
-    RTCDevice dev = shared_device();
-    scene_ = rtcNewScene(dev);
-    rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
-    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_MEDIUM);
+    RTCGeometry geom = nullptr;
     if (n_ > 0) {
-      py::gil_scoped_release release;
-      RTCGeometry geom = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_USER);
+      geom = rtcNewGeometry(shared_device(), RTC_GEOMETRY_TYPE_USER);
       rtcSetGeometryUserPrimitiveCount(geom, static_cast<unsigned>(n_));
       rtcSetGeometryUserData(geom, this);
       rtcSetGeometryBoundsFunction(geom, &GaussianScene::bounds_fn, this);
       rtcSetGeometryIntersectFunction(geom, &GaussianScene::intersect_fn);
       rtcSetGeometryOccludedFunction(geom, &GaussianScene::occluded_fn);
-      rtcCommitGeometry(geom);
-      rtcAttachGeometry(scene_, geom);
-      rtcReleaseGeometry(geom);
-      rtcCommitScene(scene_);
     }
-    RTCError err = rtcGetDeviceError(dev);
-    if (err != RTC_ERROR_NONE) throw std::runtime_error("Embree: scene build failed (error " + std::to_string(err) + ")");
+    scene_ = build_scene(geom, RTC_BUILD_QUALITY_MEDIUM, "scene");
   }
-
-  ~GaussianScene() {
-    if (scene_) rtcReleaseScene(scene_);
-  }
-
-  GaussianScene(const GaussianScene&) = delete;
-  GaussianScene& operator=(const GaussianScene&) = delete;
 
   int64_t size() const { return n_; }
 
@@ -284,22 +322,11 @@ class GaussianScene {
 
   // Starts a ray's Embree query: float32 origin at t0 along the float64 ray, far limit s_hi.
   void init_ray(RayState& st, RTCRayHit& rh, double s_near, double s_far) const {
-    rh.ray.org_x = static_cast<float>(st.o[0] + st.t0 * st.d[0]);
-    rh.ray.org_y = static_cast<float>(st.o[1] + st.t0 * st.d[1]);
-    rh.ray.org_z = static_cast<float>(st.o[2] + st.t0 * st.d[2]);
-    rh.ray.dir_x = static_cast<float>(st.d[0]);
-    rh.ray.dir_y = static_cast<float>(st.d[1]);
-    rh.ray.dir_z = static_cast<float>(st.d[2]);
-    rh.ray.tnear = std::max(0.0f, round_down(s_near));
-    rh.ray.tfar = std::isfinite(s_far) ? std::min(round_up(s_far), std::numeric_limits<float>::max())
-                                       : std::numeric_limits<float>::infinity();
-    rh.ray.time = 0.0f;
-    rh.ray.mask = 0xFFFFFFFFu;
-    rh.ray.id = 0;
-    rh.ray.flags = 0;
-    rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-    rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+    set_ray(rh, static_cast<float>(st.o[0] + st.t0 * st.d[0]), static_cast<float>(st.o[1] + st.t0 * st.d[1]),
+            static_cast<float>(st.o[2] + st.t0 * st.d[2]), static_cast<float>(st.d[0]), static_cast<float>(st.d[1]),
+            static_cast<float>(st.d[2]), std::max(0.0f, round_down(s_near)),
+            std::isfinite(s_far) ? std::min(round_up(s_far), std::numeric_limits<float>::max())
+                                 : std::numeric_limits<float>::infinity());
   }
 
   // The Embree ray's parameter that surely lies beyond the float64 ray's point at t.
@@ -308,13 +335,7 @@ class GaussianScene {
     return s + st.margin + 4e-7 * std::abs(s);
   }
 
-  void intersect1(RayState& st, RTCRayHit& rh) const {
-#if defined(SCUBE_EMBREE4)
-    rtcIntersect1(scene_, &rh, &st.args);
-#else
-    rtcIntersect1(scene_, &st.ctx, &rh);
-#endif
-  }
+  void intersect1(RayState& st, RTCRayHit& rh) const { ::intersect1(scene_.get(), st, rh); }
 
   // --- one ray -----------------------------------------------------------------------------
   void trace_hard_ray(RayState& st, double t_lo, double t_hi) const {
@@ -464,7 +485,7 @@ class GaussianScene {
   std::vector<float> box_;  // (G, 3, 2): lo, hi per axis, rounded outwards to float32
   double k_, kk_, pad_, alpha_min_;
   int64_t n_ = 0;
-  RTCScene scene_ = nullptr;
+  ScenePtr scene_;
 
  public:
   double pad() const { return pad_; }
@@ -710,37 +731,24 @@ class MeshScene {
     const int64_t* fp = faces.data();
     for (int64_t i = 0; i < 3 * nf_; ++i)
       if (fp[i] < 0 || fp[i] >= nv) throw std::invalid_argument("faces: an index outside the vertices");
-    RTCDevice dev = shared_device();
-    scene_ = rtcNewScene(dev);
-    // Robust: no ray slips between two triangles sharing an edge. A high-quality BVH (spatial
-    // splits) for meshes, which are small beside the Gaussian scenes: faster sweeps, measured.
-    rtcSetSceneFlags(scene_, RTC_SCENE_FLAG_ROBUST);
-    rtcSetSceneBuildQuality(scene_, RTC_BUILD_QUALITY_HIGH);
+    RTCGeometry geom = nullptr;
     if (nf_ > 0) {
-      RTCGeometry geom = rtcNewGeometry(dev, RTC_GEOMETRY_TYPE_TRIANGLE);
+      geom = rtcNewGeometry(shared_device(), RTC_GEOMETRY_TYPE_TRIANGLE);
       float* vb = static_cast<float*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                                                              3 * sizeof(float), static_cast<size_t>(nv)));
       unsigned* ib = static_cast<unsigned*>(rtcSetNewGeometryBuffer(geom, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3,
                                                                    3 * sizeof(unsigned), static_cast<size_t>(nf_)));
-      if (!vb || !ib) throw std::runtime_error("Embree: could not allocate the mesh buffers");
+      if (!vb || !ib) {
+        rtcReleaseGeometry(geom);
+        throw std::runtime_error("Embree: could not allocate the mesh buffers");
+      }
       std::copy(vertices.data(), vertices.data() + 3 * nv, vb);
       for (int64_t i = 0; i < 3 * nf_; ++i) ib[i] = static_cast<unsigned>(fp[i]);
-      rtcCommitGeometry(geom);
-      rtcAttachGeometry(scene_, geom);
-      rtcReleaseGeometry(geom);
-      py::gil_scoped_release release;
-      rtcCommitScene(scene_);
     }
-    RTCError err = rtcGetDeviceError(dev);
-    if (err != RTC_ERROR_NONE) throw std::runtime_error("Embree: mesh build failed (error " + std::to_string(err) + ")");
+    // A high-quality BVH (spatial splits) for meshes, which are small beside the Gaussian scenes:
+    // faster sweeps, measured.
+    scene_ = build_scene(geom, RTC_BUILD_QUALITY_HIGH, "mesh");
   }
-
-  ~MeshScene() {
-    if (scene_) rtcReleaseScene(scene_);
-  }
-
-  MeshScene(const MeshScene&) = delete;
-  MeshScene& operator=(const MeshScene&) = delete;
 
   int64_t size() const { return nf_; }
 
@@ -763,23 +771,10 @@ class MeshScene {
         prim[i] = -1;
         if (nf_ == 0) continue;
         RTCRayHit rh;
-        rh.ray.org_x = op[3 * i], rh.ray.org_y = op[3 * i + 1], rh.ray.org_z = op[3 * i + 2];
-        rh.ray.dir_x = dp[3 * i], rh.ray.dir_y = dp[3 * i + 1], rh.ray.dir_z = dp[3 * i + 2];
-        rh.ray.tnear = 0.0f;
-        rh.ray.tfar = std::min(fp[i], std::numeric_limits<float>::max());
-        rh.ray.time = 0.0f;
-        rh.ray.mask = 0xFFFFFFFFu;
-        rh.ray.id = 0;
-        rh.ray.flags = 0;
-        rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.primID = RTC_INVALID_GEOMETRY_ID;
-        rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
+        set_ray(rh, op[3 * i], op[3 * i + 1], op[3 * i + 2], dp[3 * i], dp[3 * i + 1], dp[3 * i + 2], 0.0f,
+                std::min(fp[i], std::numeric_limits<float>::max()));
         if (!(rh.ray.tfar >= 0.0f)) continue;
-#if defined(SCUBE_EMBREE4)
-        rtcIntersect1(scene_, &rh, &st.args);
-#else
-        rtcIntersect1(scene_, &st.ctx, &rh);
-#endif
+        intersect1(scene_.get(), st, rh);
         if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
           t[i] = rh.ray.tfar;
           prim[i] = rh.hit.primID;
@@ -790,7 +785,7 @@ class MeshScene {
 
  private:
   int64_t nf_ = 0;
-  RTCScene scene_ = nullptr;
+  ScenePtr scene_;
 };
 
 }  // namespace
