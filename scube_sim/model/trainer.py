@@ -335,11 +335,7 @@ class _Loop:
             seed_everything(_derive_seed(tc.seed, rank))
 
     def _init_from(self, name_or_path: str) -> None:
-        path = resolve_checkpoint(name_or_path)
-        ck = load_checkpoint(path)
-        if normalize_name(str(ck.get("stage"))) != normalize_name(self.stage.name):
-            raise CheckpointError(f"train.init: {path} is a checkpoint of stage {ck.get('stage')!r}, "
-                                  f"not {self.stage.name!r}")
+        path, ck = _stage_checkpoint(self.stage, name_or_path)
         try:
             self.model.load_state_dict(ck["model"])
         except (RuntimeError, KeyError) as exc:
@@ -524,15 +520,21 @@ def _model_from_checkpoint(stage: Stage, run: RunConfig, ck: dict, path: Path) -
     return model.eval()
 
 
+def _stage_checkpoint(stage: Stage, name_or_path: str | Path) -> tuple[Path, dict]:
+    """The checkpoint file (a path or a shipped name) and its contents, which must be `stage`'s."""
+    path = resolve_checkpoint(name_or_path)
+    ck = load_checkpoint(path)
+    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
+        raise CheckpointError(f"{path}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
+    return path, ck
+
+
 def load_model(stage: Stage | str, checkpoint: str | Path) -> tuple[nn.Module, RunConfig]:
     """The model of a checkpoint (a run's last.pt / best.pt, `export_weights`'s file, or a shipped
     checkpoint's name: `checkpoint.resolve_checkpoint`), in eval mode, and the run config it was
     trained with."""
     stage = get_stage(stage) if isinstance(stage, str) else stage
-    checkpoint = resolve_checkpoint(checkpoint)
-    ck = load_checkpoint(checkpoint)
-    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
-        raise CheckpointError(f"{checkpoint}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
+    checkpoint, ck = _stage_checkpoint(stage, checkpoint)
     run = config_from_dict(ck["config"], f"{checkpoint} (config)")
     return _model_from_checkpoint(stage, run, ck, checkpoint), run
 

@@ -57,8 +57,8 @@ class Tracer:
     `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
     backend: 'open3d', 'embreex' or 'compiled', the Embree engine for meshes and for the reference
     core's proxies; default: meshes on the compiled core where it is built (the `threads` knob
-    applies), the reference core's proxies on open3d. proxy: the reference core's 'octahedron' | 'icosahedron' (per Gaussian) or
-    'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
+    applies), the reference core's proxies on open3d. proxy: the reference core's 'octahedron' |
+    'icosahedron' (per Gaussian) or 'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
     the nearest exact hit; False stops each ray at the first exact hit found in proxy order
     (faster; its range error on overlapping Gaussians is measured by `make bench`).
     labels: (N,) per-Gaussian labels for a bare `Gaussians` scene.
