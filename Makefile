@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp
 	@bash tools/ensure-system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install $(PIP_FLAGS) --upgrade pip
-	$(PY) -m pip install $(PIP_FLAGS) -e '.[test]'
+	$(PY) -m pip install $(PIP_FLAGS) -e '.[test,ray]'
 	@touch $(STAMP)
 
 venv: $(STAMP)

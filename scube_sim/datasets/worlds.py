@@ -172,7 +172,9 @@ class WorldsDataset:
         if not sdir.is_dir():
             have = [s for s in SPLIT_SEED_BASE if (self.root / s).is_dir()]
             raise DatasetError(f"{sdir}: no {split!r} split in this dataset (splits here: {', '.join(have) or 'none'})")
-        self.sample_dirs = sorted((d for d in sdir.iterdir() if d.is_dir() and SAMPLE_DIR.fullmatch(d.name)),
+        # a sample is complete once its meta.json is there (written last, atomically)
+        self.sample_dirs = sorted((d for d in sdir.iterdir()
+                                   if d.is_dir() and SAMPLE_DIR.fullmatch(d.name) and (d / META_FILE).is_file()),
                                   key=lambda d: int(d.name))
         try:
             lidar_cfg = load_lidar_config(self.config.lidar)

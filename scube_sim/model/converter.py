@@ -347,6 +347,11 @@ class Converter:
 _CACHE: dict[str, Converter] = {}
 
 
+def is_loaded(profile: str | Path | ConverterProfile) -> bool:
+    """Whether `convert` already holds this profile's converter in this process."""
+    return (profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)) in _CACHE
+
+
 def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_PROFILE, steps: int | None = None,
             seed: int = 0, confidence: bool = False, k: int | None = None, sky: bool = True,
             max_range: float | None = None) -> VoxSplat:
@@ -359,5 +364,5 @@ def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_
                                max_range=max_range)
 
 
-__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "convert", "frames_item", "load_profile",
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "convert", "frames_item", "is_loaded", "load_profile",
            "open_frames", "shipped_profiles"]

@@ -324,16 +324,18 @@ def run_manifest(sc: Scenario, base: Path, scenario_path: str | Path) -> RunMani
     return RunManifest.for_inputs("replay", inputs, settings)
 
 
-def build_run(sc: Scenario, base: Path, out: Path, *, progress=None):
+def build_run(sc: Scenario, base: Path, out: Path, *, progress=None, cache: Path | None = None):
     """A scenario -> (Simulator, pose source, t_start, t_end). Fits and caches VoxSplat chunks of
-    procedural worlds under `out/scene_chunks/` (reused by later runs with the same settings).
+    procedural worlds (and converted frames) in `cache`, default `out/scene_chunks/` (reused by
+    later runs with the same settings; a batch shares one per scenario file among its runs).
 
     The stages run in this order (the order things are read, drawn and fitted in): sensor
     configs, scene, pose source, sensors, sinks."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     configs = [sensor_config(s, sc.effects, base, f"sensors[{i}]") for i, s in enumerate(sc.sensors)]
-    built = build_scene(sc, base, out, reach=max(c.range.max_m for c in configs), progress=progress)
+    built = build_scene(sc, base, Path(cache) if cache is not None else out / CACHE_FOLDERS[0],
+                        reach=max(c.range.max_m for c in configs), progress=progress)
     source = build_pose_source(sc, base, built.world)
     t0 = source.t_start
     t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
@@ -360,10 +362,10 @@ class BuiltScene:
     file_scene: object | None = None
 
 
-def build_scene(sc: Scenario, base: Path, out: Path, *, reach: float, progress=None) -> BuiltScene:
+def build_scene(sc: Scenario, base: Path, cache: Path, *, reach: float, progress=None) -> BuiltScene:
     """The scenario's scene: a generated world (its mesh, or VoxSplat chunks fitted along its route
     and loaded within `reach` metres of the ego, plus its actors), a VoxSplat / PLY file, or a
-    list of VoxSplat chunks."""
+    list of VoxSplat chunks. Fitted and converted chunks are cached in the folder `cache`."""
     spec = sc.scene
     tracer_kw = {"mode": spec.depth or DEFAULT_MODE}
     if spec.world is not None:
@@ -372,12 +374,12 @@ def build_scene(sc: Scenario, base: Path, out: Path, *, reach: float, progress=N
         if spec.representation == "mesh":
             static.append(Part(Tracer(world.static), name="world"))
         else:
-            chunks = ChunkSet(_world_chunks(world, spec, out, progress), reach, tracer_kw)
+            chunks = ChunkSet(_world_chunks(world, spec, cache, progress), reach, tracer_kw)
         scene = SimScene(static=static, actors=_world_actors(sc, world), chunks=chunks,
                          static_boxes=world.boxes_static)
         return BuiltScene(scene, world=world)
     if spec.frames is not None:
-        return _frames_scene(sc, base, out, reach, progress)
+        return _frames_scene(sc, base, cache, reach, progress)
     if spec.voxsplat is not None or spec.ply is not None:
         path = resolve_path(spec.voxsplat or spec.ply, base)
         file_scene = load_scene(path)
@@ -409,8 +411,8 @@ def _world_actors(sc: Scenario, world: World) -> list[Part]:
                  label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
 
 
-def _frames_scene(sc: Scenario, base: Path, out: Path, reach: float, progress=None) -> BuiltScene:
-    """scene.frames: the frames converted (cached in out/scene_chunks/), the moving actors' voxels
+def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress=None) -> BuiltScene:
+    """scene.frames: the frames converted (cached in `folder`), the moving actors' voxels
     cut out (`sim.converted.remove_boxes`), the actors traced as instances. With `route`, one
     conversion per chunk along the world's road, loaded as a `ChunkSet`."""
     from ..model.checkpoint import resolve_checkpoint
@@ -423,7 +425,6 @@ def _frames_scene(sc: Scenario, base: Path, out: Path, reach: float, progress=No
     key = {"spec": f.model_dump(mode="json"), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
            "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
                            for stage in ("geometry", "appearance")}}
-    folder = out / "scene_chunks"
     folder.mkdir(parents=True, exist_ok=True)
     if f.world is None:
         path = resolve_path(f.path, base)
@@ -570,14 +571,13 @@ def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> CanTrajectory
     return CanTrajectory(src, c.duration_s if c.realtime else min(c.duration_s, src.duration))
 
 
-def _world_chunks(world: World, spec: SceneSpec, out: Path, progress=None) -> list[ChunkSpec]:
+def _world_chunks(world: World, spec: SceneSpec, folder: Path, progress=None) -> list[ChunkSpec]:
     """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk.
 
     Entry i is ``scene_chunks/chunk_<i>.npz`` and ``chunk_<i>.json`` (the settings that made it
     and the npz's sha256), both written atomically. An entry is reused when its settings match
     and its checksum holds; a corrupt one (unreadable JSON, checksum off) is rebuilt with a
     warning, not fatal."""
-    folder = out / "scene_chunks"
     folder.mkdir(parents=True, exist_ok=True)
     key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,
            "M": spec.gaussians_per_voxel, "spacing": spec.chunk_spacing_m}

@@ -21,8 +21,10 @@ Frames: index 0 is the input instant T; the others (T+5, T+10 at 10 Hz by defaul
 evaluation. Each image has its own timestamp (the rig's firing offsets) and camera-to-world pose.
 The chunk frame is the ego frame at T (see `groundtruth`); `meta.json` holds chunk_to_world.
 
-A sample is written into a temporary folder and renamed when complete, so an interrupted run
-leaves only whole samples, and a rerun skips them (resumable). Seeds are fixed per split: the
+Samples are written by the `worlds` batch job (`WorldsJob`, `scube-sim batch worlds` and `worlds
+generate`): each into its folder under a run manifest (manifest.json), file by file atomically and
+meta.json last, so a folder with a meta.json holds a whole sample and a rerun skips complete ones
+(resumable). Seeds are fixed per split: the
 test split is a held-out set of worlds no training run sees.
 
 Read samples back as plain arrays with `load_sample`, or as typed `Sample`s (Frames, LiDAR sweep,
@@ -32,18 +34,16 @@ boxes, ground truth) with the dataset adapter ``scube_sim.datasets.open_dataset(
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import shutil
-import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 from pydantic import Field, field_validator
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..atomic import atomic_path
+from ..batch.runner import run_batch
+from ..batch.tasks import BatchError, Job, Task
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..camera.render import render_camera
@@ -55,6 +55,7 @@ from ..lidar.config import load_lidar_config
 from ..lidar.model import Lidar
 from ..mesh import TriangleMesh
 from ..raytrace.tracer import Tracer
+from ..run_manifest import RunManifest
 from ..transforms import invert_pose, transform_points
 from .generator import STYLES, WORLD_VERSION, WorldConfig, generate_world
 from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
@@ -214,13 +215,28 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
 
 
 def _save_npz(path: Path, **arrays) -> None:
-    with open(path, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
 
 
 def _save_png(path: Path, rgb: np.ndarray) -> None:
     # No timestamps or other metadata: the same image gives the same bytes.
-    Image.fromarray(rgb).save(path, format="PNG", optimize=False, compress_level=6)
+    with atomic_path(path) as tmp:
+        Image.fromarray(rgb).save(tmp, format="PNG", optimize=False, compress_level=6)
+
+
+def write_sample_files(sample: dict, folder: Path) -> Path:
+    """Write a sample's files into the existing folder `folder`, each atomically and meta.json last,
+    so a folder with a meta.json holds a whole sample (what the dataset adapter lists)."""
+    folder = Path(folder)
+    for name, rgb in sample["images"].items():
+        _save_png(folder / name, rgb)
+    _save_npz(folder / "frames.npz", **sample["frames"])
+    _save_npz(folder / "voxels.npz", **sample["voxels"])
+    _save_npz(folder / "lidar.npz", points=sample["lidar"])
+    with atomic_path(folder / "meta.json") as tmp:
+        Path(tmp).write_text(json.dumps(sample["meta"], indent=1, sort_keys=True))
+    return folder
 
 
 def write_sample(sample: dict, folder: Path) -> Path:
@@ -231,12 +247,7 @@ def write_sample(sample: dict, folder: Path) -> Path:
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     try:
-        (tmp / "meta.json").write_text(json.dumps(sample["meta"], indent=1, sort_keys=True))
-        for name, rgb in sample["images"].items():
-            _save_png(tmp / name, rgb)
-        _save_npz(tmp / "frames.npz", **sample["frames"])
-        _save_npz(tmp / "voxels.npz", **sample["voxels"])
-        _save_npz(tmp / "lidar.npz", points=sample["lidar"])
+        write_sample_files(sample, tmp)
         tmp.rename(folder)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -285,52 +296,66 @@ def ensure_dataset_config(out: Path, cfg: DatasetConfig | None) -> DatasetConfig
     return cfg
 
 
-def _make_and_write(args) -> float:
-    split, index, cfg, folder = args
-    t = time.perf_counter()
-    write_sample(make_sample(split, index, cfg), folder)
-    return time.perf_counter() - t
+class WorldsJob(Job):
+    """The `worlds` batch job: one task per sample, `split:index` or `split:first-last` inputs,
+    each written into DIR/<split>/<index:06d>/ under its run manifest (`scube_sim.batch`)."""
+
+    name = "worlds"
+
+    def __init__(self, cfg: DatasetConfig | None = None):
+        self.cfg = cfg
+        self._header: dict | None = None
+
+    def prepare(self, out: Path) -> None:
+        self.cfg = ensure_dataset_config(out, self.cfg)
+        self._header = dataset_header(self.cfg)
+        for stale in Path(out).glob("*/.tmp-*"):  # left by an interrupted `write_sample`
+            shutil.rmtree(stale, ignore_errors=True)
+
+    def tasks(self, inputs: list[str], out: Path) -> list[Task]:
+        tasks = []
+        for item in inputs:
+            split, _, span = item.partition(":")
+            first, _, last = span.partition("-")
+            try:
+                lo, hi = int(first), int(last or first)
+            except ValueError:
+                lo = hi = -1
+            if split not in SPLIT_SEED_BASE or lo < 0 or hi < lo:
+                raise BatchError(f"--inputs {item!r}: expected SPLIT:INDEX or SPLIT:FIRST-LAST with SPLIT one of "
+                                 f"{', '.join(SPLIT_SEED_BASE)} and 0 <= FIRST <= LAST")
+            tasks += [Task(f"{split}/{i:06d}", f"{split}:{i}", {"split": split, "index": i}) for i in range(lo, hi + 1)]
+        return tasks
+
+    def manifest(self, task: Task, out: Path) -> RunManifest:
+        return RunManifest("worlds", {}, {"dataset": self._header, "split": task.params["split"],
+                                          "index": task.params["index"]})
+
+    def complete_without_manifest(self, folder: Path) -> bool:
+        return (folder / "meta.json").is_file()  # written whole by an earlier scube-sim, before manifests
+
+    def run(self, task: Task, folder: Path, out: Path) -> dict:
+        write_sample_files(make_sample(task.params["split"], task.params["index"], self.cfg), folder)
+        return {}
+
+    def describe(self) -> dict:
+        return {"dataset": self.cfg.model_dump(mode="json") if self.cfg else None}
 
 
 def generate_dataset(out: Path, split: str, count: int, cfg: DatasetConfig | None = None, *, start: int = 0,
                      jobs: int = 1, progress: bool = True) -> dict:
-    """Write samples start..start+count-1 of `split` into `out`, skipping complete ones.
-
-    jobs > 1 generates samples in that many processes (the output does not depend on it).
+    """Write samples start..start+count-1 of `split` into `out`, skipping complete ones: the
+    `worlds` batch job (`scube_sim.batch`), in this process (jobs 1) or `jobs` worker processes
+    (the output does not depend on it).
     Returns {'written': n, 'skipped': n, 'seconds_per_sample': wall seconds per written sample}."""
-    out = Path(out)
-    cfg = ensure_dataset_config(out, cfg)
-    split_dir = out / split
-    split_dir.mkdir(parents=True, exist_ok=True)
-    todo = [i for i in range(start, start + count) if not (split_dir / f"{i:06d}" / "meta.json").exists()]
-    for stale in split_dir.glob(".tmp-*"):  # left by an interrupted run
-        shutil.rmtree(stale, ignore_errors=True)
-    skipped = count - len(todo)
-    work = [(split, i, cfg, split_dir / f"{i:06d}") for i in todo]
-    t0 = time.perf_counter()
-    bar = task = None
-    if progress and work:
-        bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
-                       TimeElapsedColumn(), TimeRemainingColumn())
-        bar.start()
-        task = bar.add_task(f"{split} samples", total=len(work))
-    try:
-        if jobs <= 1:
-            for w in work:
-                _make_and_write(w)
-                if bar:
-                    bar.advance(task)
-        else:
-            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn")) as pool:
-                for fut in as_completed([pool.submit(_make_and_write, w) for w in work]):
-                    fut.result()
-                    if bar:
-                        bar.advance(task)
-    finally:
-        if bar:
-            bar.stop()
-    n = len(work)
-    return {"written": n, "skipped": skipped, "seconds_per_sample": (time.perf_counter() - t0) / n if n else 0.0}
+    inputs = [f"{split}:{start}-{start + count - 1}"] if count > 0 else []
+    rep = run_batch(WorldsJob(cfg), inputs, out, executor="local" if jobs > 1 else "inline", workers=jobs,
+                    retries=0, progress=progress)
+    if rep.failed:
+        first = next(r for r in rep.records.values() if r["status"] == "failed")
+        raise RuntimeError(f"{out}: {rep.failed} of {rep.total} samples failed; {first['input']}: {first['error']}")
+    n = rep.completed
+    return {"written": n, "skipped": rep.skipped, "seconds_per_sample": rep.seconds / n if n else 0.0}
 
 
 def load_sample(folder: Path) -> dict:

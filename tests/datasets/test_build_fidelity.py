@@ -16,6 +16,7 @@ from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.fidelity import run_fidelity
 from scube_sim.reconstruct import BuildOptions, build_from_dataset
+from scube_sim.voxsplat import VoxSplat
 from tests.conftest import one_line_error, require
 
 runner = CliRunner()
@@ -64,8 +65,6 @@ def test_nuscenes_same_pose_beats_both_baselines(nus_scene, tmp_path):
 
 
 def test_build_stores_its_recipe_and_colours_from_the_cameras(nus_scene):
-    from scube_sim.voxsplat import VoxSplat
-
     _, scene = nus_scene
     vs = VoxSplat.load(scene)
     assert vs.metadata["dataset"] == "nuscenes" and vs.metadata["build"]["samples"] == [0]
@@ -158,3 +157,17 @@ def test_nuscenes_drop_model_on_held_out_sectors(nus_scene, tmp_path):
     prob = study.probabilistic
     assert prob["fitted model"]["log_loss"] < prob["constant (the fitting sectors' drop rate)"]["log_loss"]
     assert prob["fitted model"]["auc"] > 0.7
+
+
+def test_a_build_batch_writes_what_build_writes_and_skips_it_when_run_again(nus_scene, tmp_path):
+    from scube_sim.batch.jobs import make_job
+    from scube_sim.batch.runner import run_batch
+
+    root, scene = nus_scene
+    job = make_job("build", {"dataset": "nuscenes"})
+    rep = run_batch(job, [str(root)], tmp_path / "b", executor="inline", progress=False)
+    assert (rep.status, rep.completed) == ("complete", 1)
+    assert (tmp_path / "b" / root.name / "scene.npz").read_bytes() == scene.read_bytes()
+    assert rep.records[root.name]["stats"]["gaussians"] == VoxSplat.load(scene).num_gaussians
+    rep = run_batch(make_job("build", {"dataset": "nuscenes"}), [str(root)], tmp_path / "b", progress=False)
+    assert (rep.completed, rep.skipped) == (0, 1)

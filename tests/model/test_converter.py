@@ -291,3 +291,24 @@ def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(setup):
     assert full.gaussians_per_voxel == 2 and cut.gaussians_per_voxel == 1
     np.testing.assert_array_equal(cut.ijk, full.ijk)
     np.testing.assert_allclose(cut.opacities()[:, 0], np.where(full.valid, full.opacities(), -1).max(1), rtol=1e-6)
+
+
+def test_a_convert_batch_loads_the_model_once_per_worker_and_writes_what_convert_writes(setup, tmp_path):
+    """Three worlds samples on one worker process: the converter loads for the first task only,
+    and each scene.npz equals `scube-sim convert` of that sample, byte for byte."""
+    from scube_sim.batch.jobs import make_job
+    from scube_sim.batch.runner import run_batch
+
+    samples = [setup["data"] / split / "000000" for split in ("train", "val", "test")]
+    out = tmp_path / "batch"
+    rep = run_batch(make_job("convert", {"profile": str(setup["profile"]), "seed": 3}), [str(s) for s in samples],
+                    out, workers=1, progress=False)
+    assert (rep.status, rep.completed) == ("complete", 3)
+    loaded = [rep.records[f"{s.parent.name}/000000"]["stats"]["model_loaded"] for s in samples]
+    assert loaded == [True, False, False]  # one worker runs them in order: one load
+    for s in samples:
+        direct = tmp_path / f"{s.parent.name}.npz"
+        r = CliRunner().invoke(app, ["convert", str(s), "--profile", str(setup["profile"]), "--seed", "3",
+                                     "-o", str(direct)])
+        assert r.exit_code == 0, r.output
+        assert (out / s.parent.name / "000000" / "scene.npz").read_bytes() == direct.read_bytes()

@@ -157,7 +157,7 @@ def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(set
         "scene": {"frames": {"world": world, "route": True, "profile": str(setup["profile"])}},
         "trajectory": {"source": "world"}, "sensors": [{"preset": "vlp16"}]}))
     sc, base = load_scenario(scen)
-    built = build_scene(sc, base, tmp_path / "out", reach=100.0)
+    built = build_scene(sc, base, tmp_path / "out" / "scene_chunks", reach=100.0)
     specs = built.scene.chunks.chunks
     w = generate_world(WorldConfig(**{**world, "duration_s": built.world.config.duration_s}))
     poses = chunk_frames(w, sc.scene.chunk_spacing_m)

@@ -257,7 +257,7 @@ def test_a_corrupt_chunk_cache_entry_is_rebuilt_not_fatal(tmp_path):
 
     world = generate_world(WorldConfig(style="suburban", seed=3, layout="straight", length_m=40, duration_s=2))
     spec = scenario_mod.SceneSpec(world=world.config, voxel_size=1.0, gaussians_per_voxel=1)
-    specs = scenario_mod._world_chunks(world, spec, tmp_path)
+    specs = scenario_mod._world_chunks(world, spec, tmp_path / "scene_chunks")
     first = specs[0].path
     meta = json.loads(first.with_suffix(".json").read_text())
     assert meta["sha256"] == sha(first)
@@ -267,24 +267,24 @@ def test_a_corrupt_chunk_cache_entry_is_rebuilt_not_fatal(tmp_path):
     mtime = first.stat().st_mtime_ns
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        scenario_mod._world_chunks(world, spec, tmp_path)
+        scenario_mod._world_chunks(world, spec, tmp_path / "scene_chunks")
     assert first.stat().st_mtime_ns == mtime
     # truncated npz: rebuilt with a warning naming it, and equal to the first fit
     first.write_bytes(good[: len(good) // 2])
     with pytest.warns(ScubeSimWarning, match=r"chunk_000\.npz: chunk cache entry corrupt"):
-        scenario_mod._world_chunks(world, spec, tmp_path)
+        scenario_mod._world_chunks(world, spec, tmp_path / "scene_chunks")
     assert first.read_bytes() == good
     assert VoxSplat.load(first).num_gaussians > 0
     # unreadable metadata: rebuilt too
     first.with_suffix(".json").write_bytes(b"\xff\xfe{")
     with pytest.warns(ScubeSimWarning, match=r"chunk_000\.json: chunk cache entry unreadable"):
-        scenario_mod._world_chunks(world, spec, tmp_path)
+        scenario_mod._world_chunks(world, spec, tmp_path / "scene_chunks")
     assert first.read_bytes() == good
     # other settings: refit silently (nothing was wrong)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         other = scenario_mod.SceneSpec(world=world.config, voxel_size=2.0, gaussians_per_voxel=1)
-        scenario_mod._world_chunks(world, other, tmp_path)
+        scenario_mod._world_chunks(world, other, tmp_path / "scene_chunks")
     assert np.isclose(VoxSplat.load(first).voxel_size, 2.0)
 
 

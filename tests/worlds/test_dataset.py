@@ -4,6 +4,7 @@ checks of the ground truth (the road under the ego, depth maps landing in occupi
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 import shutil
@@ -65,6 +66,10 @@ def test_same_sample_twice_gives_the_same_files(dataset_dir, fast_sample, tmp_pa
     """The dataset run's sample and an independent one (another process state, later) agree byte
     for byte in every file."""
     a = files_of(dataset_dir / "train" / f"{FAST:06d}")
+    # the dataset run's folder also holds its run manifest, whose checksums are those of the files
+    manifest = json.loads(a.pop("manifest.json"))
+    assert manifest["status"] == "complete"
+    assert manifest["outputs"] == {k: {"sha256": hashlib.sha256(v).hexdigest(), "bytes": len(v)} for k, v in a.items()}
     write_sample(fast_sample, tmp_path / f"{FAST:06d}")
     b = files_of(tmp_path / f"{FAST:06d}")
     assert a.keys() == b.keys()
@@ -195,6 +200,30 @@ def test_rerun_writes_only_the_missing_sample_and_clears_stale_temporaries(datas
     # everything done: a third run writes nothing
     res = generate_dataset(out, "train", 2, CFG, progress=False)
     assert (res["written"], res["skipped"], res["seconds_per_sample"]) == (0, 2, 0.0)
+
+
+def test_a_sample_cut_off_mid_write_is_not_listed_and_is_redone(dataset_dir, tmp_path):
+    """A worker killed while writing leaves a folder under a "running" manifest with some files and
+    no meta.json: the adapter does not list it, and the next run writes it whole. A sample written
+    before run manifests existed (meta.json, no manifest.json) counts as complete."""
+    from scube_sim.datasets import open_dataset
+
+    out = tmp_path / "ds"
+    shutil.copytree(dataset_dir, out)
+    cut = out / "train" / f"{FAST:06d}"
+    whole = files_of(cut)
+    (cut / "meta.json").unlink()
+    (cut / "voxels.npz").unlink()
+    manifest = json.loads((cut / "manifest.json").read_text())
+    (cut / "manifest.json").write_text(json.dumps({**manifest, "status": "running", "outputs": {}}))
+    legacy = out / "train" / "000000"
+    (legacy / "manifest.json").unlink()
+    legacy_files = files_of(legacy)
+    assert [d.name for d in open_dataset("worlds", out, split="train").sample_dirs] == ["000000"]
+    res = generate_dataset(out, "train", 2, CFG, progress=False)
+    assert (res["written"], res["skipped"]) == (1, 1)
+    assert files_of(cut) == whole and files_of(legacy) == legacy_files
+    assert len(open_dataset("worlds", out, split="train")) == 2
 
 
 def test_folder_made_with_other_settings_is_refused(dataset_dir):
