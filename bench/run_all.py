@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import sys
 
-from . import bench_fidelity, bench_render, bench_representation, bench_sim, bench_sparse, bench_tracer
+from . import bench_batch, bench_fidelity, bench_render, bench_representation, bench_sim, bench_sparse, bench_tracer
 
 
 def main() -> None:
     quick = "--quick" in sys.argv
-    for module in (bench_tracer, bench_representation, bench_sim, bench_fidelity, bench_sparse, bench_render):
+    for module in (bench_tracer, bench_representation, bench_sim, bench_fidelity, bench_sparse, bench_render, bench_batch):
         sys.argv = [sys.argv[0]] + (["--quick"] if quick else [])
         module.main()
 

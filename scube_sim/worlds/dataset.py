@@ -16,6 +16,7 @@
                                            <level>_visible (V,) bool, <level>_voxel_size
     DIR/<split>/<index:06d>/lidar.npz      the ground-truth LiDAR sweep on the mesh at frame 0
                                            (POINT_DTYPE, sensor frame, raw motion distortion)
+    DIR/<split>/<index:06d>/manifest.json  the sample's run manifest (`scube_sim.run_manifest`)
 
 Frames: index 0 is the input instant T; the others (T+5, T+10 at 10 Hz by default) are for
 evaluation. Each image has its own timestamp (the rig's firing offsets) and camera-to-world pose.
