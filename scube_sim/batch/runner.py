@@ -29,6 +29,7 @@ from pathlib import Path
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ..atomic import atomic_path
+from ..errors import ScubeSimError
 from ..run_manifest import MANIFEST_NAME, is_complete, read_manifest
 from .executors import EXECUTORS, make_executor
 from .tasks import STATE_DIR, BatchError, Job, Task, marker_path
@@ -120,7 +121,7 @@ def run_batch(job: Job, inputs: list[str], out: str | Path, *, executor: str = "
     todo: list[Task] = []
     for t in tasks:
         folder = out / t.key
-        if folder.is_dir() and is_complete(folder, job.manifest(t, out), keep=job.keep):
+        if folder.is_dir() and _complete(job, t, folder, out):
             records[t.key] = {"input": t.input, "status": "complete", "skipped": True, "attempts": 0,
                               "outputs": read_manifest(folder).outputs}
         elif folder.is_dir() and not (folder / MANIFEST_NAME).exists() and job.complete_without_manifest(folder):
@@ -187,6 +188,14 @@ def run_batch(job: Job, inputs: list[str], out: str | Path, *, executor: str = "
     summary.save(status, force=True)
     return BatchReport(job.name, status, len(tasks), skipped, completed, failed, attempts,
                        time.perf_counter() - t_start, records)
+
+
+def _complete(job: Job, task: Task, folder: Path, out: Path) -> bool:
+    try:
+        expected = job.manifest(task, out)
+    except (ScubeSimError, OSError):
+        return False  # e.g. a broken scenario file: its task runs, fails with the message and is recorded
+    return is_complete(folder, expected, keep=job.keep)
 
 
 class _Summary:

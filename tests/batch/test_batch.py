@@ -128,18 +128,23 @@ def test_a_failing_task_is_retried_then_recorded_and_the_others_finish(tmp_path)
     good = scenario(tmp_path)
     # valid YAML, valid scenario, but a trajectory that ends before it starts: fails when run
     bad = scenario(tmp_path, "late", trajectory={"source": "world", "edit": {"time_shift_s": 1e4}})
+    broken = tmp_path / "broken.yaml"
+    broken.write_text(yaml.safe_dump({**TINY, "sead": 3}))
     out = tmp_path / "out"
-    res = cli("batch", "replay", "-i", f"{good},{bad}", "-o", out, "--retries", "2", "--no-progress")
-    assert res.exit_code == 1, res.output
-    assert "1 done, 0 already complete, 1 failed" in res.output and "late" in res.output
+    for _ in range(2):  # the second run: the broken file's folder exists, and it is still a task's failure
+        res = cli("batch", "replay", "-i", f"{good},{bad},{broken}", "-o", out, "--retries", "2", "--no-progress")
+        assert res.exit_code == 1, res.output
+    assert "0 done, 1 already complete, 2 failed" in res.output and "late" in res.output
+    assert "broken.yaml: sead: unknown key" in res.output
     summary = json.loads((out / "batch.json").read_text())
     assert summary["status"] == "failed"
     late = summary["tasks"]["late"]
     assert late["status"] == "failed" and late["attempts"] == 3 and "would simulate no time" in late["error"]
+    assert summary["tasks"]["broken"]["status"] == "failed"
     assert read_manifest(out / "late").status == "failed"
     assert is_complete(out / "tiny", replay_manifest(good)[2])
     attempts = [json.loads(ln) for ln in (out / ".batch" / "attempts.jsonl").read_text().splitlines()]
-    assert [a["attempt"] for a in attempts if a["key"] == "late"] == [1, 2, 3]
+    assert [a["attempt"] for a in attempts if a["key"] == "late"] == [1, 2, 3] * 2
 
 
 def _wait_for(pred, timeout=120.0, what="condition"):
