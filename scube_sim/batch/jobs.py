@@ -92,7 +92,7 @@ class BuildJob(Job):
         for p in paths:
             if not p.is_dir():
                 raise BatchError(f"batch build: --inputs {p}: not a dataset folder")
-        return [Task(n, str(p), {"path": str(p.resolve())}) for n, p in zip(_unique_names(paths, self.name), paths)]
+        return [Task(n, str(p), {"path": str(p.absolute())}) for n, p in zip(_unique_names(paths, self.name), paths)]
 
     def manifest(self, task, out):
         return RunManifest("build", {}, {"input": folder_fingerprint(Path(task.params["path"])),
@@ -141,7 +141,7 @@ class ReplayJob(Job):
             for seed in seeds:
                 for edit in edits:
                     key = "/".join([stem] + ([f"seed-{seed}"] if seed is not None else []) + ([edit] if edit else []))
-                    tasks.append(Task(key, str(p), {"path": str(p.resolve()), "seed": seed, "edit": edit}))
+                    tasks.append(Task(key, str(p), {"path": str(p.absolute()), "seed": seed, "edit": edit}))
         return tasks
 
     def _args(self, task):
@@ -203,16 +203,16 @@ class ConvertJob(Job):
                 if not (p / "meta.json").is_file():
                     raise BatchError(f"batch convert: --inputs {p}: not a worlds sample folder (DIR/<split>/NNNNNN); "
                                      f"set `dataset` for other folders")
-            keys = [f"{p.resolve().parent.name}/{p.name}" for p in paths]
+            keys = [f"{p.absolute().parent.name}/{p.name}" for p in paths]
             for k in keys:
                 if keys.count(k) > 1:
                     raise BatchError(f"batch convert: two inputs are both {k}; run them as two batches")
-            return [Task(k, str(p), {"path": str(p.resolve()), "sample": 0}) for k, p in zip(keys, paths)]
+            return [Task(k, str(p), {"path": str(p.absolute()), "sample": 0}) for k, p in zip(keys, paths)]
         for p in paths:
             if not p.exists():
                 raise BatchError(f"batch convert: --inputs {p}: no such dataset folder")
         for name, p in zip(_unique_names(paths, self.name), paths):
-            tasks += [Task(f"{name}/{i:06d}", f"{p}#{i}", {"path": str(p.resolve()), "sample": i})
+            tasks += [Task(f"{name}/{i:06d}", f"{p}#{i}", {"path": str(p.absolute()), "sample": i})
                       for i in self.settings.samples]
         return tasks
 

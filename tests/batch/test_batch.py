@@ -7,6 +7,7 @@ writes for the same scenario, seed and edit (an edit written into the scenario f
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import signal
@@ -35,12 +36,14 @@ TINY = {"name": "tiny", "seed": 4, "duration_s": 0.3,
 LEFT = {"lateral_offset_m": 2.0}
 
 
-def tree(folder: Path) -> dict[str, bytes]:
-    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*"))
-            if p.is_file() and "scene_chunks" not in p.parts}
+def tree(folder: Path) -> dict[str, str]:
+    """Relative path -> SHA-256 of every file (digests: a failing `==` on raw bytes makes pytest
+    diff megabytes)."""
+    return {p.relative_to(folder).as_posix(): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file() and "scene_chunks" not in p.parts}
 
 
-def frames(folder: Path) -> dict[str, bytes]:
+def frames(folder: Path) -> dict[str, str]:
     return {k: v for k, v in tree(folder).items() if k.startswith("frames/")}
 
 
