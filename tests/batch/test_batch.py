@@ -215,11 +215,11 @@ def test_an_interrupted_driver_reruns_only_what_is_missing(tmp_path):
         proc.kill()
     assert proc.returncode == 130, text
     summary = json.loads((out / "batch.json").read_text())
-    assert summary["status"] == "interrupted"
+    assert summary["status"] == "interrupted", (text, summary)
     done = [k for k, r in summary["tasks"].items() if r["status"] == "complete"]
-    assert 1 <= len(done) < 3 and "interrupted" in {r["status"] for r in summary["tasks"].values()}
+    assert 1 <= len(done) < 3 and "interrupted" in {r["status"] for r in summary["tasks"].values()}, summary
     rep = run_batch(make_job("replay", {"seeds": [1, 2, 3], "duration_s": 1.5}), [str(scen)], out, progress=False)
-    assert rep.skipped == len(done) and rep.completed == 3 - len(done) and rep.status == "complete"
+    assert (rep.skipped, rep.completed, rep.status) == (len(done), 3 - len(done), "complete"), rep.records
 
 
 def test_ray_and_the_local_pool_write_the_same_bytes(tmp_path):
