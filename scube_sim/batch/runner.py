@@ -148,13 +148,11 @@ def run_batch(job: Job, inputs: list[str], out: str | Path, *, executor: str = "
                 inflight[ticket] = (task, attempt)
                 ex.submit(ticket, job, task, str(out), attempt)
             for ticket, rec in ex.wait():
-                task, attempt = inflight.pop(ticket)
+                task, attempt = inflight[ticket]  # dropped once recorded: a Ctrl-C in between marks it interrupted
                 attempts += 1
                 with contextlib.suppress(FileNotFoundError):
                     marker_path(out, task.key).unlink()
                 rec = {"key": task.key, "input": task.input, "attempt": attempt, **rec}
-                log.write(json.dumps(rec, sort_keys=True) + "\n")
-                log.flush()
                 entry = {"input": task.input, "status": rec["status"], "attempts": attempt,
                          "seconds": rec.get("seconds"), "peak_mb": rec.get("peak_mb"), "error": rec.get("error"),
                          "outputs": rec.get("outputs", {}), "stats": rec.get("stats", {})}
@@ -169,7 +167,10 @@ def run_batch(job: Job, inputs: list[str], out: str | Path, *, executor: str = "
                     failed += 1
                     bar.advance()
                     bar.note(f"{task.key}: failed after {attempt} attempt(s): {rec.get('error')}")
-                records[task.key] = entry
+                records[task.key] = entry  # before the log line: a Ctrl-C between them loses no result
+                del inflight[ticket]
+                log.write(json.dumps(rec, sort_keys=True) + "\n")
+                log.flush()
                 summary.save("running")
     except KeyboardInterrupt:
         if ex is not None:

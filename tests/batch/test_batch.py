@@ -219,7 +219,8 @@ def test_an_interrupted_driver_reruns_only_what_is_missing(tmp_path):
     done = [k for k, r in summary["tasks"].items() if r["status"] == "complete"]
     assert 1 <= len(done) < 3 and "interrupted" in {r["status"] for r in summary["tasks"].values()}, summary
     rep = run_batch(make_job("replay", {"seeds": [1, 2, 3], "duration_s": 1.5}), [str(scen)], out, progress=False)
-    assert (rep.skipped, rep.completed, rep.status) == (len(done), 3 - len(done), "complete"), rep.records
+    # a task whose worker finished its folder just as the driver stopped is complete on disk: skipped too
+    assert rep.skipped >= len(done) and rep.skipped + rep.completed == 3 and rep.status == "complete", rep.records
 
 
 def test_ray_and_the_local_pool_write_the_same_bytes(tmp_path):
