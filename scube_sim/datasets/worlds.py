@@ -42,8 +42,10 @@ from PIL import Image, UnidentifiedImageError
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..config import ConfigError
+from ..errors import InputError
 from ..labels import label_id
 from ..lidar.config import load_lidar_config
+from ..run_manifest import read_manifest
 from ..transforms import interpolate_poses
 from ..worlds.dataset import DATASET_FORMAT, DATASET_VERSION, SPLIT_SEED_BASE, DatasetConfig, read_dataset_config
 from ..worlds.generator import WorldConfig
@@ -142,6 +144,19 @@ def _array(arrays: dict, key: str, path: Path) -> np.ndarray:
     return arrays[key]
 
 
+def _being_written(folder: Path) -> bool:
+    """A sample folder a batch is still writing (or was cut off writing): no meta.json yet (it is
+    written last) and a run manifest that is not complete. It is not a sample yet; a folder that
+    lost its meta.json otherwise is still listed, and reading it names what is missing."""
+    if (folder / META_FILE).is_file():
+        return False
+    try:
+        manifest = read_manifest(folder)
+    except InputError:
+        return False
+    return manifest is not None and manifest.status != "complete"
+
+
 class WorldsDataset:
     """The samples of one split of a worlds dataset folder (see the module docstring).
 
@@ -172,9 +187,8 @@ class WorldsDataset:
         if not sdir.is_dir():
             have = [s for s in SPLIT_SEED_BASE if (self.root / s).is_dir()]
             raise DatasetError(f"{sdir}: no {split!r} split in this dataset (splits here: {', '.join(have) or 'none'})")
-        # a sample is complete once its meta.json is there (written last, atomically)
         self.sample_dirs = sorted((d for d in sdir.iterdir()
-                                   if d.is_dir() and SAMPLE_DIR.fullmatch(d.name) and (d / META_FILE).is_file()),
+                                   if d.is_dir() and SAMPLE_DIR.fullmatch(d.name) and not _being_written(d)),
                                   key=lambda d: int(d.name))
         try:
             lidar_cfg = load_lidar_config(self.config.lidar)
