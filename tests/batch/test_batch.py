@@ -173,7 +173,9 @@ def _running_marker(out: Path):
 def _batch_process(out: Path, scen: Path, *extra) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "scube_sim.cli", "batch", "replay", "-i", str(scen), "-o", str(out),
            "--set", "seeds=[1, 2, 3]", "--set", "duration_s=1.5", "--no-progress", *extra]
-    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    # SIGINT back to its default: a suite run in the background (CI) inherits it ignored
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 @pytest.mark.parametrize("executor", ["local", "ray"])
