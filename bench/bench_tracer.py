@@ -16,7 +16,8 @@ against the NumPy reference walk, all in one process on the same rays.
   before / after ratio.
 - Soft mode on the shipped third-party splats (VLP-16 and HDL-64E rays), both cores, the
   compiled core's k-buffer at 16 and 64 against its default 256, and its soft boxes (each
-  Gaussian bounded where its response reaches soft_alpha_min) against k-sigma boxes.
+  Gaussian bounded where its response reaches soft_alpha_min) against k-sigma boxes, and its
+  Morton storage order against the file's order.
 
 Run: `make bench` (all benchmarks) or `python -m bench.bench_tracer [--quick]` (no 3.7 M scene).
 """
@@ -24,7 +25,9 @@ Run: `make bench` (all benchmarks) or `python -m bench.bench_tracer [--quick]` (
 from __future__ import annotations
 
 import argparse
+import functools
 import time
+from unittest import mock
 
 import numpy as np
 from rich.progress import Progress
@@ -238,6 +241,13 @@ def soft_rows() -> list[dict]:
             tr.mode = "soft"
             sec, _ = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent))
             rows.append({"scene": fname, "gaussians": len(g), "core": "compiled, k-sigma boxes", "mode": "soft",
+                         "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec, "Mrays_s": len(d) / sec / 1e6})
+            # The storage order: as the file lists them, against the core's Morton order (the
+            # "compiled" row); the same answer, measured in tests/raytrace/test_core.py.
+            with mock.patch.object(compiled, "_build", functools.partial(compiled._build, morton=False)):
+                tr = Tracer(g, mode="soft", core="compiled")
+            sec, _ = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent))
+            rows.append({"scene": fname, "gaussians": len(g), "core": "compiled, file order", "mode": "soft",
                          "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec, "Mrays_s": len(d) / sec / 1e6})
             for core in ("compiled", "reference"):
                 t = time.perf_counter()

@@ -98,10 +98,11 @@ class CompiledScene:
         return self.handle
 
 
-def _build(scene: SceneGaussians, alpha_min: float):
+def _build(scene: SceneGaussians, alpha_min: float, morton: bool = True):
+    """The extension's scene; morton=False stores the Gaussians as given (benchmarks only)."""
     g = scene.gaussians
     c64 = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
-    return _core.GaussianScene(*c64, float(scene.k), float(scene.pad), float(alpha_min))
+    return _core.GaussianScene(*c64, float(scene.k), float(scene.pad), float(alpha_min), bool(morton))
 
 
 class CompiledCore:

@@ -12,9 +12,10 @@ class Hits:
     """Per-ray results, all (N, ...) arrays.
 
     hit bool; t float64 range along the ray (inf on a miss); points float64 local frame;
-    normals float32 unit, facing the ray; gaussian int64 (-1: none or a mesh); voxel int64
-    (-1: none); face int64 (mesh triangle, -1 otherwise); label int16; instance int32;
-    color float32 (N, 3) in [0, 1]; alpha float32 accumulated opacity (1 for hard hits);
+    normals float32 unit, facing the ray; gaussian int64, an index into the tracer's `gaussians`
+    (those at or above its opacity floor; -1: none or a mesh); voxel int64 (-1: none); face
+    int64 (mesh triangle, -1 otherwise); label int16; instance int32; color float32 (N, 3) in
+    [0, 1]; alpha float32 accumulated opacity (1 for hard hits);
     reflectance float32 measured reflectance of the surface hit (the VoxSplat `reflectance`
     channel), NaN where the scene has none. observed uint8 and confidence float32: a converted
     VoxSplat's ``observed`` and ``confidence`` channels of the voxel hit (1 where an input camera
