@@ -1,11 +1,15 @@
 #!/usr/bin/env bash
-# Debian packages the install needs:
-# - libusb-1.0-0: open3d loads libusb-1.0 at import time;
-# - libembree-dev (Embree 3 headers and library) and g++: the compiled tracer core, built by pip.
+# Debian packages the install needs (the same names on Debian 12 and 13):
+# - libusb-1.0-0, libegl1, libgl1, libx11-6: open3d's module links them (a minimal Debian 13 has
+#   none of them; checked with ldd in a debootstrap of trixie);
+# - libembree-dev (Embree 3 on Debian 12, Embree 4 on 13) and g++: the compiled tracer core, built
+#   by pip.
 set -euo pipefail
 missing=()
-ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
-[ -f /usr/include/embree3/rtcore.h ] || missing+=(libembree-dev)
+for lib in libusb-1.0.so.0:libusb-1.0-0 libEGL.so.1:libegl1 libGL.so.1:libgl1 libX11.so.6:libx11-6; do
+  ldconfig -p 2>/dev/null | grep -q "${lib%%:*}" || missing+=("${lib##*:}")
+done
+[ -f /usr/include/embree3/rtcore.h ] || [ -f /usr/include/embree4/rtcore.h ] || missing+=(libembree-dev)
 command -v g++ >/dev/null || missing+=(g++)
 if [ ${#missing[@]} -eq 0 ]; then
   exit 0
