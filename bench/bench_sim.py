@@ -1,8 +1,9 @@
 """Simulator loop benchmarks.
 
 speed: ticks per second for an HDL-64E and an OS1-128 on the default world (the demo's urban
-block), as 0.4 m VoxSplat chunks (the scenarios' default) and as its exact mesh, and the overhead of
-the loop and of the sinks (PCD files + a USD stage with value clips) over bare tracing of the same
+block), as 0.4 m VoxSplat chunks (the scenarios' default) and as its exact mesh, each before the
+compiled core (the NumPy walk, meshes and actors on open3d) and after it, and the overhead of the
+loop and of the sinks (PCD files + a USD stage with value clips) over bare tracing of the same
 sweeps in the same run.
 soak: 3 000 ticks of a multi-LiDAR rig with file and USD sinks: the RSS curve's slope, and threads
 and open files before and after.
@@ -52,9 +53,12 @@ def speed(ticks: int = 20) -> list[dict]:
     rows = []
     work = Path(tempfile.mkdtemp(prefix="scube-bench-sim-"))
     try:
-        for rep, core in (("voxsplat", "reference"), ("voxsplat", "compiled"), ("mesh", "-")):
-            # The Gaussian core of every tracer the scenario builds (meshes are Embree's triangles).
-            os.environ[CORE_ENV] = core if core != "-" else "auto"
+        for rep, core in (("voxsplat", "reference"), ("voxsplat", "compiled"), ("mesh", "reference"),
+                          ("mesh", "compiled")):
+            # The core of every tracer the scenario builds: 'reference' is the state before the
+            # compiled core (the NumPy walk for Gaussians, open3d for the world's and the actors'
+            # meshes), 'compiled' after it (Gaussians and meshes on the compiled core).
+            os.environ[CORE_ENV] = core
             for preset in ("hdl64e", "os1-128"):
                 sc, base = _scenario("urban-loop", **{"scene.representation": rep})
                 sc.sensors = [SensorSpec(preset=preset)]
@@ -84,7 +88,9 @@ def speed(ticks: int = 20) -> list[dict]:
                     n = sum(1 for _ in frames)
                     per_tick.append((time.perf_counter() - t) / n)
                 loop, sinks = per_tick
-                rows.append({"scene": f"urban block, {rep}", "core": core, "sensor": preset, "ticks": ticks,
+                rows.append({"scene": f"urban block, {rep}", "core": core,
+                             "mesh_engine": "open3d" if core == "reference" else "compiled", "sensor": preset,
+                             "ticks": ticks,
                              "bare_s_per_sweep": bare, "loop_s_per_tick": loop, "loop_sinks_s_per_tick": sinks,
                              "ticks_per_s": 1 / sinks, "loop_overhead": loop / bare, "sinks_overhead": sinks / bare,
                              # how many such sensors at 10 Hz fit in one 2-core machine's time
@@ -239,12 +245,14 @@ def main():
     args = ap.parse_args()
     if args.only in (None, "speed"):
         rows = speed(10 if args.quick else 20)
-        md = write_results("sim_speed", rows, ["scene", "core", "sensor", "ticks", "bare_s_per_sweep", "loop_s_per_tick",
+        md = write_results("sim_speed", rows, ["scene", "core", "mesh_engine", "sensor", "ticks", "bare_s_per_sweep",
+                                               "loop_s_per_tick",
                                                "loop_sinks_s_per_tick", "ticks_per_s", "loop_overhead", "sinks_overhead",
                                                "sensors_at_10Hz"],
                            "bare: LiDAR.scan on the same scene and poses; loop: Simulator.run without sinks; "
                            "loop_sinks: with PCD files and a USD stage with value clips (writer thread). core: the "
-                           "Gaussian tracer core (reference: the NumPy walk, the 'before'; compiled: the 'after'). "
+                           "tracer core (reference: the NumPy walk for Gaussians and open3d for meshes, the "
+                           "'before'; compiled: Gaussians and meshes on the compiled core, the 'after'). "
                            "sensors_at_10Hz: 0.1 s / loop_sinks_s_per_tick.")
         print(md.read_text())
     if args.only in (None, "split"):
