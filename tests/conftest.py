@@ -39,6 +39,15 @@ def require(path: Path) -> Path:
     return path
 
 
+@pytest.fixture(scope="session")
+def tiny_converter(tmp_path_factory) -> dict:
+    """A tiny worlds dataset and a converter profile of two few-step stages, built once per session
+    (tests/model/tiny_converter.py): {"data", "profile", "geo", "app", "sample"}."""
+    from .model.tiny_converter import build
+
+    return build(tmp_path_factory.mktemp("converter"))
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)

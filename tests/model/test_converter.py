@@ -11,7 +11,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 import yaml
 from typer.testing import CliRunner
 
@@ -20,51 +19,12 @@ from scube_sim.camera.model import Intrinsics
 from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.errors import InputError
-from scube_sim.model.config import config_from_dict
 from scube_sim.model.converter import Converter, frames_item, load_profile, open_frames
-from scube_sim.model.trainer import train
 from scube_sim.voxsplat import VoxSplat
-from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
-
-TINY = DatasetConfig(image_scale=0.04, visibility_scale=0.04, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0],
-                     lidar="vlp16", styles=["suburban"])
-GEO_DATA = {"voxel_size": 3.2, "image_scale": 1.0}
-VAE = {"widths": [16], "blocks": 1, "latent_channels": 4, "groups": 4}
-GEO = {"vae": VAE, "encoder": {"kind": "cnn", "channels": 8, "stride": 4}, "feature_channels": 4, "depth_bins": 8,
-       "cond_channels": 8, "widths": [8, 16], "blocks": 1, "groups": 4, "sample_steps": 2, "lift_norm": "mean"}
-APP = {"gaussians_per_voxel": 2, "image_channels": 8, "widths": [8, 16], "pe_frequencies": 2, "panorama": [8, 16]}
-APP_DATA = {"level": "coarse", "image_scale": 1.0}
 
 
-def _train(stage, model, data_cfg, data, out, steps=2, lr=1e-3):
-    cfg = {"stage": stage, "train": {"seed": 0, "steps": steps, "batch_size": 1, "lr": lr, "threads": 1},
-           "model": model, "data": data_cfg}
-    train(stage, config_from_dict(cfg), data, out, progress=False)
-    return out / "last.pt"
-
-
-@pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    """A tiny worlds dataset, both stages trained two steps, and a profile naming them."""
-    tmp = tmp_path_factory.mktemp("converter")
-    data = tmp / "worlds"
-    for split in ("train", "val", "test"):
-        generate_dataset(data, split, 1, TINY, progress=False)
-    # the VAE overfits the one training world, so that even an untrained denoiser's latents decode
-    # to a grid of that world's kind (not an empty one)
-    vae = _train("geometry-vae", {"vae": VAE}, GEO_DATA, data, tmp / "vae", steps=40, lr=1e-2)
-    geo = _train("geometry", {**GEO, "vae_checkpoint": str(vae)}, GEO_DATA, data, tmp / "geo")
-    app_ck = _train("appearance", APP, APP_DATA, data, tmp / "app")
-    fx = float(open_dataset("worlds", data, split="test")[0].frames.images[0].intrinsics.K[0, 0])
-    profile = tmp / "tiny.yaml"
-    profile.write_text(yaml.safe_dump({"geometry": {"checkpoint": str(geo), "focal_px": fx},
-                                       "appearance": {"checkpoint": str(app_ck), "focal_px": fx, "sky_size": [8, 16]},
-                                       "confidence_samples": 3}))
-    return {"data": data, "profile": profile, "geo": geo, "app": app_ck, "sample": data / "test" / "000000"}
-
-
-def _frames(setup) -> Frames:
-    return open_frames(setup["sample"])
+def _frames(tiny_converter) -> Frames:
+    return open_frames(tiny_converter["sample"])
 
 
 def _sha(path) -> str:
@@ -77,10 +37,10 @@ def test_importing_the_package_does_not_import_torch():
     assert out.stdout.strip() == "False"
 
 
-def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(setup, tmp_path):
+def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(tiny_converter, tmp_path):
     outs = []
     for name in ("a.npz", "b.npz"):
-        r = CliRunner().invoke(app, ["convert", str(setup["sample"]), "--profile", str(setup["profile"]),
+        r = CliRunner().invoke(app, ["convert", str(tiny_converter["sample"]), "--profile", str(tiny_converter["profile"]),
                                      "--seed", "3", "-o", str(tmp_path / name)])
         assert r.exit_code == 0, r.output
         outs.append(tmp_path / name)
@@ -88,10 +48,10 @@ def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(s
     vs = VoxSplat.load(outs[0])
     m = vs.metadata
     assert m["source"] == "scube_sim.convert" and m["profile"] == "tiny" and m["seed"] == 3
-    assert m["geometry_checkpoint"]["sha256"] == _sha(setup["geo"])
-    assert m["appearance_checkpoint"]["sha256"] == _sha(setup["app"])
+    assert m["geometry_checkpoint"]["sha256"] == _sha(tiny_converter["geo"])
+    assert m["appearance_checkpoint"]["sha256"] == _sha(tiny_converter["app"])
     assert m["sample_steps"] == 2 and m["confidence_samples"] == 1
-    gt = open_dataset("worlds", setup["data"], split="test")[0].ground_truth
+    gt = open_dataset("worlds", tiny_converter["data"], split="test")[0].ground_truth
     np.testing.assert_array_equal(np.array(m["chunk_to_world"]), gt.chunk_to_world)
     assert vs.voxel_size == pytest.approx(3.2) and vs.gaussians_per_voxel == 2
     assert vs.num_voxels > 0
@@ -108,9 +68,9 @@ def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(s
     assert r.exit_code == 0 and "mode soft" in r.output, r.output
 
 
-def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(setup):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(tiny_converter):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     one = conv.convert(frames, seed=1)
     many = conv.convert(frames, seed=1, confidence=True)
     assert many.metadata["confidence_samples"] == 3
@@ -123,9 +83,9 @@ def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_convers
     np.testing.assert_allclose(c, expect, atol=1e-6)
 
 
-def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(setup):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(tiny_converter):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     full = conv.convert(frames, seed=0)
     lidar = conv.convert(frames, seed=0, sky=False)
     assert "sky_panorama" not in lidar.channels and "sky_panorama" in full.channels
@@ -147,9 +107,9 @@ def _moved(frames: Frames, offset) -> Frames:
     return out
 
 
-def test_frames_a_million_metres_out_convert_to_the_same_scene(setup):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_frames_a_million_metres_out_convert_to_the_same_scene(tiny_converter):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     near = conv.convert(frames, seed=2)
     far = conv.convert(_moved(frames, np.array([1.0e6, -1.0e6, 30.0])), seed=2)
     np.testing.assert_array_equal(near.ijk, far.ijk)
@@ -164,14 +124,14 @@ def _camera(name, width, height, fx, pose, image=None):
     return CameraImage(name, img, intr, pose, 0.0)
 
 
-def test_any_image_size_meets_the_network_at_its_focal_length(setup):
+def test_any_image_size_meets_the_network_at_its_focal_length(tiny_converter):
     """A 64 x 48 and a 4000 x 3000 camera with the same field of view resize to the same size
     (the profile's focal length), so memory is bounded by the field of view."""
-    conv = Converter(setup["profile"])
-    base = _frames(setup).images[0]
+    conv = Converter(tiny_converter["profile"])
+    base = _frames(tiny_converter).images[0]
     fov = 2 * np.arctan(base.intrinsics.width / 2 / base.intrinsics.K[0, 0])
     cams = [_camera(f"c{w}", w, h, w / 2 / np.tan(fov / 2), base.cam_to_world) for w, h in ((64, 48), (4000, 3000))]
-    frames = Frames(cams, _frames(setup).ego_pose, 0.0, {"sample": "sizes"})
+    frames = Frames(cams, _frames(tiny_converter).ego_pose, 0.0, {"sample": "sizes"})
     item = frames_item(frames, conv.profile.geometry)
     small, large = item["image_size"].tolist()
     assert abs(small[1] - large[1]) <= 1 and abs(small[0] - large[0]) <= 1
@@ -182,9 +142,9 @@ def test_any_image_size_meets_the_network_at_its_focal_length(setup):
     assert np.isfinite(vs.params).all()
 
 
-def test_a_camera_that_sees_only_sky_and_frames_without_sky_masks_give_defined_output(setup):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_a_camera_that_sees_only_sky_and_frames_without_sky_masks_give_defined_output(tiny_converter):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     bare = copy.deepcopy(frames)
     for im in bare.images:  # a real adapter's frames: no depth, semantics or sky masks
         im.depth = im.semantic = im.sky = im.instance = None
@@ -199,9 +159,9 @@ def test_a_camera_that_sees_only_sky_and_frames_without_sky_masks_give_defined_o
     assert np.isfinite(vs.params).all() and vs.channel("sky_panorama").shape == (8, 16, 3)
 
 
-def test_bad_input_gives_clear_errors(setup, tmp_path):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_bad_input_gives_clear_errors(tiny_converter, tmp_path):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     with pytest.raises(InputError, match="no images"):
         conv.convert(Frames([], frames.ego_pose, 0.0))
     with pytest.raises(InputError, match="expected a scube_sim.camera.Frames"):
@@ -220,16 +180,16 @@ def test_bad_input_gives_clear_errors(setup, tmp_path):
         load_profile(bad)
     with pytest.raises(InputError, match="not a worlds sample folder"):
         open_frames(tmp_path)
-    r = CliRunner().invoke(app, ["convert", str(tmp_path), "--profile", str(setup["profile"]),
+    r = CliRunner().invoke(app, ["convert", str(tmp_path), "--profile", str(tiny_converter["profile"]),
                                  "-o", str(tmp_path / "x.npz")])
     assert r.exit_code == 2 and "not a worlds sample folder" in r.output
     assert not (tmp_path / "x.npz").exists()
-    r = CliRunner().invoke(app, ["convert", str(setup["sample"]), "--profile", str(setup["profile"]),
+    r = CliRunner().invoke(app, ["convert", str(tiny_converter["sample"]), "--profile", str(tiny_converter["profile"]),
                                  "-o", str(tmp_path / "x.ply")])
     assert r.exit_code == 2 and ".npz" in r.output
 
 
-def test_real_frames_convert_and_a_lidar_only_log_is_refused(setup, shared_data):
+def test_real_frames_convert_and_a_lidar_only_log_is_refused(tiny_converter, shared_data):
     """The nuScenes demo keyframe's six 1600 x 900 cameras meet the network at the profile's focal
     length and convert; an Argoverse 2 sample (LiDAR only here) gets a clear error."""
     from tests.conftest import require
@@ -237,7 +197,7 @@ def test_real_frames_convert_and_a_lidar_only_log_is_refused(setup, shared_data)
     root = require(shared_data / "nuscenes-mmdet3d-demo" / "n015-2018-07-24-11-22-45+0800.pkl").parent
     frames = open_frames(root, "nuscenes", 0)
     assert len(frames) == 6 and frames.metadata["dataset"] == "nuscenes"
-    conv = Converter(setup["profile"])
+    conv = Converter(tiny_converter["profile"])
     item = frames_item(frames, conv.profile.geometry)
     np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.01)
     vs = conv.convert(frames, seed=0, sky=False)
@@ -248,9 +208,9 @@ def test_real_frames_convert_and_a_lidar_only_log_is_refused(setup, shared_data)
         open_frames(av2, "argoverse2", 0)
 
 
-def test_one_camera_and_twenty_cameras_convert(setup):
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+def test_one_camera_and_twenty_cameras_convert(tiny_converter):
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     one = Frames(frames.images[:1], frames.ego_pose, 0.0, {"sample": "one"})
     assert np.isfinite(conv.convert(one, seed=0).params).all()
     many = []
@@ -262,11 +222,11 @@ def test_one_camera_and_twenty_cameras_convert(setup):
     assert np.isfinite(vs.params).all() and len(vs.metadata["cameras"]) == 20
 
 
-def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(setup):
+def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(tiny_converter):
     """Frames whose ego frame sits ego_height_m above the road (KITTI's Velodyne) convert as the
     same frames with the ego pose lowered by that height: the chunk starts at road level."""
-    conv = Converter(setup["profile"])
-    frames = _frames(setup)
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
     raised = copy.deepcopy(frames)
     lift = np.eye(4)
     lift[2, 3] = 1.5
@@ -282,10 +242,10 @@ def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(setup):
         conv.convert(raised)
 
 
-def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(setup):
-    prof = load_profile(setup["profile"])
+def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(tiny_converter):
+    prof = load_profile(tiny_converter["profile"])
     one = prof.model_copy(update={"appearance": prof.appearance.model_copy(update={"gaussians_per_voxel": 1})})
-    frames = _frames(setup)
+    frames = _frames(tiny_converter)
     full = Converter(prof).convert(frames, seed=0, sky=False)
     cut = Converter(one).convert(frames, seed=0, sky=False)
     assert full.gaussians_per_voxel == 2 and cut.gaussians_per_voxel == 1
@@ -293,22 +253,22 @@ def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(setup):
     np.testing.assert_allclose(cut.opacities()[:, 0], np.where(full.valid, full.opacities(), -1).max(1), rtol=1e-6)
 
 
-def test_a_convert_batch_loads_the_model_once_per_worker_and_writes_what_convert_writes(setup, tmp_path):
+def test_a_convert_batch_loads_the_model_once_per_worker_and_writes_what_convert_writes(tiny_converter, tmp_path):
     """Three worlds samples on one worker process: the converter loads for the first task only,
     and each scene.npz equals `scube-sim convert` of that sample, byte for byte."""
     from scube_sim.batch.jobs import make_job
     from scube_sim.batch.runner import run_batch
 
-    samples = [setup["data"] / split / "000000" for split in ("train", "val", "test")]
+    samples = [tiny_converter["data"] / split / "000000" for split in ("train", "val", "test")]
     out = tmp_path / "batch"
-    rep = run_batch(make_job("convert", {"profile": str(setup["profile"]), "seed": 3}), [str(s) for s in samples],
+    rep = run_batch(make_job("convert", {"profile": str(tiny_converter["profile"]), "seed": 3}), [str(s) for s in samples],
                     out, workers=1, progress=False)
     assert (rep.status, rep.completed) == ("complete", 3)
     loaded = [rep.records[f"{s.parent.name}/000000"]["stats"]["model_loaded"] for s in samples]
     assert loaded == [True, False, False]  # one worker runs them in order: one load
     for s in samples:
         direct = tmp_path / f"{s.parent.name}.npz"
-        r = CliRunner().invoke(app, ["convert", str(s), "--profile", str(setup["profile"]), "--seed", "3",
+        r = CliRunner().invoke(app, ["convert", str(s), "--profile", str(tiny_converter["profile"]), "--seed", "3",
                                      "-o", str(direct)])
         assert r.exit_code == 0, r.output
         assert _sha(out / s.parent.name / "000000" / "scene.npz") == _sha(direct)

@@ -12,11 +12,15 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.errors import InputError
-from scube_sim.model.sensor_to_sensor import ahead_poses, evaluate_split, geometric_lidar, seen_points, sweep_metrics
+from scube_sim.model.sensor_to_sensor import (
+    ahead_poses,
+    evaluate_split,
+    geometric_lidar,
+    seen_points,
+    sweep_metrics,
+)
 from scube_sim.voxsplat import voxel_keys
 from scube_sim.worlds.groundtruth import CHUNK_CORNER
-
-from .test_converter import setup  # noqa: F401  (the tiny worlds dataset and profile, module scope)
 
 
 def test_sweep_metrics_on_hand_made_range_images_and_parallel_planes():
@@ -57,10 +61,10 @@ def test_seen_points_look_up_the_fine_voxel_of_each_point():
     assert voxel_keys(ijk).dtype == np.int64
 
 
-def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(setup, tmp_path):  # noqa: F811
+def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_path):
     out = tmp_path / "s2s.json"
-    r = CliRunner().invoke(app, ["eval", "sensor-to-sensor", "--data", str(setup["data"]), "--profile",
-                                 str(setup["profile"]), "--sensor", "vlp16", "--gt-voxel", "0.8", "--limit", "1",
+    r = CliRunner().invoke(app, ["eval", "sensor-to-sensor", "--data", str(tiny_converter["data"]), "--profile",
+                                 str(tiny_converter["profile"]), "--sensor", "vlp16", "--gt-voxel", "0.8", "--limit", "1",
                                  "--no-progress", "-o", str(out)])
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
@@ -79,8 +83,8 @@ def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(setup, tmp_path):  # n
     assert "median |dr|" in r.output and "converted" in r.output
 
 
-def test_eval_sensor_to_sensor_names_a_missing_split(setup, tmp_path):  # noqa: F811
+def test_eval_sensor_to_sensor_names_a_missing_split(tiny_converter, tmp_path):
     with pytest.raises(InputError, match="nosuch"):
-        evaluate_split(setup["data"], split="nosuch", profile=setup["profile"])
-    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(setup["data"])])
+        evaluate_split(tiny_converter["data"], split="nosuch", profile=tiny_converter["profile"])
+    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(tiny_converter["data"])])
     assert r.exit_code != 0 and "--checkpoint" in r.output

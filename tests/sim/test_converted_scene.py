@@ -15,15 +15,13 @@ from scube_sim.fit import fit_voxsplat
 from scube_sim.io.pointcloud import read_pcd
 from scube_sim.labels import LABEL_IDS
 from scube_sim.lidar.config import ConfigError
+from scube_sim.mesh import TriangleMesh
 from scube_sim.model.converter import Converter, open_frames
+from scube_sim.raytrace.tracer import Tracer
 from scube_sim.sim.converted import remove_boxes, scene_part, simulated_scene
 from scube_sim.sim.scenario import load_scenario
 from scube_sim.sim.sim_scene import Part
-from scube_sim.raytrace.tracer import Tracer
-from scube_sim.mesh import TriangleMesh
 from scube_sim.transforms import pose_from_xyz_rpy
-
-from ..model.test_converter import setup  # noqa: F401  (a tiny worlds dataset and converter profile)
 
 
 def _slab(x0, x1, y0, y1, z0, z1, step=0.1):
@@ -82,7 +80,7 @@ def test_scene_frames_validation_names_the_key(tmp_path):
     assert load_scenario(p)[0].scene.frames.path == "some/sample"  # the shorthand
 
 
-def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(setup, monkeypatch):  # noqa: F811
+def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(tiny_converter, monkeypatch):
     import scube_sim.model.converter as converter
 
     real = converter.convert
@@ -94,8 +92,8 @@ def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(setup, monk
         return vs
 
     monkeypatch.setattr(converter, "convert", convert_with_a_car)
-    frames = open_frames(setup["sample"])
-    plain = convert_with_a_car(frames, profile=setup["profile"], sky=False)
+    frames = open_frames(tiny_converter["sample"])
+    plain = convert_with_a_car(frames, profile=tiny_converter["profile"], sky=False)
     c2w = np.asarray(plain.metadata["chunk_to_world"])
     centre = c2w[:3, :3] @ (plain.voxel_centers()[0] + plain.origin) + c2w[:3, 3]
     mesh = TriangleMesh(np.array([[0, 0, 0.0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
@@ -103,7 +101,7 @@ def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(setup, monk
     pose[:3, 3] = centre - c2w[:3, 2] * 0.5  # the box's footprint half a metre under the voxel centre
     actor = Part(Tracer(mesh), pose_fn=lambda t, p=pose: np.repeat(p[None], len(np.atleast_1d(t)), 0), instance=9,
                  label=LABEL_IDS["car"], size=np.array([1.0, 1.0, 1.0]))
-    scene, vs = simulated_scene(frames, profile=setup["profile"], actors=[actor])
+    scene, vs = simulated_scene(frames, profile=tiny_converter["profile"], actors=[actor])
     assert scene.actors == [actor] and scene.has_provenance
     # the car voxel is gone; the terrain voxels beside it (inside the grown box too) stay
     assert vs.metadata["removed_actor_voxels"] == 1 and vs.num_voxels == plain.num_voxels - 1
@@ -111,12 +109,12 @@ def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(setup, monk
     np.testing.assert_array_equal(vs.ijk, plain.ijk[1:])
 
 
-def test_replay_converts_frames_once_and_points_carry_observed_and_confidence(setup, tmp_path, monkeypatch):  # noqa: F811
+def test_replay_converts_frames_once_and_points_carry_observed_and_confidence(tiny_converter, tmp_path, monkeypatch):
     scen = tmp_path / "conv.yaml"
     scen.write_text(yaml.safe_dump({
         "name": "conv", "duration_s": 0.2, "tick_hz": 10,
-        "scene": {"frames": {"path": str(setup["sample"]), "profile": str(setup["profile"])}},
-        "trajectory": {"source": "file", "file": str(_held_trajectory(tmp_path, setup))},
+        "scene": {"frames": {"path": str(tiny_converter["sample"]), "profile": str(tiny_converter["profile"])}},
+        "trajectory": {"source": "file", "file": str(_held_trajectory(tmp_path, tiny_converter))},
         "sensors": [{"preset": "vlp16"}], "outputs": {"files": ["pcd"], "usd": None}}))
     r = CliRunner().invoke(app, ["replay", str(scen), "-o", str(tmp_path / "r1")])
     assert r.exit_code == 0, r.output
@@ -134,16 +132,16 @@ def test_replay_converts_frames_once_and_points_carry_observed_and_confidence(se
     assert cached.read_bytes() == before
 
 
-def _held_trajectory(tmp_path, setup):  # noqa: F811
+def _held_trajectory(tmp_path, tiny_converter):
     """An .npz trajectory (times, poses) holding the ego at the frames' pose for a second."""
-    frames = open_frames(setup["sample"])
+    frames = open_frames(tiny_converter["sample"])
     path = tmp_path / "poses.npz"
     np.savez(path, times=np.array([0.0, 1.0]), poses=np.stack([frames.ego_pose, frames.ego_pose]))
     return path
 
 
 
-def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(setup, tmp_path):  # noqa: F811
+def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(tiny_converter, tmp_path):
     from scube_sim.sim.scenario import build_scene, route_stops
     from scube_sim.worlds.generator import WorldConfig, generate_world
     from scube_sim.worlds.groundtruth import chunk_frames
@@ -154,7 +152,7 @@ def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(set
     scen = tmp_path / "route.yaml"
     scen.write_text(yaml.safe_dump({
         "name": "route", "duration_s": 0.2,
-        "scene": {"frames": {"world": world, "route": True, "profile": str(setup["profile"])}},
+        "scene": {"frames": {"world": world, "route": True, "profile": str(tiny_converter["profile"])}},
         "trajectory": {"source": "world"}, "sensors": [{"preset": "vlp16"}]}))
     sc, base = load_scenario(scen)
     built = build_scene(sc, base, tmp_path / "out" / "scene_chunks", reach=100.0)
