@@ -10,7 +10,7 @@ import torch
 
 from scube_sim.model.geometry_nets import NUM_LABELS, Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
 from scube_sim.model.geometry_sparse import (SparseDenoiser, SparseSelfAttention, SparseStructureVAE, avg_pool2,
-                                             upsample_nearest2)
+                                             row_ids, upsample_nearest2)
 from scube_sim.model.sparse import SparseTensor, unique_coords
 
 META = torch.device("meta")
@@ -116,6 +116,24 @@ def _copy_dense_into_sparse(dense: torch.nn.Module, sparse: torch.nn.Module) -> 
 
 
 # ---------------------------------------------------------------------------- original keys
+def test_row_ids_number_rows_as_torch_unique_does():
+    """Packed int64 keys give the ids torch.unique(dim=0) gives (lexicographic), negative
+    coordinates included; a range too wide to pack falls back to it."""
+    g = torch.Generator().manual_seed(0)
+    for _ in range(50):
+        n1, n2 = torch.randint(0, 300, (2,), generator=g).tolist()
+        lo = int(torch.randint(-1000, 10, (1,), generator=g))
+        a = torch.randint(lo, lo + 200, (n1, 4), generator=g)
+        b = torch.randint(lo, lo + 40, (n2, 4), generator=g)
+        a[:, 0], b[:, 0] = a[:, 0] % 3, b[:, 0] % 3
+        _, inv = torch.unique(torch.cat([a, b]), dim=0, return_inverse=True)
+        got = row_ids(a, b)
+        assert torch.equal(got[0], inv[:n1]) and torch.equal(got[1], inv[n1:])
+    wide = torch.tensor([[0, -2**40, 0, 0], [1, 2**40, 5, 5], [0, -2**40, 0, 0]])
+    assert torch.equal(row_ids(wide)[0], torch.tensor([0, 1, 0]))
+    assert [len(x) for x in row_ids(torch.zeros((0, 4), dtype=torch.int64))] == [0]
+
+
 def test_the_original_layouts_keep_their_keys():
     with META:
         assert _shapes(SparseDenoiser(4, 3, (8, 16), 2, 4)) == DENOISER_KEYS
