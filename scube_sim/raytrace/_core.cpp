@@ -239,7 +239,7 @@ class GaussianScene {
     // them in no spatial order; measured in bench_tracer). Embree's primitive IDs are slots in
     // this order; everything outside the traversal speaks of a Gaussian by its own index, and
     // ties are broken by it, so the order changes no result.
-    order_.resize(static_cast<size_t>(n_));
+    std::vector<int64_t> order(static_cast<size_t>(n_));  // slot -> Gaussian (kept in the records)
     slot_.resize(static_cast<size_t>(n_));
     {
       double mlo[3] = {kInf, kInf, kInf}, mhi[3] = {-kInf, -kInf, -kInf};
@@ -258,7 +258,7 @@ class GaussianScene {
         keyed[static_cast<size_t>(i)] = {morton ? code : 0, i};
       }
       std::sort(keyed.begin(), keyed.end());
-      for (int64_t p = 0; p < n_; ++p) order_[p] = keyed[p].second, slot_[keyed[p].second] = p;
+      for (int64_t p = 0; p < n_; ++p) order[p] = keyed[p].second, slot_[keyed[p].second] = p;
     }
     geo_.reset(n_ > 0 ? static_cast<double*>(std::aligned_alloc(64, sizeof(double) * kGeo * static_cast<size_t>(n_)))
                       : nullptr);
@@ -267,7 +267,7 @@ class GaussianScene {
     box_.resize(static_cast<size_t>(n_) * 6);
     for (int c = 0; c < 3; ++c) lo_[c] = kInf, hi_[c] = -kInf;
     for (int64_t p = 0; p < n_; ++p) {
-      const int64_t i = order_[p];
+      const int64_t i = order[p];
       double R[9];
       rotation(qp + 4 * i, R);
       const double* m = mp + 3 * i;
@@ -534,7 +534,7 @@ class GaussianScene {
   }
 
   std::unique_ptr<double[], AlignedFree> geo_;  // (G, kGeo) records by slot (kGeo's comment)
-  std::vector<int64_t> order_, slot_;            // slot -> Gaussian, Gaussian -> slot
+  std::vector<int64_t> slot_;                    // Gaussian -> slot
   std::vector<double> flat_;                     // (G, 3) flat axis by Gaussian
   double lo_[3], hi_[3];     // the boxes' bounds
   std::vector<float> box_;  // (G, 3, 2): lo, hi per axis, rounded outwards to float32
