@@ -146,11 +146,12 @@ class GeometryModelConfig(StrictModel):
     next to a camera and one 60 m out, which the unnormalised convolutions after it do not undo);
     depth_weight: lambda of the focal depth loss (paper 1). Denoiser: a 3D U-Net of
     `widths` (one level each, halving between) with `blocks` residual blocks per level,
-    condition channels `cond_channels`. predictor_loss (mode predictor, coarse level): latent (MSE
-    to the ground truth's latent) | decoded (the predicted latent decoded by the frozen VAE and
-    scored as the VAE is trained: structure BCE at every level + label cross-entropy against the
-    ground-truth grid; the latent is a learnt, non-linear code of the grid, and regressing it
-    drifts to the mean scene). Diffusion: `train_steps` linear steps from beta_start to
+    condition channels `cond_channels`. predictor_loss (mode predictor): latent (MSE to the
+    ground truth's latent) | decoded (the predicted latent decoded by the frozen VAE and scored as
+    the VAE is trained: structure BCE at every level + label cross-entropy against the
+    ground-truth grid, the fine level's decoder kept to the ground truth's candidates as in its
+    VAE's training; the latent is a learnt, non-linear code of the grid, and regressing it drifts
+    to the mean scene). Diffusion: `train_steps` linear steps from beta_start to
     beta_end, `sample_steps` DDIM steps at inference (validation uses them too)."""
 
     level: str = Field(default="coarse", pattern="^(coarse|fine)$")
@@ -182,9 +183,8 @@ class GeometryModelConfig(StrictModel):
     def _check(self):
         if self.far <= self.near:
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
-        if self.predictor_loss == "decoded" and (self.mode != "predictor" or self.level != "coarse"):
-            raise ValueError("predictor_loss 'decoded' is the coarse level's single-step predictor's "
-                             "(mode: predictor, level: coarse)")
+        if self.predictor_loss == "decoded" and self.mode != "predictor":
+            raise ValueError("predictor_loss 'decoded' is the single-step predictor's (mode: predictor)")
         if self.sample_steps > self.train_steps:
             raise ValueError(f"sample_steps ({self.sample_steps}) cannot exceed train_steps ({self.train_steps})")
         return self
@@ -509,7 +509,12 @@ class GeometryNet(nn.Module):
         last = self.schedule.steps - 1
         if self.cfg.mode == "predictor":
             pred = self._v(torch.zeros_like(x0), cond, torch.full((1,), last))
-            if self.cfg.predictor_loss == "decoded":
+            if self.cfg.predictor_loss == "decoded" and self.fine:
+                coords = torch.cat([torch.zeros(len(item["gt_ijk"]), 1, dtype=torch.int64), item["gt_ijk"]], 1)
+                levels = self.vae.decode(cond[0].replace(pred * self.vae.latent_std), target=coords)
+                bce, ce = self.vae.reconstruction_loss(levels, coords, item["gt_labels"])
+                main = bce + ce
+            elif self.cfg.predictor_loss == "decoded":
                 occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
                 occ_levels, occ_final, lab_logits = self.vae.decode(pred * self.vae.latent_std)
                 main = structure_bce(occ_levels, occ_final, occ[None]) + label_ce(lab_logits, lab[None])

@@ -91,6 +91,20 @@ def _keys(*grids: np.ndarray) -> list[np.ndarray]:
     return [((g[:, 0] - lo[0]) * span[1] + (g[:, 1] - lo[1])) * span[2] + (g[:, 2] - lo[2]) for g in grids]
 
 
+def _unique_rows(g: np.ndarray) -> np.ndarray:
+    """The unique rows of (V, 3) int64 voxels, in lexicographic order (np.unique(axis=0)'s answer,
+    through one int64 key per row: an order of magnitude faster on millions of voxels)."""
+    if not len(g):
+        return g.reshape(0, 3)
+    lo = g.min(0)
+    span = g.max(0) - lo + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        return np.unique(g, axis=0)
+    (k,) = _keys(g)
+    u = np.unique(k)
+    return np.stack([u // (span[1] * span[2]), (u // span[2]) % span[1], u % span[2]], 1) + lo
+
+
 def _restrict(pred: np.ndarray, gt: np.ndarray, region) -> tuple[np.ndarray, np.ndarray]:
     """Both grids cut to `region`: None (everything), a predicate ijk (V, 3) int64 -> (V,) bool
     applied to each grid, or a pair (pred mask (P,) bool, gt mask (G,) bool)."""
@@ -126,7 +140,7 @@ def chamfer_voxels(pred_ijk, gt_ijk) -> float:
     norm, unique voxels. The paper's 'L2-Chamfer distance ... divided by the voxel size' (so a
     one-voxel-thick wall predicted one voxel off scores 1). inf when exactly one grid is empty,
     0 when both are."""
-    p, g = (np.unique(_ijk(x, n), axis=0).astype(np.float64) for x, n in ((pred_ijk, "pred_ijk"), (gt_ijk, "gt_ijk")))
+    p, g = (_unique_rows(_ijk(x, n)).astype(np.float64) for x, n in ((pred_ijk, "pred_ijk"), (gt_ijk, "gt_ijk")))
     if len(p) == 0 or len(g) == 0:
         return 0.0 if len(p) == len(g) else math.inf
     # Centres are ijk + 0.5 on both sides: the offset cancels, the indices are the centres.

@@ -286,6 +286,16 @@ class SparseStructureVAE(nn.Module):
         """BCE of every level's candidates against the ground truth's occupancy there, label
         cross-entropy on the occupied fine voxels, kl_weight KL; means over candidates."""
         mu, logvar, levels = self(coords, labels, batch_size)
+        bce, ce = self.reconstruction_loss(levels, coords, labels)
+        kl = 0.5 * (mu.feats.pow(2) + logvar.exp() - 1 - logvar).mean()
+        loss = bce + ce + self.cfg.kl_weight * kl
+        return loss, {"bce": float(bce.detach()), "ce": float(ce.detach()), "kl": float(kl.detach())}
+
+    def reconstruction_loss(self, levels, coords: torch.Tensor, labels: torch.Tensor):
+        """(structure BCE summed over the levels, label cross-entropy) of `decode`'s output
+        against the fine voxels coords (N, 4) with labels (N,): each level's candidates scored
+        against the ground truth's occupancy there (mean over candidates), labels on the
+        candidates that are ground-truth voxels."""
         bce = 0.0
         for i, lv in enumerate(levels):
             cand, logits = lv[0], lv[1]
@@ -299,9 +309,7 @@ class SparseStructureVAE(nn.Module):
         pos = torch.searchsorted(gkey[order], key).clamp_max(len(gkey) - 1)
         hit = gkey[order][pos] == key
         ce = F.cross_entropy(lab_logits[hit], labels[order][pos[hit]]) if bool(hit.any()) else lab_logits.sum() * 0
-        kl = 0.5 * (mu.feats.pow(2) + logvar.exp() - 1 - logvar).mean()
-        loss = bce + ce + self.cfg.kl_weight * kl
-        return loss, {"bce": float(bce.detach()), "ce": float(ce.detach()), "kl": float(kl.detach())}
+        return bce, ce
 
 
 def decoded_voxels(levels, threshold: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -132,6 +132,17 @@ def test_chamfer_of_empty_grids():
     assert chamfer_voxels(row([0]), EMPTY) == math.inf
 
 
+@pytest.mark.parametrize("low, high", [(-5, 40), (0, 3), (-2**40, 2**40)])
+def test_unique_rows_are_numpys_unique_rows(low, high):
+    """The keyed unique behind the Chamfer distance gives np.unique(axis=0)'s rows and order,
+    negative indices and spans too wide to key (its fallback) included."""
+    from scube_sim.model.geometry_metrics import _unique_rows
+
+    g = np.random.default_rng(low & 0xFFFF).integers(low, high, (5000, 3))
+    np.testing.assert_array_equal(_unique_rows(g), np.unique(g, axis=0))
+    assert _unique_rows(g[:0]).shape == (0, 3)
+
+
 # --- visibility ----------------------------------------------------------------------------------------
 
 # Camera frame OpenCV (x right, y down, z forward); the columns of R are the camera axes in the chunk
