@@ -4,8 +4,9 @@ On one split, per sample: the coarse checkpoint's grid (0.8 m) with each voxel s
 children at the fine voxel size (what the coarse level alone says at 0.2 m); the fine checkpoint
 conditioned on that coarse prediction (the cascade the converter would run); the fine checkpoint
 on the ground-truth coarse grid (the fine level alone: the cascade's bound with a perfect coarse
-level); and the ground-truth coarse grid split into children (the fine level's floor: what the
-coarse truth says at 0.2 m without the fine model). Metrics are issue 11's
+level); the fine VAE's decoding of a zero latent on the ground-truth coarse grid (the fine level
+without images: its floor); and the ground-truth coarse grid split into children (what the coarse
+truth says at 0.2 m without any fine model). Metrics are issue 11's
 (`geometry._grid_metrics`: IoU, mIoU, seen / unseen IoU, voxel Chamfer in fine voxels) and the
 seconds per sample of each level.
 
@@ -33,6 +34,21 @@ def split_into_children(ijk, labels, factor: int):
     return kids, labels.repeat_interleave(len(offs))
 
 
+def zero_latent_grid(model, sites):
+    """The fine VAE's decoding of a zero latent (the prior's mean) on the coarse sites (V, 3): the
+    fine level without images, its floor given those sites. -> (ijk (N, 3), labels (N,))."""
+    import torch
+
+    from scube_sim.model.geometry_sparse import decoded_voxels
+    from scube_sim.model.sparse import SparseTensor
+
+    coords = torch.cat([torch.zeros(len(sites), 1, dtype=torch.int64), sites], 1)
+    st = SparseTensor.from_coords(coords, torch.zeros(len(sites), model.cfg.vae.latent_channels), batch_size=1,
+                                  stride=model.vae.stride)
+    ijk, labels = decoded_voxels(model.vae.decode(st))
+    return ijk[:, 1:], labels
+
+
 def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | None = None) -> list[dict]:
     import torch
     from rich.progress import track
@@ -55,7 +71,8 @@ def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | N
     fds = stage.dataset(data, fcfg, split, 0)
     n = len(fds) if limit is None else min(limit, len(fds))
     names = ("coarse only, split into children", "coarse + fine (cascade)",
-             "fine on the ground-truth coarse grid", "ground-truth coarse, split into children")
+             "fine on the ground-truth coarse grid", "zero latent on the ground-truth coarse grid (no images)",
+             "ground-truth coarse, split into children")
     preds = {k: [] for k in names}
     sec = {"coarse": [], "fine": []}
     items = []
@@ -72,6 +89,8 @@ def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | N
             sec["fine"].append(time.perf_counter() - t)
             preds["coarse only, split into children"].append(split_into_children(cijk, clab, factor))
             preds["fine on the ground-truth coarse grid"].append(fine.predict(fitem))
+            preds["zero latent on the ground-truth coarse grid (no images)"].append(
+                zero_latent_grid(fine, fitem["coarse_gt_ijk"]))
             preds["ground-truth coarse, split into children"].append(
                 split_into_children(fitem["coarse_gt_ijk"], fitem["coarse_gt_labels"], factor))
             items.append(fitem)
