@@ -10,7 +10,9 @@ truth says at 0.2 m without any fine model). Metrics are issue 11's
 (`geometry._grid_metrics`: IoU, mIoU, seen / unseen IoU, voxel Chamfer in fine voxels) and the
 seconds per sample of each level.
 
-Not part of `make bench` (minutes per split on 2 cores). Run:
+Not part of `make bench`. Slow: a coarse grid split into children holds millions of fine voxels,
+and scoring it (the visibility split and the voxel Chamfer distance's nearest-neighbour queries)
+takes minutes per sample on 2 cores; start with `--limit`. Run:
 `python -m bench.geometry_cascade --data DIR --fine RUN/best.pt [--coarse geometry-coarse-cpu] [--split test]`.
 Results: bench/results/geometry_cascade.{json,md}.
 """
