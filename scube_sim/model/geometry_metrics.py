@@ -93,7 +93,7 @@ def _keys(*grids: np.ndarray) -> list[np.ndarray]:
 
 def _unique_rows(g: np.ndarray) -> np.ndarray:
     """The unique rows of (V, 3) int64 voxels, in lexicographic order (np.unique(axis=0)'s answer,
-    through one int64 key per row: an order of magnitude faster on millions of voxels)."""
+    through one int64 key per row: 1.7x faster on 2 M voxels, measured under load)."""
     if not len(g):
         return g.reshape(0, 3)
     lo = g.min(0)
