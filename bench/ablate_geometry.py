@@ -12,6 +12,11 @@
    floor without images (the mean training scene).
 2. **DDIM steps** (1, 5, 10, 25, 50) of the diffusion variant (or `--checkpoint`): IoU against
    seconds and peak memory per sample, a table and a Pareto plot (docs/geometry_trade.png).
+3. **Image resolution and voxel size** (`--scales 0.33 0.67 1.0`, alone): the shipped predictor's
+   config (`geometry-coarse-predictor.yaml`) trained for `--steps` at each image scale, IoU against
+   seconds and peak memory per sample (geometry_resolution.{json,md}); plotted with the output
+   voxel size's trade, 0.8 m (coarse only) against 0.2 m (coarse + fine), from
+   `bench.geometry_cascade`'s results where they exist (docs/geometry_resolution_trade.png).
 
 Not part of `make bench` (it trains for hours on 2 cores). Run:
 `python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
@@ -48,6 +53,9 @@ VARIANTS = {
         "model": {"mode": "predictor", "predictor_loss": "decoded", "lift_norm": "mean", "lifting": "oracle"}},
 }
 DDIM_STEPS = (1, 5, 10, 25, 50)
+# Image scales of the resolution trade, of the stored images (the worlds store 0.25 of each rig's
+# size: 480 x 320 for the Waymo rig); the shipped config uses 0.67.
+IMAGE_SCALES = (0.33, 0.67, 1.0)
 
 
 def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
@@ -191,6 +199,59 @@ def ddim_trade(checkpoint: Path, args) -> list[dict]:
     return rows
 
 
+def resolution_trade(stage, args) -> list[dict]:
+    """The shipped predictor's config trained for --steps at each of --scales, evaluated as a variant."""
+    base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse-predictor.yaml").read_text())
+    rows: list[dict] = []
+    for scale in args.scales:
+        name = f"predictor, image scale {scale:g}"
+        _train_and_evaluate(stage, name, _config(base, {"data": {"image_scale": scale}}, args.steps, args.vae),
+                            args, rows)
+        rows[-1]["image_scale"] = scale
+    return rows
+
+
+def _pareto(xs: list[float], ys: list[float]) -> list[bool]:
+    """Which points no other point beats: one with x <= and y >= (cost down, IoU up), one strictly."""
+    pts = list(zip(xs, ys))
+    return [not any(x2 <= x and y2 >= y and (x2, y2) != (x, y) for x2, y2 in pts) for x, y in pts]
+
+
+def plot_resolution_trade(rows: list[dict], cascade: list[dict], path: Path) -> Path:
+    """IoU against seconds and peak memory per sample: image scale (coarse IoU, top) and output voxel
+    size (scored on the 0.2 m grid, bottom, where `cascade` rows exist); Pareto-optimal points filled."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    voxel = [dict(r, label={"coarse only, split into children": "0.8 m (coarse only)",
+                            "coarse + fine (cascade)": "0.2 m (coarse + fine)"}[r["variant"]])
+             for r in cascade if r["variant"] in ("coarse only, split into children", "coarse + fine (cascade)")]
+    panels = [(rows, "coarse IoU (0.8 m)", lambda r: f"scale {r['image_scale']:g}", "image resolution")]
+    if voxel:
+        panels.append((voxel, "IoU on the 0.2 m grid", lambda r: r["label"], "output voxel size"))
+    fig, axes = plt.subplots(len(panels), 2, figsize=(9, 3.4 * len(panels)), squeeze=False)
+    for (data, ylabel, name, title), ax_row in zip(panels, axes):
+        for a, key, xlabel in ((ax_row[0], ("seconds_per_sample", "s_per_sample"), "seconds per sample (2 cores)"),
+                               (ax_row[1], ("peak_mb_per_sample",), "peak resident memory rise per sample (MB)")):
+            pts = [(next(r[k] for k in key if k in r), r["iou"], name(r)) for r in data]
+            front = _pareto([p[0] for p in pts], [p[1] for p in pts])
+            for (x, y, label), best in zip(pts, front):
+                a.plot(x, y, "o", color="C0", markerfacecolor="C0" if best else "none")
+                a.annotate(label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
+            a.set_xlabel(xlabel)
+            a.set_ylabel(ylabel)
+            a.set_title(f"{title} (filled: Pareto-optimal)", fontsize=9)
+            a.grid(alpha=0.3)
+    fig.suptitle("geometry stage: image resolution and voxel size against IoU, time and memory")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def plot_trade(rows: list[dict], path: Path) -> Path:
     import matplotlib
 
@@ -228,8 +289,19 @@ def main(argv=None) -> None:
     ap.add_argument("--only", nargs="*", default=None, help="variants to run (default: all)")
     ap.add_argument("--mean-scene-samples", type=int, default=100, help="training chunks the no-image floor averages")
     ap.add_argument("--checkpoint", default=None, help="the DDIM trade on this checkpoint instead of the diffusion variant's")
+    ap.add_argument("--scales", nargs="+", type=float, default=None,
+                    help=f"run only the image-resolution trade at these image scales (e.g. {' '.join(map(str, IMAGE_SCALES))})")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
+    if args.scales:
+        rows = resolution_trade(stage, args)
+        write_results("geometry_resolution", rows, list(rows[0]),
+                      notes=f"the shipped predictor's config, {args.steps} steps at each image scale, frozen VAE "
+                            f"{args.vae}, {args.eval_split} split, {args.data}")
+        cascade = BENCH_DIR / "results" / "geometry_cascade.json"
+        plot_resolution_trade(rows, json.loads(cascade.read_text())["rows"] if cascade.is_file() else [],
+                              REPO / "docs" / "geometry_resolution_trade.png")
+        return
     base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse.yaml").read_text())
     Path(args.work).mkdir(parents=True, exist_ok=True)
     rows, diffusion_ck = [], None

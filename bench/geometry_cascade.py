@@ -8,7 +8,7 @@ level); the fine VAE's decoding of a zero latent on the ground-truth coarse grid
 without images: its floor); and the ground-truth coarse grid split into children (what the coarse
 truth says at 0.2 m without any fine model). Metrics are issue 11's
 (`geometry._grid_metrics`: IoU, mIoU, seen / unseen IoU, voxel Chamfer in fine voxels) and the
-seconds per sample of each level.
+seconds and peak resident memory (above the level's start) per sample.
 
 Not part of `make bench`. Slow: a coarse grid split into children holds millions of fine voxels,
 and scoring it (the visibility split and the voxel Chamfer distance's nearest-neighbour queries)
@@ -55,6 +55,7 @@ def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | N
     import torch
     from rich.progress import track
 
+    from scube_sim.memory import peak_mb, reset_peak, rss_mb
     from scube_sim.model.geometry import GeometryDataConfig, _grid_metrics
     from scube_sim.model.stages import get_stage
     from scube_sim.model.trainer import load_model
@@ -77,18 +78,24 @@ def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | N
              "ground-truth coarse, split into children")
     preds = {k: [] for k in names}
     sec = {"coarse": [], "fine": []}
+    peak = {"coarse": [], "fine": []}
     items = []
     with torch.no_grad():
         for i in track(range(n), description=f"{split}: coarse, then fine"):
             citem, fitem = cds[i], fds[i]
             if citem["sample"] != fitem["sample"]:
                 raise SystemExit(f"sample {i}: {citem['sample']} against {fitem['sample']}")
+            # each level's wall seconds and peak resident memory above its start (geometry.evaluate's)
+            base = rss_mb() if reset_peak() else float("nan")
             t = time.perf_counter()
             cijk, clab = coarse.predict(citem)
             sec["coarse"].append(time.perf_counter() - t)
+            peak["coarse"].append(peak_mb() - base)
+            base = rss_mb() if reset_peak() else float("nan")
             t = time.perf_counter()
             preds["coarse + fine (cascade)"].append(fine.predict(fitem, coarse=(cijk, clab)))
             sec["fine"].append(time.perf_counter() - t)
+            peak["fine"].append(peak_mb() - base)
             preds["coarse only, split into children"].append(split_into_children(cijk, clab, factor))
             preds["fine on the ground-truth coarse grid"].append(fine.predict(fitem))
             preds["zero latent on the ground-truth coarse grid (no images)"].append(
@@ -103,6 +110,8 @@ def measure(data: Path, coarse_ck: str, fine_ck: str, split: str, limit: int | N
                                                           "chamfer_q50", "chamfer_q90")}})
     rows[0]["s_per_sample"] = sum(sec["coarse"]) / n
     rows[1]["s_per_sample"] = (sum(sec["coarse"]) + sum(sec["fine"])) / n
+    rows[0]["peak_mb_per_sample"] = max(peak["coarse"])
+    rows[1]["peak_mb_per_sample"] = max(max(a, b) for a, b in zip(peak["coarse"], peak["fine"]))
     return rows
 
 
@@ -116,7 +125,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     rows = measure(args.data, args.coarse, args.fine, args.split, args.limit)
     path = write_results("geometry_cascade", rows, ["variant", "iou", "miou", "iou_visible", "iou_invisible",
-                                                    "chamfer_q50", "chamfer_q90", "s_per_sample"],
+                                                    "chamfer_q50", "chamfer_q90", "s_per_sample", "peak_mb_per_sample"],
                          notes=f"coarse {args.coarse}, fine {args.fine}, split {args.split}, {args.data}; "
                                f"scored on the fine grid")
     print(path.read_text())

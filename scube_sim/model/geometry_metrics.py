@@ -28,6 +28,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
+from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..camera.model import Intrinsics
@@ -91,20 +92,6 @@ def _keys(*grids: np.ndarray) -> list[np.ndarray]:
     return [((g[:, 0] - lo[0]) * span[1] + (g[:, 1] - lo[1])) * span[2] + (g[:, 2] - lo[2]) for g in grids]
 
 
-def _unique_rows(g: np.ndarray) -> np.ndarray:
-    """The unique rows of (V, 3) int64 voxels, in lexicographic order (np.unique(axis=0)'s answer,
-    through one int64 key per row: 1.7x faster on 2 M voxels, measured under load)."""
-    if not len(g):
-        return g.reshape(0, 3)
-    lo = g.min(0)
-    span = g.max(0) - lo + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
-        return np.unique(g, axis=0)
-    (k,) = _keys(g)
-    u = np.unique(k)
-    return np.stack([u // (span[1] * span[2]), (u // span[2]) % span[1], u % span[2]], 1) + lo
-
-
 def _restrict(pred: np.ndarray, gt: np.ndarray, region) -> tuple[np.ndarray, np.ndarray]:
     """Both grids cut to `region`: None (everything), a predicate ijk (V, 3) int64 -> (V,) bool
     applied to each grid, or a pair (pred mask (P,) bool, gt mask (G,) bool)."""
@@ -140,13 +127,50 @@ def chamfer_voxels(pred_ijk, gt_ijk) -> float:
     norm, unique voxels. The paper's 'L2-Chamfer distance ... divided by the voxel size' (so a
     one-voxel-thick wall predicted one voxel off scores 1). inf when exactly one grid is empty,
     0 when both are."""
-    p, g = (_unique_rows(_ijk(x, n)).astype(np.float64) for x, n in ((pred_ijk, "pred_ijk"), (gt_ijk, "gt_ijk")))
+    p, g = _ijk(pred_ijk, "pred_ijk"), _ijk(gt_ijk, "gt_ijk")
     if len(p) == 0 or len(g) == 0:
         return 0.0 if len(p) == len(g) else math.inf
-    # Centres are ijk + 0.5 on both sides: the offset cancels, the indices are the centres.
-    d_pg = cKDTree(g).query(p, k=1)[0]
-    d_gp = cKDTree(p).query(g, k=1)[0]
-    return float(0.5 * (d_pg.mean() + d_gp.mean()))
+    (kp, ip), (kg, ig) = (np.unique(k, return_index=True) for k in _keys(p, g))
+    p, g = p[ip], g[ig]
+    # A voxel in both grids is 0 from the other: only the rest are queried (most of a good prediction
+    # is shared, so this is a fraction of the queries).
+    far_p, far_g = ~np.isin(kp, kg, assume_unique=True), ~np.isin(kg, kp, assume_unique=True)
+    d_pg = _nearest_distance_sum(g, p[far_p])
+    d_gp = _nearest_distance_sum(p, g[far_g])
+    return float(0.5 * (d_pg / len(p) + d_gp / len(g)))
+
+
+_EDT_MAX_BOX = 1 << 25  # voxels: a dense distance transform's float64 output stays under 256 MB
+_NEAR = 4.0  # voxels: the k-d tree answers queries this close to a site quickly
+_EDT_MIN_FAR = 20_000  # queries farther than _NEAR that make the dense transform worth its cost
+
+
+def _nearest_distance_sum(sites: np.ndarray, queries: np.ndarray, method: str = "auto") -> float:
+    """Sum over the (Q, 3) int64 voxels `queries` of the Euclidean distance (in voxels) to the nearest
+    of the (S, 3) `sites` (S > 0). Both methods are exact: a k-d tree, or a dense Euclidean distance
+    transform over the two sets' bounding box (scipy.ndimage), whose cost does not grow with the
+    distances. A tree's does, on a voxel lattice's many equidistant neighbours: 0.37 M queries, most
+    over 16 voxels from 1.06 M sites, took minutes, the transform 7 s. 'auto' asks the tree for
+    every query within `_NEAR` voxels (a second or so for a million) and the transform for the rest
+    where they are many and the box fits `_EDT_MAX_BOX`."""
+    if not len(queries):
+        return 0.0
+    lo = np.minimum(sites.min(0), queries.min(0))
+    shape = np.maximum(sites.max(0), queries.max(0)) - lo + 1
+    fits = float(np.prod(shape.astype(np.float64))) <= _EDT_MAX_BOX
+    if method == "edt" or (method == "auto" and fits and len(queries) >= _EDT_MIN_FAR and len(sites) >= _EDT_MIN_FAR):
+        total, far = 0.0, queries
+        if method == "auto":
+            # Centres are ijk + 0.5 on both sides: the offset cancels, the indices are the centres.
+            d = cKDTree(sites.astype(np.float64)).query(queries.astype(np.float64), k=1, distance_upper_bound=_NEAR)[0]
+            near = np.isfinite(d)
+            total, far = float(d[near].sum()), queries[~near]
+            if len(far) < _EDT_MIN_FAR:
+                return total + _nearest_distance_sum(sites, far, "tree")
+        free = np.ones(tuple(int(v) for v in shape), bool)
+        free[tuple((sites - lo).T)] = False
+        return total + float(ndimage.distance_transform_edt(free)[tuple((far - lo).T)].sum())
+    return float(cKDTree(sites.astype(np.float64)).query(queries.astype(np.float64), k=1)[0].sum())
 
 
 # --- semantics -------------------------------------------------------------------------------------

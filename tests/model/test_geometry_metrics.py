@@ -132,15 +132,25 @@ def test_chamfer_of_empty_grids():
     assert chamfer_voxels(row([0]), EMPTY) == math.inf
 
 
-@pytest.mark.parametrize("low, high", [(-5, 40), (0, 3), (-2**40, 2**40)])
-def test_unique_rows_are_numpys_unique_rows(low, high):
-    """The keyed unique behind the Chamfer distance gives np.unique(axis=0)'s rows and order,
-    negative indices and spans too wide to key (its fallback) included."""
-    from scube_sim.model.geometry_metrics import _unique_rows
+@pytest.mark.parametrize("seed, low, high", [(0, -5, 12), (1, 0, 4), (2, -3, 30)])
+def test_chamfer_is_the_brute_force_mean_of_nearest_distances(seed, low, high):
+    """Random grids with repeated and shared voxels (the shared ones skip the nearest-site query)
+    against every pairwise distance in float64."""
+    from scube_sim.model.geometry_metrics import _nearest_distance_sum
 
-    g = np.random.default_rng(low & 0xFFFF).integers(low, high, (5000, 3))
-    np.testing.assert_array_equal(_unique_rows(g), np.unique(g, axis=0))
-    assert _unique_rows(g[:0]).shape == (0, 3)
+    rng = np.random.default_rng(seed)
+    g = rng.integers(low, high, (300, 3))
+    p = np.concatenate([g[:150], rng.integers(low, high, (200, 3)), g[:20]])  # shared, new, repeated
+    up, ug = (np.unique(x, axis=0).astype(np.float64) for x in (p, g))
+    d = np.linalg.norm(up[:, None] - ug[None], axis=-1)
+    expected = 0.5 * (d.min(1).mean() + d.min(0).mean())
+    assert chamfer_voxels(p, g) == pytest.approx(expected, rel=1e-12)
+    assert chamfer_voxels(g, g[::-1]) == 0.0
+    # Both exact routes to the nearest site, whichever `chamfer_voxels` picks for a size.
+    far = np.unique(p, axis=0)
+    brute = np.linalg.norm(far[:, None] - ug[None], axis=-1).min(1).sum()
+    for method in ("tree", "edt"):
+        assert _nearest_distance_sum(np.unique(g, axis=0), far, method) == pytest.approx(brute, rel=1e-12)
 
 
 # --- visibility ----------------------------------------------------------------------------------------
