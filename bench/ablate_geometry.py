@@ -134,34 +134,46 @@ def depth_prior_row(checkpoint: Path, args) -> dict:
                                                           "chamfer_q90")}}
 
 
+def mean_scene(data, samples: int):
+    """The first `samples` training chunks' coarse grids stacked: (share (X, Y, Z) float the fraction
+    of chunks occupying each voxel, mode (X, Y, Z) long its most frequent label, grid config)."""
+    import numpy as np
+
+    from scube_sim.model.geometry import NUM_LABELS, GeometryDataConfig
+    from scube_sim.model.stages import get_stage
+
+    cfg = GeometryDataConfig(level="coarse", voxel_size=0.8)
+    train = get_stage("geometry").dataset(Path(data), cfg, "train", 0)
+    n = min(len(train), samples)
+    counts = None
+    for i in range(n):
+        item = train[i]
+        if counts is None:
+            counts = np.zeros((*(int(d) for d in item["gt_grid"].dims), NUM_LABELS), np.int32)
+        ijk, lab = item["gt_ijk"].numpy(), item["gt_labels"].numpy()
+        np.add.at(counts, (ijk[:, 0], ijk[:, 1], ijk[:, 2], lab), 1)
+    return counts.sum(-1) / n, counts.argmax(-1), cfg
+
+
+def mean_scene_grid(share, mode, q: float):
+    """The floor without images: voxels occupied in at least a share q of the chunks, with their
+    most frequent label -> (ijk (V, 3) long, labels (V,) long)."""
+    import numpy as np
+    import torch
+
+    ijk = np.argwhere(share >= q)
+    return torch.from_numpy(ijk).long(), torch.from_numpy(mode[tuple(ijk.T)]).long()
+
+
 def mean_scene_row(args) -> dict:
     """A floor without images: every voxel occupied in at least a share q of the first
     `--mean-scene-samples` training chunks (q picked for the best IoU on the val split) with its
     most frequent training label."""
-    import numpy as np
-    import torch
-
-    from scube_sim.model.geometry import NUM_LABELS, GeometryDataConfig, _grid_metrics
+    from scube_sim.model.geometry import _grid_metrics
     from scube_sim.model.stages import get_stage
 
     stage = get_stage("geometry")
-    cfg = GeometryDataConfig(level="coarse", voxel_size=0.8)
-    train = stage.dataset(Path(args.data), cfg, "train", 0)
-    dims = None
-    n = min(len(train), args.mean_scene_samples)
-    for i in range(n):
-        item = train[i]
-        if dims is None:
-            dims = tuple(int(d) for d in item["gt_grid"].dims)
-            counts = np.zeros((*dims, NUM_LABELS), np.int32)
-        ijk, lab = item["gt_ijk"].numpy(), item["gt_labels"].numpy()
-        np.add.at(counts, (ijk[:, 0], ijk[:, 1], ijk[:, 2], lab), 1)
-    share = counts.sum(-1) / n
-    mode = counts.argmax(-1)
-
-    def grid(q):
-        ijk = np.argwhere(share >= q)
-        return torch.from_numpy(ijk).long(), torch.from_numpy(mode[tuple(ijk.T)]).long()
+    share, mode, cfg = mean_scene(args.data, args.mean_scene_samples)
 
     def items(split):
         ds = stage.dataset(Path(args.data), cfg, split, 0)
@@ -169,9 +181,10 @@ def mean_scene_row(args) -> dict:
 
     val = items("val")
     qs = [0.05, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7]
-    best_q = max(qs, key=lambda q: _grid_metrics([grid(q)] * len(val), val, split=False)["iou"])
+    best_q = max(qs, key=lambda q: _grid_metrics([mean_scene_grid(share, mode, q)] * len(val), val,
+                                                 split=False)["iou"])
     ev = items(args.eval_split)
-    m = _grid_metrics([grid(best_q)] * len(ev), ev, split=True)
+    m = _grid_metrics([mean_scene_grid(share, mode, best_q)] * len(ev), ev, split=True)
     return {"variant": f"mean training scene (no images, share >= {best_q})", "steps": "", "s_per_step": "",
             **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
                                                           "chamfer_q50", "chamfer_q90")}}
@@ -293,6 +306,7 @@ def main(argv=None) -> None:
                     help=f"run only the image-resolution trade at these image scales (e.g. {' '.join(map(str, IMAGE_SCALES))})")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
+    Path(args.work).mkdir(parents=True, exist_ok=True)
     if args.scales:
         rows = resolution_trade(stage, args)
         write_results("geometry_resolution", rows, list(rows[0]),
@@ -303,7 +317,6 @@ def main(argv=None) -> None:
                               REPO / "docs" / "geometry_resolution_trade.png")
         return
     base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse.yaml").read_text())
-    Path(args.work).mkdir(parents=True, exist_ok=True)
     rows, diffusion_ck = [], None
     if not args.only or "mean training scene" in args.only:
         rows.append(_cached_row(args, "mean-training-scene", lambda: mean_scene_row(args)))
