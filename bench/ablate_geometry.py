@@ -257,12 +257,7 @@ def plot_resolution_trade(rows: list[dict], cascade: list[dict], path: Path) -> 
             a.set_ylabel(ylabel)
             a.set_title(f"{title} (filled: Pareto-optimal)", fontsize=9)
             a.grid(alpha=0.3)
-    fig.suptitle("geometry stage: image resolution and voxel size against IoU, time and memory")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, "geometry stage: image resolution and voxel size against IoU, time and memory", path)
 
 
 def plot_trade(rows: list[dict], path: Path) -> Path:
@@ -282,7 +277,13 @@ def plot_trade(rows: list[dict], path: Path) -> Path:
         a.set_xlabel(label)
         a.set_ylabel("coarse IoU")
         a.grid(alpha=0.3)
-    fig.suptitle("geometry stage: DDIM steps against IoU, time and memory")
+    return _save(fig, "geometry stage: DDIM steps against IoU, time and memory", path)
+
+
+def _save(fig, title: str, path: Path) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig.suptitle(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
