@@ -255,6 +255,7 @@ def plot_resolution_trade(rows: list[dict], cascade: list[dict], path: Path) -> 
                 a.annotate(label, (x, y), textcoords="offset points", xytext=(4, 4), fontsize=8)
             a.set_xlabel(xlabel)
             a.set_ylabel(ylabel)
+            a.margins(x=0.3, y=0.15)  # room for the labels
             a.set_title(f"{title} (filled: Pareto-optimal)", fontsize=9)
             a.grid(alpha=0.3)
     return _save(fig, "geometry stage: image resolution and voxel size against IoU, time and memory", path)
