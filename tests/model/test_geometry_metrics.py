@@ -153,6 +153,21 @@ def test_chamfer_is_the_brute_force_mean_of_nearest_distances(seed, low, high):
         assert _nearest_distance_sum(np.unique(g, axis=0), far, method) == pytest.approx(brute, rel=1e-12)
 
 
+
+def test_chamfer_auto_route_splits_near_and_far_queries_exactly(monkeypatch):
+    """The 'auto' route's mix (a bounded tree query for near voxels, the distance transform for the
+    rest), forced at a small size, against every pairwise distance."""
+    import scube_sim.model.geometry_metrics as gm
+
+    monkeypatch.setattr(gm, "_EDT_MIN_FAR", 10)
+    rng = np.random.default_rng(7)
+    sites = np.unique(rng.integers(0, 12, (80, 3)), axis=0)
+    queries = np.unique(np.concatenate([rng.integers(0, 12, (60, 3)), rng.integers(20, 40, (60, 3))]), axis=0)
+    d = np.linalg.norm(queries[:, None].astype(np.float64) - sites[None], axis=-1).min(1)
+    assert (d <= gm._NEAR).sum() >= 10 and (d > gm._NEAR).sum() >= 10  # both routes are taken
+    assert gm._nearest_distance_sum(sites, queries) == pytest.approx(d.sum(), rel=1e-12)
+
+
 # --- visibility ----------------------------------------------------------------------------------------
 
 # Camera frame OpenCV (x right, y down, z forward); the columns of R are the camera axes in the chunk
