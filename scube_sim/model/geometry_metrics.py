@@ -289,7 +289,10 @@ def geometry_sample_metrics(pred_ijk, pred_labels, gt_ijk, gt_labels, num_labels
                  "num_gt_visible": int(gv.sum())}
     for s, (mp, mg) in zip(SPLITS, ((slice(None), slice(None)), (pv, gv), (~pv, ~gv))):
         conf = semantic_confusion(p[mp], lp[mp], g[mg], lg[mg], num_labels)
-        out[f"iou{s}"] = voxel_iou(p[mp], g[mg])
+        # the union is every counted voxel, the intersection those in neither the empty row nor
+        # column: `voxel_iou` without keying and sorting the grids again
+        union = int(conf.sum())
+        out[f"iou{s}"] = int(conf[:num_labels, :num_labels].sum()) / union if union else math.nan
         out[f"chamfer{s}"] = chamfer_voxels(p[mp], g[mg])
         out[f"miou{s}"] = semantic_iou(conf)[0]
         out[f"confusion{s}"] = conf
