@@ -22,12 +22,17 @@ from pathlib import Path
 
 import numpy as np
 
-from scube_sim.model.converter import Converter, load_profile
+from scube_sim.model.converter import Converter, FineProfile, load_profile
 from scube_sim.model.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
 
 from .common import BENCH_DIR, write_results
 
 REPO = BENCH_DIR.parent
+
+
+# The fine geometry level (0.2 m) on the coarse prediction, grouped into the 0.4 m voxels the
+# appearance stage was trained on; its images at the fine config's scale (that of the coarse).
+FINE_04 = FineProfile(checkpoint="geometry-fine-cpu", focal_px=342.5, output_voxel_size=0.4)
 
 
 def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | None]]:
@@ -47,6 +52,9 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
             update={"gaussians_per_voxel": 2})}), {}, None),
         ("M = 1", base.model_copy(update={"appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
         ("converted within 60 m", base, {"max_range": 60.0}, None),
+        ("coarse + fine level, 0.4 m voxels", base.model_copy(update={"fine": FINE_04}), {}, None),
+        ("coarse + fine level, 0.4 m voxels, M = 1", base.model_copy(update={
+            "fine": FINE_04, "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
     ]
     if diffusion:
@@ -94,6 +102,8 @@ def main(argv=None) -> None:
     ap.add_argument("--samples", type=int, default=3)
     ap.add_argument("--sensor", default="hdl64e")
     ap.add_argument("--diffusion", default=None, help="a diffusion geometry checkpoint to add as variants")
+    ap.add_argument("--only", nargs="+", default=None,
+                    help="run only these variants and write bench/results/s2s_trade_only.{json,md} (no plot)")
     ap.add_argument("--plot-only", action="store_true", help="redraw the plot from bench/results/s2s_trade.json")
     args = ap.parse_args(argv)
     if args.plot_only:
@@ -105,6 +115,8 @@ def main(argv=None) -> None:
     cache: dict = {}
     rows = []
     for name, prof, opts, mode in variants(load_profile("cpu"), args.diffusion):
+        if args.only and name not in args.only:
+            continue
         conv = Converter(prof)
         samples = [evaluate_sample(conv, d, lidar, ahead=(0.0,), convert_options=opts, with_psnr=False,
                                    gt_cache=cache, trace_mode=mode) for d in dirs]
@@ -124,11 +136,12 @@ def main(argv=None) -> None:
     rows.append({"variant": "ground-truth VoxSplat (0.4 m, entry): the representation's own error",
                  "median_m": round(gt["median_m"], 3), "p90_m": round(gt["p90_m"], 3),
                  "hit_agreement": round(gt["hit_agreement"], 4)})
-    write_results("s2s_trade", rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
+    write_results("s2s_trade_only" if args.only else "s2s_trade", rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
                                       "hit_agreement", "median_seen_m", "median_unseen_m", "geometry_iou"],
                   notes=f"{len(dirs)} {args.split} samples, {lidar.config.name} at the input pose, against the mesh; "
                         f"each knob changed alone from the shipped cpu profile")
-    plot([r for r in rows if "seconds" in r], REPO / "docs" / "s2s_trade.png")
+    if not args.only:
+        plot([r for r in rows if "seconds" in r], REPO / "docs" / "s2s_trade.png")
 
 
 if __name__ == "__main__":

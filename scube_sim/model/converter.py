@@ -1,7 +1,8 @@
 """The sensor-to-sensor converter (SCube section 3): posed camera frames -> a VoxSplat.
 
-The geometry stage (`geometry.GeometryNet`, coarse level) predicts semantic voxels from the
-images; the appearance stage (`appearance.AppearanceNet`) puts M Gaussians in each predicted voxel
+The geometry stage (`geometry.GeometryNet`, coarse level, and where the profile names one, the
+fine level conditioned on the coarse prediction: XCube's cascade) predicts semantic voxels from
+the images; the appearance stage (`appearance.AppearanceNet`) puts M Gaussians in each predicted voxel
 and decodes a sky panorama. A *profile* names both stages' checkpoints and their settings: the
 shipped ones are `profiles/<name>.yaml` in this package (`cpu` is the default), a user's own is a
 YAML file given by path (`ConverterProfile`).
@@ -45,7 +46,7 @@ from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance import AppearanceNet, first_hit_voxels
 from .checkpoint import resolve_checkpoint
 from .data import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
-from .geometry import GeometryDataConfig, GeometryNet
+from .geometry import NUM_LABELS, GeometryDataConfig, GeometryNet, observed_voxels
 from .trainer import load_model
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
@@ -72,6 +73,16 @@ class GeometryProfile(StageProfile):
     sample_steps: int | None = Field(default=None, ge=1)
 
 
+class FineProfile(StageProfile):
+    """The fine geometry level, run on the coarse level's prediction (each coarse voxel
+    subdivided and pruned by the fine checkpoint). output_voxel_size: the voxels handed to the
+    appearance stage, metres; a multiple of the fine level's that divides the coarse level's
+    (the fine voxels grouped into it: a voxel where any child is, its children's most common
+    label); None: the fine level's own."""
+
+    output_voxel_size: float | None = Field(default=None, gt=0)
+
+
 class AppearanceProfile(StageProfile):
     """sky_size: (rows, columns) of the sky panorama channel. gaussians_per_voxel: keep only the
     M most opaque Gaussians of each voxel (`VoxSplat.keep_slots`; None: all the checkpoint's).
@@ -92,6 +103,7 @@ class ConverterProfile(StrictModel):
     name: str
     description: str = ""
     geometry: GeometryProfile
+    fine: FineProfile | None = None
     appearance: AppearanceProfile
     confidence_samples: int = Field(default=4, ge=2)
 
@@ -241,11 +253,33 @@ class Converter:
         if not isinstance(self.geometry, GeometryNet) or self.geometry.cfg.level != "coarse":
             raise InputError(f"{self._paths['geometry']}: the converter needs a coarse-level geometry checkpoint")
         self.data = GeometryDataConfig(**run.data)
+        self.fine = None
+        if p.fine is not None:
+            self._paths["fine"] = resolve_checkpoint(p.fine.checkpoint)
+            self.fine, frun = load_model("geometry", self._paths["fine"])
+            if not isinstance(self.fine, GeometryNet) or self.fine.cfg.level != "fine":
+                raise InputError(f"{self._paths['fine']}: profile key fine needs a fine-level geometry checkpoint")
+            # the whole region at once, as the coarse level (a training crop is not an inference box)
+            self.fine_data = GeometryDataConfig(**{**frun.data, "crop": None, "region": self.data.region})
+            if abs(self.fine_data.lift_voxel_size - self.data.voxel_size) > 1e-9:
+                raise InputError(f"{self._paths['fine']}: its sites are {self.fine_data.lift_voxel_size} m voxels; "
+                                 f"the coarse checkpoint predicts {self.data.voxel_size} m")
+            self.output_voxel_size = self._output_voxel_size(p.fine.output_voxel_size)
         self.appearance, _ = load_model("appearance", self._paths["appearance"])
         if not isinstance(self.appearance, AppearanceNet):
             raise InputError(f"{self._paths['appearance']}: not an appearance checkpoint")
         self._hashes: dict[str, str] = {}
         self.timings: dict[str, float] = {}
+
+    def _output_voxel_size(self, size: float | None) -> float:
+        fine, coarse = self.fine_data.voxel_size, self.data.voxel_size
+        if size is None:
+            return float(fine)
+        group, per_coarse = size / fine, coarse / size
+        if abs(group - round(group)) > 1e-6 or abs(per_coarse - round(per_coarse)) > 1e-6:
+            raise InputError(f"profile fine.output_voxel_size {size}: expected a multiple of the fine level's "
+                             f"{fine} m that divides the coarse level's {coarse} m")
+        return float(size)
 
     def checkpoint_hashes(self) -> dict[str, str]:
         """sha256 of each stage's checkpoint file (provenance), computed once."""
@@ -263,9 +297,44 @@ class Converter:
         item["lift_grid"], item["gt_grid"], item["level"] = cfg.grid(), cfg.grid(cfg.voxel_size), "coarse"
         steps = steps or self.profile.geometry.sample_steps
         ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed)
+        size = float(cfg.voxel_size)
+        if self.fine is not None:
+            ijk, labels, conf, observed, size = self._refine(frames, ijk, labels, conf, seed)
         shift = torch.round((torch.tensor(cfg.region[:3], dtype=torch.float64) - torch.as_tensor(CHUNK_CORNER))
-                            / cfg.voxel_size).to(torch.int64)
-        return ijk + shift, labels, conf, observed, float(cfg.voxel_size)
+                            / size).to(torch.int64)
+        return ijk + shift, labels, conf, observed, size
+
+    def _refine(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, conf: torch.Tensor, seed: int):
+        """The fine level on the coarse prediction (box voxels of the coarse grid) -> the same
+        tuple as `predict_voxels` in box voxels of the output size (`FineProfile`): each voxel's
+        confidence is its coarse parent's (the fine predictor draws no samples); observed is
+        traced through the output grid itself (`observed_voxels`)."""
+        fcfg = self.fine_data
+        item = frames_item(frames, self.profile.fine)
+        item["lift_grid"], item["gt_grid"], item["level"] = fcfg.grid(), fcfg.grid(fcfg.voxel_size), "fine"
+        fijk, flabels = self.fine.predict(item, seed=seed, coarse=(ijk, labels))
+        # every fine voxel lies in a coarse site (the decoder only subdivides): its parent's confidence
+        per = round(self.data.voxel_size / fcfg.voxel_size)
+        coarse_dims = self.data.grid(self.data.voxel_size).dims
+        parent_keys = _box_keys(fijk // per, coarse_dims)
+        keys = _box_keys(ijk, coarse_dims)
+        order = torch.argsort(keys)
+        pos = torch.searchsorted(keys[order], parent_keys).clamp(max=max(len(keys) - 1, 0))
+        fconf = conf[order][pos] if len(keys) else torch.zeros(len(fijk))
+        group = round(self.output_voxel_size / fcfg.voxel_size)
+        out_grid = fcfg.grid(self.output_voxel_size)
+        if group > 1:
+            gkeys, inverse = torch.unique(_box_keys(fijk // group, out_grid.dims), return_inverse=True)
+            g = len(gkeys)
+            counts = torch.zeros(g * NUM_LABELS, dtype=torch.int64).index_add_(
+                0, inverse * NUM_LABELS + flabels, torch.ones(len(flabels), dtype=torch.int64))
+            flabels = counts.view(g, NUM_LABELS).argmax(1)  # ties: the lowest label id
+            # children of one output voxel share their coarse parent, so any child's confidence is it
+            fconf = torch.zeros(g).index_put_((inverse,), fconf)
+            _, y, z = out_grid.dims
+            fijk = torch.stack([gkeys // (y * z), (gkeys // z) % y, gkeys % z], 1)
+        # traced through the output grid itself: its cost grows with the distance in voxels
+        return fijk, flabels, fconf, observed_voxels(fijk, out_grid, item), self.output_voxel_size
 
     @torch.no_grad()
     def gaussians(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, voxel_size: float,
@@ -329,6 +398,8 @@ class Converter:
             "profile": self.profile.name,
             "geometry_checkpoint": {"path": self.profile.geometry.checkpoint, "sha256": hashes["geometry"]},
             "appearance_checkpoint": {"path": self.profile.appearance.checkpoint, "sha256": hashes["appearance"]},
+            "fine_checkpoint": (None if self.fine is None else
+                                {"path": self.profile.fine.checkpoint, "sha256": hashes["fine"]}),
             "sample_steps": int(steps or self.profile.geometry.sample_steps or self.geometry.cfg.sample_steps),
             "max_range_m": None if max_range is None else float(max_range),
             "seed": int(seed),
@@ -342,6 +413,12 @@ class Converter:
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},
         })
         return scene
+
+
+def _box_keys(ijk: torch.Tensor, dims) -> torch.Tensor:
+    """(V, 3) int64 voxel indices inside a box of `dims` -> (V,) int64 flat keys."""
+    _, y, z = (int(d) for d in dims)
+    return (ijk[:, 0] * y + ijk[:, 1]) * z + ijk[:, 2]
 
 
 _CACHE: dict[str, Converter] = {}
@@ -364,5 +441,5 @@ def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_
                                max_range=max_range)
 
 
-__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "convert", "frames_item", "is_loaded", "load_profile",
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "convert", "frames_item", "is_loaded", "load_profile",
            "open_frames", "shipped_profiles"]

@@ -19,7 +19,7 @@ from scube_sim.camera.model import Intrinsics
 from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.errors import InputError
-from scube_sim.model.converter import Converter, frames_item, load_profile, open_frames
+from scube_sim.model.converter import Converter, FineProfile, frames_item, load_profile, open_frames
 from scube_sim.voxsplat import VoxSplat
 
 
@@ -272,3 +272,61 @@ def test_a_convert_batch_loads_the_model_once_per_worker_and_writes_what_convert
                                      "-o", str(direct)])
         assert r.exit_code == 0, r.output
         assert _sha(out / s.parent.name / "000000" / "scene.npz") == _sha(direct)
+
+
+# --- the fine level ----------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tiny_fine(tiny_converter, tmp_path_factory):
+    from .tiny_converter import build_fine
+
+    return build_fine(tiny_converter, tmp_path_factory.mktemp("fine"))
+
+
+def _with_fine(tiny_converter, fine_ck, **fine):
+    prof = load_profile(tiny_converter["profile"])
+    return prof.model_copy(update={"fine": FineProfile(checkpoint=str(fine_ck), focal_px=prof.geometry.focal_px,
+                                                       **fine)})
+
+
+def test_the_fine_level_subdivides_the_coarse_prediction(tiny_converter, tiny_fine):
+    frames = _frames(tiny_converter)
+    coarse = Converter(load_profile(tiny_converter["profile"])).convert(frames, seed=0, sky=False)
+    conv = Converter(_with_fine(tiny_converter, tiny_fine))
+    fine = conv.convert(frames, seed=0, sky=False)
+    assert (coarse.voxel_size, fine.voxel_size) == (3.2, 1.6) and len(fine.ijk) > 0
+    # every fine voxel is a child of a coarse one (both indexed from the same chunk corner), and
+    # carries its parent's confidence
+    parent = {tuple(v): c for v, c in zip(coarse.ijk.tolist(), coarse.channel("confidence"))}
+    kids = [tuple(v) for v in (fine.ijk // 2).tolist()]
+    assert all(k in parent for k in kids)
+    np.testing.assert_array_equal(fine.channel("confidence"), np.array([parent[k] for k in kids], np.float32))
+    assert fine.channel("observed").dtype == bool and fine.channel("observed").any()
+    meta = fine.metadata
+    assert meta["fine_checkpoint"]["sha256"] == hashlib.sha256(tiny_fine.read_bytes()).hexdigest()
+    assert coarse.metadata["fine_checkpoint"] is None
+    # the same frames and seed: the same scene
+    again = conv.convert(frames, seed=0, sky=False)
+    np.testing.assert_array_equal(again.ijk, fine.ijk)
+    np.testing.assert_array_equal(again.params, fine.params)
+
+
+def test_the_fine_level_groups_into_the_output_voxel_size(tiny_converter, tiny_fine):
+    frames = _frames(tiny_converter)
+    fine = Converter(_with_fine(tiny_converter, tiny_fine)).convert(frames, seed=0, sky=False)
+    grouped = Converter(_with_fine(tiny_converter, tiny_fine, output_voxel_size=3.2)).convert(frames, seed=0,
+                                                                                               sky=False)
+    assert grouped.voxel_size == 3.2
+    # an output voxel wherever one of its 8 children is, labelled by the children's most common label
+    # (ties: the lowest id)
+    keys, inverse = np.unique(fine.ijk // 2, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(grouped.ijk, keys)
+    votes = np.zeros((len(keys), 256), np.int64)
+    np.add.at(votes, (inverse.ravel(), fine.labels.astype(np.int64)), 1)
+    np.testing.assert_array_equal(grouped.labels, votes.argmax(1))
+
+
+def test_bad_fine_settings_name_the_key(tiny_converter, tiny_fine):
+    with pytest.raises(InputError, match="fine.output_voxel_size"):
+        Converter(_with_fine(tiny_converter, tiny_fine, output_voxel_size=2.4))
+    with pytest.raises(InputError, match="fine-level"):
+        Converter(_with_fine(tiny_converter, tiny_converter["geo"]))

@@ -75,8 +75,8 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_
     for name in shipped_profiles():
         prof = load_profile(name)
         assert prof.name == name
-        for stage in (prof.geometry, prof.appearance):
-            assert resolve_checkpoint(stage.checkpoint).is_file()
+        for stage in (prof.geometry, prof.appearance, prof.fine):
+            assert stage is None or resolve_checkpoint(stage.checkpoint).is_file()
     conv = Converter("cpu")
     cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
                         fine_voxel_m=0.2, coarse_factor=4)
@@ -104,3 +104,39 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_
     # (measured: IoU 0.334 against 0.296, same-label share 0.72 against 0.17)
     assert trained[0] > untrained[0], (trained, untrained)
     assert trained[1] > untrained[1] + 0.2, (trained, untrained)
+
+
+def test_the_fine_checkpoint_labels_its_sub_voxels_from_the_images(tmp_path):
+    """The shipped fine level on a freshly generated held-out world's ground-truth coarse grid:
+    its 0.2 m voxels lie inside the coarse sites, and far more of them carry the ground truth's
+    label than the VAE's zero latent gives (the prior's mean, no images; measured on this world:
+    0.51 against 0.22 of the voxels; on the test split: mIoU 0.222 against 0.021)."""
+    from scube_sim.model.geometry_sparse import decoded_voxels
+    from scube_sim.model.sparse import SparseTensor
+
+    ck = load_checkpoint(resolve_checkpoint("geometry-fine-cpu"))
+    assert ck["stage"] == "geometry" and "optimizer" not in ck and "rng" not in ck
+    stage = get_stage("geometry")
+    model, run = load_model(stage, "geometry-fine-cpu")
+    assert isinstance(model, GeometryNet) and model.cfg.level == "fine"
+    _, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
+    cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
+                        fine_voxel_m=0.2, coarse_factor=4)
+    generate_dataset(tmp_path, "test", 1, cfg, progress=False)
+    item = stage.dataset(tmp_path, data_cfg.model_copy(update={"crop": None}), "test", 0)[0]
+    truth = dict(zip(map(tuple, item["gt_ijk"].tolist()), item["gt_labels"].tolist()))
+    sites = item["coarse_gt_ijk"]
+    with torch.no_grad():
+        ijk, labels = model.predict(item)
+        coords = torch.cat([torch.zeros(len(sites), 1, dtype=torch.int64), sites], 1)
+        zero = SparseTensor.from_coords(coords, torch.zeros(len(sites), model.cfg.vae.latent_channels),
+                                        batch_size=1, stride=model.vae.stride)
+        zijk, zlabels = decoded_voxels(model.vae.decode(zero))
+
+    def same_label_share(ijk, labels) -> float:
+        return sum(truth.get(k) == v for k, v in zip(map(tuple, ijk.tolist()), labels.tolist())) / max(len(ijk), 1)
+
+    site_keys = set(map(tuple, sites.tolist()))
+    assert len(ijk) > 1000 and all(k in site_keys for k in map(tuple, (ijk // 4).tolist()))
+    trained, prior = same_label_share(ijk, labels), same_label_share(zijk[:, 1:], zlabels)
+    assert trained > prior + 0.2, (trained, prior)
