@@ -61,7 +61,7 @@ DDIM_STEPS = (1, 5, 10, 25, 50)
 # size: 480 x 320 for the Waymo rig); the shipped config uses 0.67.
 IMAGE_SCALES = (0.33, 0.67, 1.0)
 # (feature stride, lifting) of the lifting comparison, the most informative first
-LIFTING_VARIANTS = ((4, "depth"), (4, "broadcast"), (8, "broadcast"), (8, "depth"))
+LIFTING_VARIANTS = ((4, "depth"), (8, "broadcast"), (8, "depth"), (4, "broadcast"))
 
 
 def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
@@ -238,7 +238,7 @@ def lifting_trade(stage, args) -> list[dict]:
     for stride, lifting in LIFTING_VARIANTS:
         name = f"predictor, stride {stride}, {lifting} lifting"
         # a finer map keeps the shipped encoder's context: down to stride 8 and back up
-        encoder = {**base["model"]["encoder"], "stride": stride, "context_stride": 8 if stride < 8 else None}
+        encoder = {**base["model"]["encoder"], "stride": stride, **({"context_stride": 8} if stride < 8 else {})}
         ck = _train_and_evaluate(stage, name, _config(base, {"model": {"encoder": encoder, "lifting": lifting}},
                                                       args.steps, args.vae), args, rows)
         rows[-1].update(stride=stride, lifting=lifting)
