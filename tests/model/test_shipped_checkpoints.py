@@ -67,7 +67,18 @@ def test_each_structure_vae_reconstructs_a_held_out_world(tmp_path, name, iou, c
     assert m["iou"] > iou and m["chamfer_q50"] < chamfer, m
 
 
-def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_path):
+@pytest.fixture(scope="module")
+def held_out_world(tmp_path_factory):
+    """One freshly generated test-split world (its seed was never in training), with the 0.2 m /
+    0.8 m grids of the shipped geometry levels and images at the stored scale they trained on."""
+    path = tmp_path_factory.mktemp("held-out")
+    cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
+                        fine_voxel_m=0.2, coarse_factor=4)
+    generate_dataset(path, "test", 1, cfg, progress=False)
+    return path
+
+
+def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(held_out_world):
     """Each shipped profile's checkpoints resolve; the cpu profile's geometry stage, on a freshly
     generated held-out world, predicts a grid closer to the ground truth (IoU) than the same
     network with its image and 3D layers untrained (the frozen VAE kept)."""
@@ -78,10 +89,7 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_
         for stage in (prof.geometry, prof.appearance, prof.fine):
             assert stage is None or resolve_checkpoint(stage.checkpoint).is_file()
     conv = Converter("cpu")
-    cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
-                        fine_voxel_m=0.2, coarse_factor=4)
-    generate_dataset(tmp_path, "test", 1, cfg, progress=False)
-    sample = open_dataset("worlds", tmp_path, split="test", eval_frames=False)[0]
+    sample = open_dataset("worlds", held_out_world, split="test", eval_frames=False)[0]
     gt = sample.ground_truth.coarse
     truth = dict(zip(map(tuple, gt.ijk.astype(int).tolist()), gt.labels.astype(int).tolist()))
 
@@ -106,7 +114,7 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(tmp_
     assert trained[1] > untrained[1] + 0.2, (trained, untrained)
 
 
-def test_the_fine_checkpoint_labels_its_sub_voxels_from_the_images(tmp_path):
+def test_the_fine_checkpoint_labels_its_sub_voxels_from_the_images(held_out_world):
     """The shipped fine level on a freshly generated held-out world's ground-truth coarse grid:
     its 0.2 m voxels lie inside the coarse sites, and far more of them carry the ground truth's
     label than the VAE's zero latent gives (the prior's mean, no images; measured on this world:
@@ -120,10 +128,7 @@ def test_the_fine_checkpoint_labels_its_sub_voxels_from_the_images(tmp_path):
     model, run = load_model(stage, "geometry-fine-cpu")
     assert isinstance(model, GeometryNet) and model.cfg.level == "fine"
     _, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
-    cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16", styles=["urban"],
-                        fine_voxel_m=0.2, coarse_factor=4)
-    generate_dataset(tmp_path, "test", 1, cfg, progress=False)
-    item = stage.dataset(tmp_path, data_cfg.model_copy(update={"crop": None}), "test", 0)[0]
+    item = stage.dataset(held_out_world, data_cfg.model_copy(update={"crop": None}), "test", 0)[0]
     truth = dict(zip(map(tuple, item["gt_ijk"].tolist()), item["gt_labels"].tolist()))
     sites = item["coarse_gt_ijk"]
     with torch.no_grad():
