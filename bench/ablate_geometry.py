@@ -237,6 +237,8 @@ def lifting_trade(stage, args) -> list[dict]:
     rows: list[dict] = []
     for stride, lifting in LIFTING_VARIANTS:
         name = f"predictor, stride {stride}, {lifting} lifting"
+        if args.only and name not in args.only:
+            continue
         # a finer map keeps the shipped encoder's context: down to stride 8 and back up
         encoder = {**base["model"]["encoder"], "stride": stride, **({"context_stride": 8} if stride < 8 else {})}
         ck = _train_and_evaluate(stage, name, _config(base, {"model": {"encoder": encoder, "lifting": lifting}},
@@ -326,7 +328,8 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=600, help="training steps of every variant (the budget)")
     ap.add_argument("--work", default=str(BENCH_DIR / ".cache" / "ablate_geometry"))
     ap.add_argument("--eval-split", default="test")
-    ap.add_argument("--only", nargs="*", default=None, help="variants to run (default: all)")
+    ap.add_argument("--only", nargs="*", default=None,
+                    help="variants to run (default: all; with --lifting, e.g. 'predictor, stride 8, depth lifting')")
     ap.add_argument("--mean-scene-samples", type=int, default=100, help="training chunks the no-image floor averages")
     ap.add_argument("--checkpoint", default=None, help="the DDIM trade on this checkpoint instead of the diffusion variant's")
     ap.add_argument("--scales", nargs="+", type=float, default=None,
