@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from scube_sim.model.converter import Converter, FineProfile, load_profile
+from scube_sim.model.converter import Converter, load_profile
 from scube_sim.model.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
 
 from .common import BENCH_DIR, write_results
@@ -31,8 +31,8 @@ REPO = BENCH_DIR.parent
 
 
 # The fine geometry level (0.2 m) on the coarse prediction, grouped into the 0.4 m voxels the
-# appearance stage was trained on; its images at the fine config's scale (that of the coarse).
-FINE_04 = FineProfile(checkpoint="geometry-fine-cpu", focal_px=342.5, output_voxel_size=0.4)
+# appearance stage was trained on: the shipped cpu-fine profile's
+FINE_04 = load_profile("cpu-fine").fine
 
 
 def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | None]]:

@@ -46,7 +46,7 @@ from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance import AppearanceNet, first_hit_voxels
 from .checkpoint import resolve_checkpoint
 from .data import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
-from .geometry import NUM_LABELS, GeometryDataConfig, GeometryNet, observed_voxels
+from .geometry import NUM_LABELS, GeometryDataConfig, GeometryNet, flat_keys, observed_voxels
 from .trainer import load_model
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
@@ -296,7 +296,9 @@ class Converter:
         cfg = self.data
         item["lift_grid"], item["gt_grid"], item["level"] = cfg.grid(), cfg.grid(cfg.voxel_size), "coarse"
         steps = steps or self.profile.geometry.sample_steps
-        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed)
+        # a fine level traces `observed` through its own grid: the coarse trace would be discarded
+        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed,
+                                                                            observed=self.fine is None)
         size = float(cfg.voxel_size)
         if self.fine is not None:
             ijk, labels, conf, observed, size = self._refine(frames, ijk, labels, conf, seed)
@@ -316,15 +318,15 @@ class Converter:
         # every fine voxel lies in a coarse site (the decoder only subdivides): its parent's confidence
         per = round(self.data.voxel_size / fcfg.voxel_size)
         coarse_dims = self.data.grid(self.data.voxel_size).dims
-        parent_keys = _box_keys(fijk // per, coarse_dims)
-        keys = _box_keys(ijk, coarse_dims)
+        parent_keys = flat_keys(fijk // per, coarse_dims)
+        keys = flat_keys(ijk, coarse_dims)
         order = torch.argsort(keys)
         pos = torch.searchsorted(keys[order], parent_keys).clamp(max=max(len(keys) - 1, 0))
         fconf = conf[order][pos] if len(keys) else torch.zeros(len(fijk))
         group = round(self.output_voxel_size / fcfg.voxel_size)
         out_grid = fcfg.grid(self.output_voxel_size)
         if group > 1:
-            gkeys, inverse = torch.unique(_box_keys(fijk // group, out_grid.dims), return_inverse=True)
+            gkeys, inverse = torch.unique(flat_keys(fijk // group, out_grid.dims), return_inverse=True)
             g = len(gkeys)
             counts = torch.zeros(g * NUM_LABELS, dtype=torch.int64).index_add_(
                 0, inverse * NUM_LABELS + flabels, torch.ones(len(flabels), dtype=torch.int64))
@@ -413,12 +415,6 @@ class Converter:
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},
         })
         return scene
-
-
-def _box_keys(ijk: torch.Tensor, dims) -> torch.Tensor:
-    """(V, 3) int64 voxel indices inside a box of `dims` -> (V,) int64 flat keys."""
-    _, y, z = (int(d) for d in dims)
-    return (ijk[:, 0] * y + ijk[:, 1]) * z + ijk[:, 2]
 
 
 _CACHE: dict[str, Converter] = {}

@@ -564,26 +564,28 @@ class GeometryNet(nn.Module):
         return ijk, torch.zeros(len(ijk), dtype=torch.int64)
 
     def predict_with_confidence(self, item: dict, k: int = 1, steps: int | None = None, seed: int = 0,
-                                coarse=None):
+                                coarse=None, observed: bool = True):
         """`predict` with seed `seed` -> (ijk (V, 3), labels (V,), confidence (V,) float32 the share
         of the k samples drawn with seeds seed .. seed + k - 1 that hold the voxel (1 when k = 1:
         only the first sample is drawn), observed (V,) bool whether an input camera sees the voxel
         first along one of its rays, traced through the predicted grid itself, `observed_voxels`).
         The coarse single-step predictor draws no samples (each would be the same grid): its
         confidence is the decoder's occupancy probability of the voxel, the product over the
-        voxel and its ancestors (each level's sigmoid), whatever k is."""
+        voxel and its ancestors (each level's sigmoid), whatever k is. observed False: None instead
+        of the trace (a caller that refines the grid traces its own)."""
         if k < 1:
             raise InputError(f"k: expected at least one sample, got {k}")
         if self.cfg.mode == "predictor" and not self.fine:
             ijk, labels, prob = self._predict_coarse(item, steps, seed)
-            return ijk, labels, prob.float(), observed_voxels(ijk, item["gt_grid"], item)
+            return ijk, labels, prob.float(), observed_voxels(ijk, item["gt_grid"], item) if observed else None
         ijk, labels = self.predict(item, steps, seed, coarse)
         count = torch.ones(len(ijk), dtype=torch.int64)
-        keys = _flat_keys(ijk, item["gt_grid"].dims)
+        keys = flat_keys(ijk, item["gt_grid"].dims)
         for extra in range(1, k):
             other, _ = self.predict(item, steps, seed + extra, coarse)
-            count += torch.isin(keys, _flat_keys(other, item["gt_grid"].dims)).to(torch.int64)
-        return ijk, labels, (count.double() / k).float(), observed_voxels(ijk, item["gt_grid"], item)
+            count += torch.isin(keys, flat_keys(other, item["gt_grid"].dims)).to(torch.int64)
+        seen = observed_voxels(ijk, item["gt_grid"], item) if observed else None
+        return ijk, labels, (count.double() / k).float(), seen
 
     def _predict_coarse(self, item: dict, steps: int | None, seed: int):
         """The coarse level: (ijk (V, 3), labels (V,), occupancy probability (V,) of each voxel and
@@ -624,7 +626,7 @@ class GeometryNet(nn.Module):
 
 
 # ---------------------------------------------------------------------------- stages
-def _flat_keys(ijk: torch.Tensor, dims) -> torch.Tensor:
+def flat_keys(ijk: torch.Tensor, dims) -> torch.Tensor:
     """(V, 3) box voxel indices -> (V,) int64 i * Y * Z + j * Z + k."""
     _, y, z = (int(d) for d in dims)
     return (ijk[:, 0] * y + ijk[:, 1]) * z + ijk[:, 2]
