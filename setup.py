@@ -27,7 +27,7 @@ core = Pybind11Extension(
     libraries=["embree4" if embree4 else "embree3"],
     define_macros=[("SCUBE_EMBREE4", "1")] if embree4 else [],
     cxx_std=17,
-    extra_compile_args=["-O3"],
+    extra_compile_args=["-O3", "-ffp-contract=off"],
     optional=True,
 )
 

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from . import bench_batch, bench_fidelity, bench_render, bench_representation, bench_sim, bench_sparse, bench_tracer
+from . import (bench_batch, bench_fidelity, bench_render, bench_representation, bench_sim, bench_sparse, bench_tracer,
+               bench_voxel_cast)
 
 
 def main() -> None:
@@ -12,6 +13,7 @@ def main() -> None:
     for module in (bench_tracer, bench_representation, bench_sim, bench_fidelity, bench_sparse, bench_render, bench_batch):
         sys.argv = [sys.argv[0]] + (["--quick"] if quick else [])
         module.main()
+    bench_voxel_cast.main(["--repeats", "1" if quick else "2"])
 
 
 if __name__ == "__main__":

@@ -6,6 +6,10 @@ Traversal: empty space is skipped with a Chebyshev distance field on blocks of 8
 ray at block distance d >= 2 from any occupied block advances (d - 1) blocks at once); next to
 occupied blocks it steps voxel by voxel (the exit of the current voxel along the ray), looking
 each voxel up by its packed key. Frames: voxel (i, j, k) spans origin + [ijk, ijk + 1) * voxel_size.
+
+The traversal runs in the compiled trace core (`raytrace/_core.cpp`, multithreaded over rays)
+wherever it is built, and otherwise in the torch loop here; both give the same voxel and t for
+every ray (tests/model/test_voxel_rays.py), so the converter's output does not depend on which ran.
 """
 
 from __future__ import annotations
@@ -46,16 +50,22 @@ class VoxelRayCaster:
         # chessboard distance, in blocks, from each block to the nearest occupied one (0 inside)
         self._dist = torch.from_numpy(distance_transform_cdt(~occ, metric="chessboard").astype(np.int64))
         self._blocks = blocks
+        # what the compiled core reads, in its dtypes, once per grid
+        self._arrays = tuple(np.ascontiguousarray(x.numpy()) for x in (self.origin, self.lo, self.dims,
+                                                                       self._keys_sorted, self._order, self._dist))
 
     def _keys(self, rel: torch.Tensor) -> torch.Tensor:
         d = self.dims
         return (rel[..., 0] * d[1] + rel[..., 1]) * d[2] + rel[..., 2]
 
-    def first_hit(self, origins, dirs, max_t: float = float("inf")):
+    def first_hit(self, origins, dirs, max_t: float = float("inf"), core: str | None = None):
         """Rays o + t d (origins, dirs (R, 3) metres in the grid's frame; dirs need not be unit) ->
         (index (R,) int64 row of `ijk` of the first voxel entered, -1 if none with t <= max_t;
         t (R,) float64 the ray parameter where it enters that voxel (metres for unit d), inf if
-        none)."""
+        none). core: 'compiled' or 'reference' (the torch loop); None: the tracer's default
+        (`raytrace.compiled.default_core_name`: compiled where built, `SCUBE_SIM_CORE` overrides)."""
+        from ..raytrace import compiled
+
         o = torch.as_tensor(origins, dtype=torch.float64)
         d = torch.as_tensor(dirs, dtype=torch.float64)
         r = o.shape[0]
@@ -63,6 +73,18 @@ class VoxelRayCaster:
         t_hit = torch.full((r,), float("inf"), dtype=torch.float64)
         if not self.num_voxels or not r:
             return index, t_hit
+        name = core or compiled.default_core_name()
+        if name == "compiled":
+            if not compiled.available():
+                raise compiled.CoreUnavailable(f"core='compiled': the compiled core is not built "
+                                               f"({compiled.load_error()})")
+            origin, lo, dims, keys, order, dist = self._arrays
+            compiled._core.voxel_first_hit(np.ascontiguousarray(o.numpy()), np.ascontiguousarray(d.numpy()), origin,
+                                           self.voxel_size, lo, dims, keys, order, dist, float(max_t),
+                                           index.numpy(), t_hit.numpy())
+            return index, t_hit
+        if name != "reference":
+            raise ValueError(f"core: expected 'compiled' or 'reference', got {name!r}")
         # voxel units, relative to the grid's low corner: p(t) = p0 + t dv, t the rays' own parameter
         p0 = (o - self.origin) / self.voxel_size - self.lo.to(torch.float64)
         dv = d / self.voxel_size

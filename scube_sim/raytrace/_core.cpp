@@ -843,6 +843,116 @@ class MeshScene {
   ScenePtr scene_;
 };
 
+
+// --- sparse voxel grids: the first voxel each ray enters ----------------------------------------
+// model/voxel_rays.py's traversal (its docstring: a Chebyshev distance field on 8^3 blocks skips
+// empty space, voxel steps next to occupied blocks, a binary search of the packed keys), written
+// here operation for operation in float64 so that both give the same voxel and t for every ray
+// (tests/model/test_voxel_rays.py). NaN propagates through min / max as torch's does.
+
+constexpr int64_t kVoxelBlock = 8;
+constexpr double kVoxelEps = 1e-6;  // voxel units: past a face into the next voxel
+
+double nan_min(double a, double b) { return (std::isnan(a) || std::isnan(b)) ? kNaN : std::min(a, b); }
+double nan_max(double a, double b) { return (std::isnan(a) || std::isnan(b)) ? kNaN : std::max(a, b); }
+
+// floor(x) as torch's float64 -> int64 conversion gives it on x86 (out of range or NaN: INT64_MIN).
+int64_t floor_to_int(double x) {
+  const double f = std::floor(x);
+  return (f >= -9.2233720368547758e18 && f < 9.2233720368547758e18) ? static_cast<int64_t>(f)
+                                                                       : std::numeric_limits<int64_t>::min();
+}
+
+// o, d (R, 3) float64 in the grid's frame; origin (3,) float64 (voxel (0,0,0)'s corner, metres);
+// lo, dims (3,) int64: the occupied voxels' lowest index and the extent from it; keys (K,) int64
+// sorted packed keys of (ijk - lo), order (K,) int64 the voxel row of each; dist (Bx, By, Bz)
+// int64 block distances; fills index (R,) int64 (-1: none within max_t) and t (R,) float64.
+void voxel_first_hit(Arr<double> o, Arr<double> d, Arr<double> origin, double voxel_size, Arr<int64_t> lo,
+                     Arr<int64_t> dims, Arr<int64_t> keys, Arr<int64_t> order, Arr<int64_t> dist, double max_t,
+                     py::array_t<int64_t, py::array::c_style> index_out, py::array_t<double, py::array::c_style> t_out,
+                     int threads) {
+  const int64_t n = o.shape(0);
+  if (o.ndim() != 2 || o.shape(1) != 3 || d.ndim() != 2 || d.shape(0) != n || d.shape(1) != 3)
+    throw std::invalid_argument("o, d: expected (R, 3) float64");
+  for (const Arr<int64_t>* x : {&lo, &dims})
+    if (x->ndim() != 1 || x->shape(0) != 3) throw std::invalid_argument("lo, dims: expected (3,)");
+  if (origin.ndim() != 1 || origin.shape(0) != 3) throw std::invalid_argument("origin: expected (3,)");
+  const int64_t nk = keys.shape(0);
+  if (keys.ndim() != 1 || order.ndim() != 1 || order.shape(0) != nk || nk == 0)
+    throw std::invalid_argument("keys, order: expected (K,) each, K > 0");
+  const int64_t *dm = dims.data(), *lp = lo.data();
+  int64_t nb[3];
+  for (int c = 0; c < 3; ++c) nb[c] = (dm[c] + kVoxelBlock - 1) / kVoxelBlock;
+  if (dist.ndim() != 3 || dist.shape(0) != nb[0] || dist.shape(1) != nb[1] || dist.shape(2) != nb[2])
+    throw std::invalid_argument("dist: expected one entry per 8^3 block of dims");
+  int64_t* index = mutable_data(index_out, n, 1, "index");
+  double* tp = mutable_data(t_out, n, 1, "t");
+  const double *op = o.data(), *dp = d.data(), *org = origin.data();
+  const int64_t *kp = keys.data(), *ordp = order.data(), *distp = dist.data();
+  py::gil_scoped_release release;
+  parallel_rays(n, resolve_threads(threads), [&](int64_t first, int64_t last, int) {
+    for (int64_t i = first; i < last; ++i) {
+      index[i] = -1;
+      tp[i] = kInf;
+      double p0[3], dv[3], inv[3], step[3];
+      double vmax = kNaN, t_enter = kNaN, t_exit = kNaN;
+      for (int c = 0; c < 3; ++c) {
+        p0[c] = (op[3 * i + c] - org[c]) / voxel_size - static_cast<double>(lp[c]);
+        dv[c] = dp[3 * i + c] / voxel_size;
+        inv[c] = 1.0 / (dv[c] == 0 ? 1e-300 : dv[c]);
+        step[c] = dv[c] > 0 ? 1.0 : 0.0;
+        const double ta = (0.0 - p0[c]) * inv[c], tb = (static_cast<double>(dm[c]) - p0[c]) * inv[c];
+        vmax = c == 0 ? std::abs(dv[c]) : nan_max(vmax, std::abs(dv[c]));
+        t_enter = c == 0 ? nan_min(ta, tb) : nan_max(t_enter, nan_min(ta, tb));
+        t_exit = c == 0 ? nan_max(ta, tb) : nan_min(t_exit, nan_max(ta, tb));
+      }
+      const double per_voxel = 1.0 / nan_max(vmax, 1e-300);
+      t_enter = nan_max(t_enter, 0.0);
+      t_exit = nan_min(t_exit, max_t);
+      if (!(t_enter < t_exit)) continue;
+      double t = t_enter;
+      while (true) {
+        double p[3];
+        int64_t cell[3];
+        for (int c = 0; c < 3; ++c) {
+          p[c] = p0[c] + t * dv[c];
+          cell[c] = std::min(std::max(floor_to_int(p[c]), int64_t{0}), dm[c] - 1);
+        }
+        const int64_t bd = distp[((cell[0] / kVoxelBlock) * nb[1] + cell[1] / kVoxelBlock) * nb[2] + cell[2] / kVoxelBlock];
+        const bool near = bd <= 1;
+        if (near) {
+          const int64_t key = (cell[0] * dm[1] + cell[1]) * dm[2] + cell[2];
+          const int64_t pos = std::min<int64_t>(std::lower_bound(kp, kp + nk, key) - kp, nk - 1);
+          if (kp[pos] == key) {
+            index[i] = ordp[pos];
+            double te = kNaN;
+            for (int c = 0; c < 3; ++c) {
+              const double cf = static_cast<double>(cell[c]);
+              const double a0 = (cf - p0[c]) * inv[c], a1 = (cf + 1 - p0[c]) * inv[c];
+              te = c == 0 ? nan_min(a0, a1) : nan_max(te, nan_min(a0, a1));
+            }
+            tp[i] = nan_max(te, 0.0);
+            break;
+          }
+        }
+        double t_next;
+        if (near) {
+          double t_face = kNaN;
+          for (int c = 0; c < 3; ++c) {
+            const double f = std::abs((static_cast<double>(cell[c]) + step[c] - p[c]) * inv[c]);
+            t_face = c == 0 ? f : nan_min(t_face, f);
+          }
+          t_next = t + t_face + kVoxelEps * per_voxel;
+        } else {
+          t_next = t + static_cast<double>(std::max<int64_t>(bd - 1, 0)) * kVoxelBlock * per_voxel;
+        }
+        if (!(t_next < t_exit)) break;
+        t = t_next;
+      }
+    }
+  });
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
@@ -867,4 +977,8 @@ PYBIND11_MODULE(_core, m) {
            py::arg("prim"), py::arg("threads") = 0,
            "First hit per ray: o, d (N, 3), far (N,) float32; fills t (N,) float32 (inf: miss) and prim (N,) int64.");
   m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");
+  m.def("voxel_first_hit", &voxel_first_hit, py::arg("o"), py::arg("d"), py::arg("origin"), py::arg("voxel_size"),
+        py::arg("lo"), py::arg("dims"), py::arg("keys"), py::arg("order"), py::arg("dist"), py::arg("max_t"),
+        py::arg("index"), py::arg("t"), py::arg("threads") = 0,
+        "The first voxel each ray enters in a sparse grid (model/voxel_rays.py's traversal); fills index and t.");
 }
