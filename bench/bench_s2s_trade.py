@@ -55,6 +55,10 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
         ("coarse + fine level, 0.4 m voxels", base.model_copy(update={"fine": FINE_04}), {}, None),
         ("coarse + fine level, 0.4 m voxels, M = 1", base.model_copy(update={
             "fine": FINE_04, "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
+        # the fine level's own voxels, half the size the appearance stage was trained on
+        ("coarse + fine level, 0.2 m voxels, M = 1", base.model_copy(update={
+            "fine": FINE_04.model_copy(update={"output_voxel_size": 0.2}),
+            "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
     ]
     if diffusion:
