@@ -3,15 +3,16 @@ against seconds, on held-out worlds samples (`model.sensor_to_sensor`), a table 
 
 Knobs (each changed alone from the shipped `cpu` profile): the geometry stage's input resolution
 (its images resized to half the training focal length), the appearance stage's, the Gaussians'
-size cap (`max_scale_voxels`), M (the most opaque Gaussians kept per voxel), the conversion range (`max_range`), the trace mode of the converted
+size cap (`max_scale_voxels`), M (the most opaque Gaussians kept per voxel), the fine geometry level
+(its voxels grouped into 0.4 m, or its own 0.2 m), the conversion range (`max_range`), the trace mode of the converted
 scene (soft vs hard `max_response`), and with `--diffusion CKPT` a diffusion geometry stage
 instead of the single-step predictor at 1 and 10 DDIM steps. Every variant runs on the same
 samples in the same process; the ground truth (world, mesh sweeps, ground-truth VoxSplat rows) is
 computed once per sample and shared. Seconds: conversion plus one sweep's trace, per sample.
 
 Not part of `make bench` (it needs a worlds dataset). Run:
-`python -m bench.bench_s2s_trade --data DIR [--split test] [--samples 3] [--diffusion CKPT]`
-Results: bench/results/s2s_trade.{json,md}, docs/s2s_trade.png.
+`python -m bench.bench_s2s_trade --data DIR [--split test] [--samples 3] [--diffusion CKPT] [--name NAME]`
+Results: bench/results/<NAME>.{json,md}, docs/<NAME>.png (NAME: s2s_trade).
 """
 
 from __future__ import annotations
@@ -108,11 +109,13 @@ def main(argv=None) -> None:
     ap.add_argument("--diffusion", default=None, help="a diffusion geometry checkpoint to add as variants")
     ap.add_argument("--only", nargs="+", default=None,
                     help="run only these variants and write bench/results/s2s_trade_only.{json,md} (no plot)")
-    ap.add_argument("--plot-only", action="store_true", help="redraw the plot from bench/results/s2s_trade.json")
+    ap.add_argument("--plot-only", action="store_true", help="redraw the plot from bench/results/<name>.json")
+    ap.add_argument("--name", default="s2s_trade",
+                    help="results bench/results/<name>.{json,md} and plot docs/<name>.png (a second run beside the first)")
     args = ap.parse_args(argv)
     if args.plot_only:
-        rows = json.loads((BENCH_DIR / "results" / "s2s_trade.json").read_text())["rows"]
-        plot([r for r in rows if "seconds" in r], REPO / "docs" / "s2s_trade.png")
+        rows = json.loads((BENCH_DIR / "results" / f"{args.name}.json").read_text())["rows"]
+        plot([r for r in rows if "seconds" in r], REPO / "docs" / f"{args.name}.png")
         return
     dirs = sorted(d for d in (Path(args.data) / args.split).iterdir() if (d / "meta.json").is_file())[:args.samples]
     lidar = geometric_lidar(args.sensor)
@@ -140,12 +143,12 @@ def main(argv=None) -> None:
     rows.append({"variant": "ground-truth VoxSplat (0.4 m, entry): the representation's own error",
                  "median_m": round(gt["median_m"], 3), "p90_m": round(gt["p90_m"], 3),
                  "hit_agreement": round(gt["hit_agreement"], 4)})
-    write_results("s2s_trade_only" if args.only else "s2s_trade", rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
+    write_results("s2s_trade_only" if args.only else args.name, rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
                                       "hit_agreement", "median_seen_m", "median_unseen_m", "geometry_iou"],
                   notes=f"{len(dirs)} {args.split} samples, {lidar.config.name} at the input pose, against the mesh; "
                         f"each knob changed alone from the shipped cpu profile")
     if not args.only:
-        plot([r for r in rows if "seconds" in r], REPO / "docs" / "s2s_trade.png")
+        plot([r for r in rows if "seconds" in r], REPO / "docs" / f"{args.name}.png")
 
 
 if __name__ == "__main__":
