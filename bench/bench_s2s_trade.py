@@ -4,7 +4,8 @@ against seconds, on held-out worlds samples (`model.sensor_to_sensor`), a table 
 Knobs (each changed alone from the shipped `cpu` profile): the geometry stage's input resolution
 (its images resized to half the training focal length), the appearance stage's, the Gaussians'
 size cap (`max_scale_voxels`), M (the most opaque Gaussians kept per voxel), the fine geometry level
-(its voxels grouped into 0.4 m, or its own 0.2 m), the conversion range (`max_range`), the trace mode of the converted
+(its voxels grouped into 0.4 m, or its own 0.2 m), the conversion range (`max_range`), soft mode's alpha floor
+(`soft_alpha_min`, where each Gaussian's box ends), the trace mode of the converted
 scene (soft vs hard `max_response`), and with `--diffusion CKPT` a diffusion geometry stage
 instead of the single-step predictor at 1 and 10 DDIM steps. Every variant runs on the same
 samples in the same process; the ground truth (world, mesh sweeps, ground-truth VoxSplat rows) is
@@ -37,7 +38,8 @@ FINE_04 = load_profile("cpu-fine").fine
 
 
 def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | None]]:
-    """(name, profile, convert options, trace mode) per variant."""
+    """(name, profile, convert options, trace) per variant; trace: None (the scene's own mode), a
+    trace mode, or `Tracer` settings."""
     g, a = base.geometry, base.appearance
     out = [
         ("shipped cpu profile", base, {}, None),
@@ -61,6 +63,11 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
             "fine": FINE_04.model_copy(update={"output_voxel_size": 0.2}),
             "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
+        # soft mode's alpha floor: each Gaussian's box ends where its response reaches it
+        ("M = 1, traced with soft alpha_min 0.05", base.model_copy(update={"appearance": a.model_copy(
+            update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.05}),
+        ("M = 1, traced with soft alpha_min 0.1", base.model_copy(update={"appearance": a.model_copy(
+            update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.1}),
     ]
     if diffusion:
         for steps in (1, 10):
@@ -110,9 +117,11 @@ def main(argv=None) -> None:
     ap.add_argument("--only", nargs="+", default=None,
                     help="run only these variants and write bench/results/s2s_trade_only.{json,md} (no plot)")
     ap.add_argument("--plot-only", action="store_true", help="redraw the plot from bench/results/<name>.json")
-    ap.add_argument("--name", default="s2s_trade",
-                    help="results bench/results/<name>.{json,md} and plot docs/<name>.png (a second run beside the first)")
+    ap.add_argument("--name", default=None,
+                    help="results bench/results/<name>.{json,md} and plot docs/<name>.png (default s2s_trade, "
+                         "with --only s2s_trade_only)")
     args = ap.parse_args(argv)
+    args.name = args.name or ("s2s_trade_only" if args.only else "s2s_trade")
     if args.plot_only:
         rows = json.loads((BENCH_DIR / "results" / f"{args.name}.json").read_text())["rows"]
         plot([r for r in rows if "seconds" in r], REPO / "docs" / f"{args.name}.png")
@@ -121,12 +130,13 @@ def main(argv=None) -> None:
     lidar = geometric_lidar(args.sensor)
     cache: dict = {}
     rows = []
-    for name, prof, opts, mode in variants(load_profile("cpu"), args.diffusion):
+    for name, prof, opts, trace in variants(load_profile("cpu"), args.diffusion):
         if args.only and name not in args.only:
             continue
         conv = Converter(prof)
         samples = [evaluate_sample(conv, d, lidar, ahead=(0.0,), convert_options=opts, with_psnr=False,
-                                   gt_cache=cache, trace_mode=mode) for d in dirs]
+                                   gt_cache=cache, trace_mode=trace if isinstance(trace, str) else None,
+                                   trace_options=trace if isinstance(trace, dict) else None) for d in dirs]
         summ = {(r["scene"], r["split"]): r for r in summarise_rows(samples)}
         conv_all = summ[("converted", "all")]
         sec = float(np.mean([s["stages"]["seconds"] + s["stages"]["trace_s_per_sweep"] for s in samples]))
@@ -143,7 +153,7 @@ def main(argv=None) -> None:
     rows.append({"variant": "ground-truth VoxSplat (0.4 m, entry): the representation's own error",
                  "median_m": round(gt["median_m"], 3), "p90_m": round(gt["p90_m"], 3),
                  "hit_agreement": round(gt["hit_agreement"], 4)})
-    write_results("s2s_trade_only" if args.only else args.name, rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
+    write_results(args.name, rows, ["variant", "seconds", "convert_s", "peak_mb", "median_m", "p90_m",
                                       "hit_agreement", "median_seen_m", "median_unseen_m", "geometry_iou"],
                   notes=f"{len(dirs)} {args.split} samples, {lidar.config.name} at the input pose, against the mesh; "
                         f"each knob changed alone from the shipped cpu profile")

@@ -71,6 +71,7 @@ def lidar_cmd(
     core: Optional[str] = typer.Option(None, "--core", help="compiled | reference (default: compiled where built; env SCUBE_SIM_CORE)"),
     threads: int = typer.Option(0, "--threads", help="the compiled core's threads (0: all cores)"),
     k: float = typer.Option(3.0, "--k", help="hard surface: the k-sigma ellipsoid"),
+    soft_alpha_min: float = typer.Option(1.0 / 255.0, "--soft-alpha-min", help="soft mode: contributions fainter than this are dropped (converted scenes: 0.1 traces faster at a lower median error, fewer returns)"),
     seed: int = typer.Option(0, "--seed", help="random seed (noise, drops)"),
     png: Optional[Path] = typer.Option(None, "--png", help="also write a bird's-eye view PNG"),
 ) -> None:
@@ -93,7 +94,9 @@ def lidar_cmd(
         m = mode if mode != "auto" else (sc.metadata.get("trace_mode", "entry") if isinstance(sc, VoxSplat) else "soft")
         if core not in (None, "compiled", "reference"):
             raise CliError(f"--core: expected compiled or reference, got {core!r}")
-        tracer = Tracer(sc, backend=backend, mode=m, k=k, core=core, threads=threads)
+        if not 0.0 < soft_alpha_min < 1.0:
+            raise CliError(f"--soft-alpha-min: expected a value in (0, 1), got {soft_alpha_min}")
+        tracer = Tracer(sc, backend=backend, mode=m, k=k, core=core, threads=threads, soft_alpha_min=soft_alpha_min)
         t1 = time.perf_counter()
         sweep = Lidar(cfg).scan(tracer, sensor_pose, seed=seed)
         t2 = time.perf_counter()

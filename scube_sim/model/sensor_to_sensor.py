@@ -134,13 +134,15 @@ def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
 
 def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel: float = 0.4, seed: int = 0,
                     ahead: Sequence[float] = AHEAD_M, convert_options: dict | None = None,
-                    with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None) -> dict:
+                    with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
+                    trace_options: dict | None = None) -> dict:
     """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
     voxels, PSNR at the input cameras, seconds, peak MB}, "rows": [{scene, ahead, split, rays,
     median_m, p90_m, hit_agreement, chamfer_m}]}. gt_cache: a dict kept across calls that holds
     each sample's regenerated world, mesh sweeps and ground-truth rows (a trade sweep over
     converter settings then regenerates nothing). trace_mode: how the converted scene is traced
-    (default its metadata ``trace_mode``)."""
+    (default its metadata ``trace_mode``); trace_options: more `Tracer` settings for it (for
+    example ``soft_alpha_min``)."""
     sample_dir = Path(sample_dir)
     meta = json.loads((sample_dir / "meta.json").read_text())
     key = str(sample_dir.resolve())
@@ -164,7 +166,7 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
         stages["geometry_chamfer_vox"] = chamfer_voxels(ijk, gt_ijk)
     if with_psnr and "sky_panorama" in scene.channels:
         stages["input_psnr_db"] = _input_psnr(scene, frames, meta["rig"])
-    tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"))
+    tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
     t1 = time.perf_counter()
     rows = list(cached["rows"])
     for ref, p in zip(cached["refs"], cached["poses"]):

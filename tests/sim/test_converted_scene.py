@@ -175,3 +175,32 @@ def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(tin
                                    "sensors": [{"preset": "vlp16"}]}))
     with pytest.raises(ConfigError, match="route: needs world"):
         load_scenario(bad)
+
+
+def test_scene_soft_alpha_min_reaches_the_tracer_and_drops_fainter_contributions(tmp_path):
+    """`scene.soft_alpha_min`: three layers of Gaussians of opacity 0.3 composite to about 0.66
+    (a return at the tracer's default floor); with the floor at 0.35 each is dropped (no return)."""
+    from scube_sim.sim.scenario import build_scene
+    from scube_sim.sim.sim_scene import SimScene
+
+    slab = fit_voxsplat(_slab(9.8, 10.4, -3, 3, 0, 3, 0.05), 0.2, gaussians_per_voxel=1)
+    slab.params[..., 3] = np.log(0.3 / 0.7)  # raw opacity: sigmoid -> 0.3
+    slab.metadata.update({"trace_mode": "soft"})
+    slab.save(tmp_path / "slab.npz")
+    base = {"name": "x", "sensors": [{"preset": "vlp16"}], "trajectory": {"source": "world"}}
+    o, d = np.array([[0.0, 0.1, 1.5]]), np.array([[1.0, 0.0, 0.0]])
+    hits = {}
+    for floor in (None, 0.35):
+        scene = {"voxsplat": str(tmp_path / "slab.npz"), **({"soft_alpha_min": floor} if floor else {})}
+        p = tmp_path / "s.yaml"
+        p.write_text(yaml.safe_dump({**base, "scene": scene}))
+        sc, where = load_scenario(p)
+        built = build_scene(sc, where, tmp_path / "cache", reach=200.0)
+        part = built.scene.static[0]
+        assert part.tracer.soft_alpha_min == (floor or 1.0 / 255.0)
+        hits[floor] = SimScene(static=[part]).trace_world(o, d)
+    assert hits[None].hit[0] and hits[None].t[0] == pytest.approx(10.0, abs=0.5)
+    assert not hits[0.35].hit[0]
+    p.write_text(yaml.safe_dump({**base, "scene": {"voxsplat": "x.npz", "soft_alpha_min": 1.5}}))
+    with pytest.raises(ConfigError, match="soft_alpha_min"):
+        load_scenario(p)
