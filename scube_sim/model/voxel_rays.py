@@ -18,6 +18,8 @@ import numpy as np
 import torch
 from scipy.ndimage import distance_transform_cdt
 
+from ..raytrace import compiled
+
 __all__ = ["VoxelRayCaster", "deposit_mean"]
 
 BLOCK = 8
@@ -64,8 +66,6 @@ class VoxelRayCaster:
         t (R,) float64 the ray parameter where it enters that voxel (metres for unit d), inf if
         none). core: 'compiled' or 'reference' (the torch loop); None: the tracer's default
         (`raytrace.compiled.default_core_name`: compiled where built, `SCUBE_SIM_CORE` overrides)."""
-        from ..raytrace import compiled
-
         o = torch.as_tensor(origins, dtype=torch.float64)
         d = torch.as_tensor(dirs, dtype=torch.float64)
         r = o.shape[0]
