@@ -68,6 +68,9 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
             update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.05}),
         ("M = 1, traced with soft alpha_min 0.1", base.model_copy(update={"appearance": a.model_copy(
             update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.1}),
+        ("coarse + fine level, 0.2 m voxels, M = 1, traced with soft alpha_min 0.1", base.model_copy(update={
+            "fine": FINE_04.model_copy(update={"output_voxel_size": 0.2}),
+            "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.1}),
     ]
     if diffusion:
         for steps in (1, 10):
