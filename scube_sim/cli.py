@@ -94,8 +94,6 @@ def lidar_cmd(
         m = mode if mode != "auto" else (sc.metadata.get("trace_mode", "entry") if isinstance(sc, VoxSplat) else "soft")
         if core not in (None, "compiled", "reference"):
             raise CliError(f"--core: expected compiled or reference, got {core!r}")
-        if not 0.0 < soft_alpha_min < 1.0:
-            raise CliError(f"--soft-alpha-min: expected a value in (0, 1), got {soft_alpha_min}")
         tracer = Tracer(sc, backend=backend, mode=m, k=k, core=core, threads=threads, soft_alpha_min=soft_alpha_min)
         t1 = time.perf_counter()
         sweep = Lidar(cfg).scan(tracer, sensor_pose, seed=seed)

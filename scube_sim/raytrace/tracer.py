@@ -107,6 +107,8 @@ class Tracer:
             raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
         if int(soft_k_buffer) < 1:
             raise InputError(f"soft_k_buffer: expected at least 1, got {soft_k_buffer}")
+        if not 0.0 <= float(soft_alpha_min) < 1.0:
+            raise InputError(f"soft_alpha_min: expected a value in [0, 1), got {soft_alpha_min}")
         self.backend_name, self.mode, self.k, self.proxy = backend, mode, float(k), proxy
         self.opacity_floor = float(opacity_floor)
         self.soft_min_transmittance = float(soft_min_transmittance)
