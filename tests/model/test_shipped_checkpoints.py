@@ -26,17 +26,25 @@ def test_shipped_checkpoints_resolve_by_name_and_unknown_names_are_named():
         resolve_checkpoint("no-such")
 
 
-def test_the_appearance_checkpoint_holds_weights_only_and_beats_its_untrained_network(tmp_path):
-    ck = load_checkpoint(resolve_checkpoint("appearance-cpu"))
-    assert ck["stage"] == "appearance" and "optimizer" not in ck and "rng" not in ck
-    stage = get_stage("appearance")
-    model, run = load_model(stage, "appearance-cpu")
-    model_cfg, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
-    # one held-out world (a test-split seed) at the stored resolution the checkpoint trained on
+@pytest.fixture(scope="module")
+def appearance_world(tmp_path_factory):
+    """One held-out world (a test-split seed) at the stored resolution the appearance checkpoints
+    trained on."""
+    path = tmp_path_factory.mktemp("appearance-world")
     cfg = DatasetConfig(image_scale=0.25, visibility_scale=0.05, frame_offsets=[0], lidar="vlp16",
                         styles=["urban"])
-    generate_dataset(tmp_path, "test", 1, cfg, progress=False)
-    item = stage.dataset(tmp_path, data_cfg.model_copy(update={"image_scale": 0.25}), "test", 0)[0]
+    generate_dataset(path, "test", 1, cfg, progress=False)
+    return path
+
+
+@pytest.mark.parametrize("name", ["appearance-cpu", "appearance-cpu-640"])
+def test_each_appearance_checkpoint_holds_weights_only_and_beats_its_untrained_network(appearance_world, name):
+    ck = load_checkpoint(resolve_checkpoint(name))
+    assert ck["stage"] == "appearance" and "optimizer" not in ck and "rng" not in ck
+    stage = get_stage("appearance")
+    model, run = load_model(stage, name)
+    model_cfg, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
+    item = stage.dataset(appearance_world, data_cfg.model_copy(update={"image_scale": 0.25}), "test", 0)[0]
     torch.manual_seed(0)
     untrained = stage.build_model(model_cfg).eval()
     with torch.no_grad():
