@@ -14,9 +14,10 @@ Per sample (chunk frame: x forward, y left, z up, metres):
    samples it along its rays and decodes it to RGB. Image = Gaussians (`splat_render`) + the
    transmittance left after them x sky.
 
-Loss per view: 0.9 L1(image) + 1.0 L1(alpha, non-sky mask) + 0.1 (1 - SSIM); LPIPS is left out
-(its weights cannot be downloaded here). Metrics: PSNR and SSIM of the rendered views, and PSNR
-on the sky pixels alone.
+Loss per view: 0.9 L1(image) + 1.0 L1(alpha, non-sky mask) + 0.1 (1 - SSIM), + 0.6 LPIPS where the
+model config names a user's local LPIPS weight files (`model.lpips`; none can be downloaded here,
+`lpips`). Metrics: PSNR and SSIM of the rendered views, PSNR on the sky pixels alone, and LPIPS
+where it is configured.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from .activations import activate
 from .augment import AugmentConfig, photometric
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .image_metrics import psnr, ssim
+from .lpips import LPIPS, LPIPSConfig, load_lpips
 from .sky import SkyDecoder, build_panorama, camera_ray_directions, panorama_directions, sample_panorama
 from .sparse import SparseTensor, SparseUNet, voxel_keys
 from .splat_render import rasterization
@@ -56,7 +58,8 @@ EVAL_OFFSETS = (5, 10)  # the paper's novel-view instants T+5, T+10: never in th
 class AppearanceModelConfig(StrictModel):
     """The network: Gaussians per voxel M, image feature channels, U-Net widths (depth = count),
     residual blocks, norm, positional-encoding frequencies, the training panorama's size (paper:
-    768 x 1536; sized down for CPU) and where the raw values start (opacity, scale in voxels)."""
+    768 x 1536; sized down for CPU), where the raw values start (opacity, scale in voxels), and
+    the optional LPIPS loss term from a user's local weight files (`lpips.LPIPSConfig`)."""
 
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     image_channels: int = Field(default=32, ge=4)
@@ -68,6 +71,7 @@ class AppearanceModelConfig(StrictModel):
     offset_range: float = Field(default=1.0, gt=0)
     init_opacity: float = Field(default=0.5, gt=0, lt=1)
     init_scale_voxels: float = Field(default=0.5, gt=0)
+    lpips: LPIPSConfig | None = None
 
 
 class AppearanceDataConfig(StrictModel):
@@ -268,6 +272,13 @@ class AppearanceNet(nn.Module):
         self.sky = SkyDecoder(cfg.image_channels, 16)
         # where the raw values start: opacity init_opacity, scale init_scale_voxels (x voxel size)
         self.register_buffer("_opacity_bias", torch.tensor(math.log(cfg.init_opacity / (1 - cfg.init_opacity))))
+        self.__dict__["_lpips"] = None  # not a submodule: the user's weights stay out of checkpoints
+
+    def lpips(self) -> LPIPS | None:
+        """The configured LPIPS network (None without `cfg.lpips`), loaded on first use."""
+        if self.cfg.lpips is not None and self.__dict__["_lpips"] is None:
+            self.__dict__["_lpips"] = load_lpips(self.cfg.lpips)
+        return self.__dict__["_lpips"]
 
     def forward(self, item: dict, sky: bool = True) -> dict:
         """One sample (an `AppearanceDataset` item) -> the Gaussians (flat: means (G, 3), quats,
@@ -355,6 +366,9 @@ def view_losses(model: AppearanceNet, out: dict, item: dict, views=None) -> tupl
     After T the moving actors' pixels are left out (the grid holds them where they were at T)."""
     total = 0.0
     logs = {"l1": 0.0, "alpha": 0.0, "ssim": 0.0}
+    lpips = model.lpips()
+    if lpips is not None:
+        logs["lpips"] = 0.0
     views = [(0, i) for i in range(item["images"].shape[0])] if views is None else views
     moving = item.get("moving_instances", torch.zeros(0, dtype=torch.int64))
     for k, i in views:
@@ -370,6 +384,10 @@ def view_losses(model: AppearanceNet, out: dict, item: dict, views=None) -> tupl
         la = ((alpha - nonsky).abs() * keep).sum() / n_keep
         ls = 1 - ssim(img[None], gt[None], keep[None])
         total = total + LOSS_WEIGHTS["l1"] * l1 + LOSS_WEIGHTS["alpha"] * la + LOSS_WEIGHTS["ssim"] * ls
+        if lpips is not None:
+            lp = lpips(img[None], gt[None], keep[None])[0]
+            total = total + model.cfg.lpips.weight * lp
+            logs["lpips"] += float(lp.detach()) / len(views)
         logs["l1"] += float(l1.detach()) / len(views)
         logs["alpha"] += float(la.detach()) / len(views)
         logs["ssim"] += float(1 - ls.detach()) / len(views)
@@ -378,9 +396,11 @@ def view_losses(model: AppearanceNet, out: dict, item: dict, views=None) -> tupl
 
 def evaluate_item(model: AppearanceNet, item: dict, cameras: str = "front", out: dict | None = None) -> dict:
     """Per-view metrics of one item at T and at each of its ``eval_frames``: ``{name: [values]}``
-    with names psnr_t<k>, ssim_t<k> (moving actors and padding masked out) and psnr_sky_t<k>
-    (sky pixels alone, where the view has any); k the frame offset. `cameras`: front | all."""
+    with names psnr_t<k>, ssim_t<k> (moving actors and padding masked out), lpips_t<k> (the same
+    pixels; where the model config names LPIPS weights) and psnr_sky_t<k> (sky pixels alone, where
+    the view has any); k the frame offset. `cameras`: front | all."""
     out = model(item) if out is None else out
+    lpips = model.lpips()
     moving = item.get("moving_instances", torch.zeros(0, dtype=torch.int64))
     res: dict[str, list[float]] = {}
     for frame in [item] + list(item.get("eval_frames", [])):
@@ -396,6 +416,8 @@ def evaluate_item(model: AppearanceNet, item: dict, cameras: str = "front", out:
             sky = frame["sky"][i, :hh, :ww] & keep
             res.setdefault(f"psnr_t{k}", []).append(psnr(img[None], gt[None], keep[None]))
             res.setdefault(f"ssim_t{k}", []).append(float(ssim(img[None], gt[None], keep[None])))
+            if lpips is not None:
+                res.setdefault(f"lpips_t{k}", []).append(float(lpips(img[None], gt[None], keep[None])[0]))
             if bool(sky.any()):
                 res.setdefault(f"psnr_sky_t{k}", []).append(psnr(img[None], gt[None], sky[None]))
     return res
