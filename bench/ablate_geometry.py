@@ -21,6 +21,9 @@
    trained for `--steps` with depth-weighted (Eq. 1) and broadcast lifting, at the image
    encoder's stride 8 (shipped) and 4 (down to 8 and back up: the same context), each with its own depth head's 2D-prior baseline
    (geometry_lifting.{json,md}). `bench.geometry_lift_ceiling` bounds what a finer stride can add.
+   With `--refine`: the same at stride 8 with the occupancy refiner (`refine: true`, the lifted
+   volume read again at the voxels' own resolution after the decoder), depth against broadcast
+   lifting and the oracle depth's upper bound (geometry_lifting_refined.{json,md}).
 
 Not part of `make bench` (it trains for hours on 2 cores). Run:
 `python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
@@ -62,6 +65,9 @@ DDIM_STEPS = (1, 5, 10, 25, 50)
 IMAGE_SCALES = (0.33, 0.67, 1.0)
 # (feature stride, lifting) of the lifting comparison, the most informative first
 LIFTING_VARIANTS = ((4, "depth"), (8, "broadcast"), (8, "depth"), (4, "broadcast"))
+# with the refiner: the lifting pair, then the depth maps' own bins (an upper bound: is it the
+# depth estimate or the 3D side that holds the visible surfaces back?)
+REFINE_VARIANTS = ((8, "depth"), (8, "broadcast"), (8, "oracle"))
 
 
 def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
@@ -235,17 +241,18 @@ def lifting_trade(stage, args) -> list[dict]:
     LIFTING_VARIANTS; each depth-lifting variant followed by its own depth head's 2D prior."""
     base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse-predictor.yaml").read_text())
     rows: list[dict] = []
-    for stride, lifting in LIFTING_VARIANTS:
-        name = f"predictor, stride {stride}, {lifting} lifting"
+    variants = REFINE_VARIANTS if args.refine else LIFTING_VARIANTS
+    for stride, lifting in variants:
+        name = f"predictor, stride {stride}, {lifting} lifting" + (", refined" if args.refine else "")
         if args.only and name not in args.only:
             continue
         # a finer map keeps the shipped encoder's context: down to stride 8 and back up
         encoder = {**base["model"]["encoder"], "stride": stride, **({"context_stride": 8} if stride < 8 else {})}
-        ck = _train_and_evaluate(stage, name, _config(base, {"model": {"encoder": encoder, "lifting": lifting}},
-                                                      args.steps, args.vae), args, rows)
+        model = {"encoder": encoder, "lifting": lifting, **({"refine": True} if args.refine else {})}
+        ck = _train_and_evaluate(stage, name, _config(base, {"model": model}, args.steps, args.vae), args, rows)
         rows[-1].update(stride=stride, lifting=lifting)
         if lifting == "depth":
-            tag = f"2d-prior-stride-{stride}"
+            tag = f"2d-prior-stride-{stride}" + ("-refined" if args.refine else "")
             rows.append({**_cached_row(args, tag, lambda: depth_prior_row(ck, args)), "stride": stride,
                          "lifting": "own depth, unprojected"})
     return rows
@@ -336,13 +343,18 @@ def main(argv=None) -> None:
                     help=f"run only the image-resolution trade at these image scales (e.g. {' '.join(map(str, IMAGE_SCALES))})")
     ap.add_argument("--lifting", action="store_true",
                     help="run only the lifting comparison (depth vs broadcast at feature strides 4 and 8)")
+    ap.add_argument("--refine", action="store_true",
+                    help="with --lifting: depth vs broadcast vs oracle depth at stride 8, each with the occupancy refiner")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
     Path(args.work).mkdir(parents=True, exist_ok=True)
+    if args.refine and not args.lifting:
+        ap.error("--refine goes with --lifting")
     if args.lifting:
         rows = lifting_trade(stage, args)
-        write_results("geometry_lifting", rows, list(dict.fromkeys(k for r in rows for k in r)),
-                      notes=f"the shipped predictor's config, {args.steps} steps each, frozen VAE {args.vae}, "
+        write_results("geometry_lifting" + ("_refined" if args.refine else ""), rows, list(dict.fromkeys(k for r in rows for k in r)),
+                      notes=f"the shipped predictor's config{', refine: true' if args.refine else ''}, "
+                            f"{args.steps} steps each, frozen VAE {args.vae}, "
                             f"{args.eval_split} split, {args.data}")
         return
     if args.scales:

@@ -20,7 +20,9 @@ concatenated with that condition (`diffusion`: 1000 linear steps, v-parameterisa
 inference). Loss: diffusion + depth_weight * focal(depth bins) (the paper: weight 1), with the
 ground-truth depth of the worlds' depth maps. Mode `predictor`: the same network, no sampling: it
 sees a zero latent at the last step and regresses the clean latent in one pass (the fast end of
-the trade, and the baseline the diffusion has to beat).
+the trade, and the baseline the diffusion has to beat). With `refine`, an `OccupancyRefiner`
+reads the lifted volume again at the voxels' own size after the decoder and corrects its final
+occupancy and label logits.
 
 Frames: chunk (x forward, y left, z up, metres; `CHUNK_CORNER`); voxel (i, j, k) of the level's
 box spans region[:3] + [ijk, ijk + 1) * voxel_size.
@@ -50,7 +52,8 @@ from .appearance import majority_labels, positional_encoding
 from .augment import AugmentConfig, CameraSelection
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .diffusion import NoiseSchedule, ddim_sample
-from .geometry_nets import Denoiser3d, StructureVAE, VAEConfig, label_ce, prune_decode, structure_bce
+from .geometry_nets import Denoiser3d, OccupancyRefiner, StructureVAE, VAEConfig, label_ce, prune_decode, \
+    structure_bce
 from .geometry_sparse import SparseDenoiser, SparseStructureVAE, decoded_voxels, row_ids
 from .sparse import SparseTensor
 from .geometry_metrics import geometry_sample_metrics, summarise, visible_voxels
@@ -151,12 +154,18 @@ class GeometryModelConfig(StrictModel):
     the VAE is trained: structure BCE at every level + label cross-entropy against the
     ground-truth grid, the fine level's decoder kept to the ground truth's candidates as in its
     VAE's training; the latent is a learnt, non-linear code of the grid, and regressing it drifts
-    to the mean scene). Diffusion: `train_steps` linear steps from beta_start to
-    beta_end, `sample_steps` DDIM steps at inference (validation uses them too)."""
+    to the mean scene). refine (coarse predictor, decoded loss): an `OccupancyRefiner` of
+    `refine_width` channels corrects the decoded final occupancy and label logits from the lifted
+    volume at the voxels' own resolution, and the grid is the refined final logit > 0 (its input
+    holds every coarser level's logit, so it does the pruning). Diffusion: `train_steps` linear
+    steps from beta_start to beta_end, `sample_steps` DDIM steps at inference (validation uses them
+    too)."""
 
     level: str = Field(default="coarse", pattern="^(coarse|fine)$")
     mode: str = Field(default="diffusion", pattern="^(diffusion|predictor)$")
     predictor_loss: str = Field(default="latent", pattern="^(latent|decoded)$")
+    refine: bool = False
+    refine_width: int = Field(default=16, ge=1)
     vae_checkpoint: str | None = None
     vae: VAEConfig = Field(default_factory=VAEConfig)
     encoder: ImageEncoderConfig = Field(default_factory=ImageEncoderConfig)
@@ -185,6 +194,9 @@ class GeometryModelConfig(StrictModel):
             raise ValueError(f"far ({self.far}) must exceed near ({self.near})")
         if self.predictor_loss == "decoded" and self.mode != "predictor":
             raise ValueError("predictor_loss 'decoded' is the single-step predictor's (mode: predictor)")
+        if self.refine and (self.level != "coarse" or self.predictor_loss != "decoded"):
+            raise ValueError("refine: the coarse level's single-step predictor with predictor_loss 'decoded' only "
+                             f"(got level {self.level!r}, mode {self.mode!r}, predictor_loss {self.predictor_loss!r})")
         if self.sample_steps > self.train_steps:
             raise ValueError(f"sample_steps ({self.sample_steps}) cannot exceed train_steps ({self.train_steps})")
         return self
@@ -324,6 +336,12 @@ class ImageConditioner(nn.Module):
     def forward(self, item: dict, grid: LiftGrid) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """One sample -> (condition (1, cond, X', Y', Z'), depth probabilities (N, D, h, w), their
         ground-truth bins (N, h, w), -1 where there is none: sky, padding, beyond the range)."""
+        x, probs, target = self.lift_volume(item, grid)
+        return (x if self.down is None else self.down(x)), probs, target
+
+    def lift_volume(self, item: dict, grid: LiftGrid) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """`forward` before the strided convolutions: the lifted volume (1, lifted_channels, X, Y, Z)
+        on `grid`, the depth probabilities and their ground-truth bins."""
         images = item.get("input_images", item["images"])
         check_inputs(item, images)
         out = self.head(self.encoder(images))
@@ -358,8 +376,7 @@ class ImageConditioner(nn.Module):
             vol = torch.cat([vol[:c] / (mass + MASS_EPS), torch.log1p(mass)], 0)
         else:
             vol, hits = lift(feats, weights, torch.stack(pts), grid, valid_t)
-        x = torch.cat([vol, torch.log1p(hits)[None].to(vol.dtype)], 0)[None]
-        return (x if self.down is None else self.down(x)), probs, target_t
+        return torch.cat([vol, torch.log1p(hits)[None].to(vol.dtype)], 0)[None], probs, target_t
 
     def site_condition(self, volume: torch.Tensor, sites: torch.Tensor, labels: torch.Tensor,
                        grid: LiftGrid) -> torch.Tensor:
@@ -428,6 +445,9 @@ class GeometryNet(nn.Module):
         else:
             self.denoiser = Denoiser3d(lat, cfg.cond_channels, cfg.widths, cfg.blocks, cfg.groups,
                                        attention_levels=cfg.attention_levels, heads=cfg.heads, layout=cfg.layout)
+        self.refiner = None
+        if cfg.refine:
+            self.refiner = OccupancyRefiner(self.conditioner.lifted_channels, len(self.vae.occ_heads), cfg.refine_width)
         self.schedule = NoiseSchedule(cfg.train_steps, cfg.beta_start, cfg.beta_end)
         self._latents: dict = {}  # (sample, box) -> its clean latent (coarse level; the VAE is frozen)
 
@@ -497,7 +517,7 @@ class GeometryNet(nn.Module):
         if not self.vae_loaded:
             raise InputError(f"model.vae_checkpoint {self.cfg.vae_checkpoint!r}: not found; train the level's "
                              f"structure VAE first (scube-sim train geometry-vae ...) and name its best.pt")
-        vol, probs, target = self.conditioner(item, grid or item["lift_grid"])
+        vol, lifted, probs, target = self._condition(item, grid or item["lift_grid"])
         x0 = self.latent_target(item)
         if self.fine:
             sites = x0.coords[:, 1:]
@@ -516,7 +536,7 @@ class GeometryNet(nn.Module):
                 main = bce + ce
             elif self.cfg.predictor_loss == "decoded":
                 occ, lab = dense_target(item["gt_ijk"], item["gt_labels"], item["gt_grid"].dims)
-                occ_levels, occ_final, lab_logits = self.vae.decode(pred * self.vae.latent_std)
+                occ_levels, occ_final, lab_logits = self._decode(pred, lifted)
                 main = structure_bce(occ_levels, occ_final, occ[None]) + label_ce(lab_logits, lab[None])
             else:
                 main = F.mse_loss(pred, x0)
@@ -528,6 +548,23 @@ class GeometryNet(nn.Module):
             main = F.mse_loss(v, self.schedule.v_target(x0, tt, noise))
         depth = depth_focal_loss(probs, target)
         return main + self.cfg.depth_weight * depth, {"latent": float(main.detach()), "depth": float(depth.detach())}
+
+    def _condition(self, item: dict, grid: LiftGrid):
+        """-> (the denoiser's condition, the lifted volume where the refiner needs it (else None),
+        depth probabilities, their ground-truth bins)."""
+        if self.refiner is None:
+            cond, probs, target = self.conditioner(item, grid)
+            return cond, None, probs, target
+        lifted, probs, target = self.conditioner.lift_volume(item, grid)
+        return self.conditioner.down(lifted), lifted, probs, target
+
+    def _decode(self, z: torch.Tensor, lifted: torch.Tensor | None):
+        """Scaled latent (1, Cz, X', Y', Z') -> the coarse decoder's (occupancy logits per level, final
+        occupancy logits, label logits), the last two refined where the model has a refiner."""
+        occ_levels, occ_final, lab = self.vae.decode(z * self.vae.latent_std)
+        if self.refiner is not None:
+            occ_final, lab = self.refiner(lifted, occ_levels, occ_final, lab)
+        return occ_levels, occ_final, lab
 
     # -- inference
     def sample_latent(self, cond, shape: tuple[int, ...], steps: int | None = None, seed: int = 0) -> torch.Tensor:
@@ -571,7 +608,8 @@ class GeometryNet(nn.Module):
         first along one of its rays, traced through the predicted grid itself, `observed_voxels`).
         The coarse single-step predictor draws no samples (each would be the same grid): its
         confidence is the decoder's occupancy probability of the voxel, the product over the
-        voxel and its ancestors (each level's sigmoid), whatever k is. observed False: None instead
+        voxel and its ancestors (each level's sigmoid; with a refiner, the refined voxel's sigmoid
+        alone), whatever k is. observed False: None instead
         of the trace (a caller that refines the grid traces its own)."""
         if k < 1:
             raise InputError(f"k: expected at least one sample, got {k}")
@@ -590,9 +628,11 @@ class GeometryNet(nn.Module):
     def _predict_coarse(self, item: dict, steps: int | None, seed: int):
         """The coarse level: (ijk (V, 3), labels (V,), occupancy probability (V,) of each voxel and
         all its ancestors, the product of their sigmoids)."""
-        vol, _, _ = self.conditioner(item, item["lift_grid"])
+        vol, lifted, _, _ = self._condition(item, item["lift_grid"])
         z = self.sample_latent(vol, (1, self.cfg.vae.latent_channels, *vol.shape[2:]), steps, seed)
-        occ_levels, occ_final, lab = self.vae.decode(z * self.vae.latent_std)
+        occ_levels, occ_final, lab = self._decode(z, lifted)
+        if self.refiner is not None:  # the refined logit decides alone: it saw every ancestor's
+            occ_levels = []
         ijks, labs = prune_decode(occ_levels, occ_final, lab)
         ijk = ijks[0]
         logp = F.logsigmoid(occ_final[0])[ijk[:, 0], ijk[:, 1], ijk[:, 2]]

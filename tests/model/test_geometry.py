@@ -505,6 +505,33 @@ def test_decoded_predictor_learns_one_grid_through_the_frozen_decoder(data):
         GeometryModelConfig(**MODEL, mode="diffusion", predictor_loss="decoded")
 
 
+def test_the_refiner_starts_as_the_decoder_and_places_voxels_the_frozen_decoder_cannot(data):
+    """refine: an untrained refiner returns the decoder's logits (its head starts at zero); trained
+    on one sample it reaches an IoU the decoded predictor alone cannot through the random frozen
+    decoder, because it corrects each voxel from the lifted volume at the voxels' own size."""
+    _, item = _geometry_item(data)
+    cfg = {**MODEL, "mode": "predictor", "predictor_loss": "decoded", "depth_weight": 0.0}
+    torch.manual_seed(0)
+    plain = GeometryNet(GeometryModelConfig(**cfg))
+    torch.manual_seed(0)
+    refined = GeometryNet(GeometryModelConfig(**cfg, refine=True, refine_width=8))
+    refined.load_state_dict(plain.state_dict(), strict=False)  # the same VAE, conditioner and denoiser
+    plain.vae_loaded = refined.vae_loaded = True
+    with torch.no_grad():
+        vol, lifted, _, _ = refined._condition(item, item["lift_grid"])
+        assert lifted.shape[2:] == tuple(item["gt_grid"].dims)
+        z = refined.sample_latent(vol, (1, refined.cfg.vae.latent_channels, *vol.shape[2:]))
+        want = refined.vae.decode(z * refined.vae.latent_std)
+        got = refined._decode(z, lifted)
+    assert torch.equal(got[1], want[1]) and torch.equal(got[2], want[2])
+    _, iou_plain, _ = _fit_decoded_predictor(plain, item)
+    _, iou_refined, losses = _fit_decoded_predictor(refined, item, steps=80)
+    assert losses[-1] < 0.5 * losses[0], losses[::8]
+    assert iou_refined > iou_plain + 0.2, (iou_plain, iou_refined)
+    with pytest.raises(ValueError, match="refine"):
+        GeometryModelConfig(**MODEL, mode="diffusion", refine=True)
+
+
 def test_observed_voxels_are_the_first_surface_each_camera_sees():
     """A pinhole camera at the origin looking along +x at two walls, 10 m and 14 m out: the near
     wall's voxels inside the field of view are observed, the far wall (behind it) and the near
