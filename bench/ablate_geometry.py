@@ -23,7 +23,10 @@
    (geometry_lifting.{json,md}). `bench.geometry_lift_ceiling` bounds what a finer stride can add.
    With `--refine`: the same at stride 8 with the occupancy refiner (`refine: true`, the lifted
    volume read again at the voxels' own resolution after the decoder), depth against broadcast
-   lifting and the oracle depth's upper bound (geometry_lifting_refined.{json,md}).
+   lifting and the oracle depth's upper bound (geometry_lifting_refined.{json,md}). `--name`
+   writes the results under another name (a longer budget beside the 400-step tables) and
+   `--baseline CHECKPOINT` evaluates a trained model in the same command (the shipped predictor
+   beside the variants retrained at its own budget).
 
 Not part of `make bench` (it trains for hours on 2 cores). Run:
 `python -m bench.ablate_geometry --data DIR --vae VAE.pt [--steps 600] [--work bench/.cache/ablate_geometry]`
@@ -70,6 +73,10 @@ LIFTING_VARIANTS = ((4, "depth"), (8, "broadcast"), (8, "depth"), (4, "broadcast
 REFINE_VARIANTS = ((8, "depth"), (8, "broadcast"), (8, "oracle"))
 
 
+_EVAL_KEYS = ("iou", "miou", "iou_visible", "iou_invisible", "chamfer_q50", "chamfer_q90", "seconds_per_sample",
+              "peak_mb_per_sample")
+
+
 def _config(base: dict, variant: dict, steps: int, vae: str) -> dict:
     cfg = yaml.safe_load(yaml.safe_dump(base))
     for section, values in variant.items():
@@ -114,12 +121,39 @@ def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
         m = evaluate(stage, res.last, args.data, split=args.eval_split, progress=True)
         per_step = took["train_s"] / took["steps_timed"] if took["steps_timed"] else float("nan")
         return {"variant": name, "steps": res.step, "s_per_step": round(per_step, 2),
-                **{k: round(v, 4) for k, v in m.items() if k in ("iou", "miou", "iou_visible", "iou_invisible",
-                                                              "chamfer_q50", "chamfer_q90", "seconds_per_sample",
-                                                              "peak_mb_per_sample")}}
+                **{k: round(v, 4) for k, v in m.items() if k in _EVAL_KEYS}}
 
     rows.append(_cached_row(args, tag, measure))
     return res.last
+
+
+def vae_of(checkpoint: str, template: str, work: Path) -> Path:
+    """The frozen structure VAE inside a trained conditional geometry model, written as a
+    `geometry-vae` checkpoint in `work` with the run record of `template` (a geometry-vae
+    checkpoint of the same VAE config), so that a variant retrained beside that model starts from
+    the very VAE it was trained with (the shipped predictor keeps its first-run VAE)."""
+    from scube_sim.model.checkpoint import load_checkpoint, resolve_checkpoint, save_checkpoint
+
+    src, tpl = (load_checkpoint(resolve_checkpoint(c)) for c in (checkpoint, template))
+    if src.get("stage") != "geometry" or tpl.get("stage") != "geometry-vae":
+        raise SystemExit(f"--vae-of {checkpoint} with --vae {template}: a 'geometry' and a 'geometry-vae' "
+                         f"checkpoint expected, got {src.get('stage')!r} and {tpl.get('stage')!r}")
+    weights = {k: v for k, v in src["model"].items() if k.startswith("vae.")}
+    if set(weights) != set(tpl["model"]):
+        raise SystemExit(f"--vae-of {checkpoint}: its VAE's weights are not those of --vae {template}'s network")
+    out = work / f"vae-of-{Path(str(checkpoint)).name}.pt"
+    save_checkpoint(out, {**tpl, "model": weights, "exported_from": f"{checkpoint} (its frozen VAE)"})
+    return out
+
+
+def checkpoint_row(checkpoint: Path, args) -> dict:
+    """A trained model (a path or a shipped checkpoint's name) evaluated on the eval split."""
+    from scube_sim.model.stages import get_stage
+    from scube_sim.model.trainer import evaluate
+
+    m = evaluate(get_stage("geometry"), checkpoint, args.data, split=args.eval_split, progress=True)
+    return {"variant": f"trained model {checkpoint}", "steps": "", "s_per_step": "",
+            **{k: round(v, 4) for k, v in m.items() if k in _EVAL_KEYS}}
 
 
 def depth_prior_row(checkpoint: Path, args) -> dict:
@@ -242,6 +276,8 @@ def lifting_trade(stage, args) -> list[dict]:
     base = yaml.safe_load((REPO / "scube_sim/model/configs/geometry-coarse-predictor.yaml").read_text())
     rows: list[dict] = []
     variants = REFINE_VARIANTS if args.refine else LIFTING_VARIANTS
+    if args.baseline:
+        rows.append(_cached_row(args, "baseline", lambda: checkpoint_row(Path(args.baseline), args)))
     for stride, lifting in variants:
         name = f"predictor, stride {stride}, {lifting} lifting" + (", refined" if args.refine else "")
         if args.only and name not in args.only:
@@ -331,7 +367,7 @@ def main(argv=None) -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True)
-    ap.add_argument("--vae", required=True, help="the coarse structure VAE's checkpoint (geometry-vae run)")
+    ap.add_argument("--vae", default=None, help="the coarse structure VAE's checkpoint (geometry-vae run)")
     ap.add_argument("--steps", type=int, default=600, help="training steps of every variant (the budget)")
     ap.add_argument("--work", default=str(BENCH_DIR / ".cache" / "ablate_geometry"))
     ap.add_argument("--eval-split", default="test")
@@ -345,14 +381,25 @@ def main(argv=None) -> None:
                     help="run only the lifting comparison (depth vs broadcast at feature strides 4 and 8)")
     ap.add_argument("--refine", action="store_true",
                     help="with --lifting: depth vs broadcast vs oracle depth at stride 8, each with the occupancy refiner")
+    ap.add_argument("--vae-of", default=None,
+                    help="the frozen VAE's weights from inside this trained geometry model (a path or a shipped name); --vae then "
+                         "only gives the VAE's run record")
+    ap.add_argument("--name", default=None, help="with --lifting: the results' file name in bench/results/")
+    ap.add_argument("--baseline", default=None,
+                    help="with --lifting: also evaluate this trained checkpoint (a path or a shipped name)")
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
     Path(args.work).mkdir(parents=True, exist_ok=True)
+    if args.vae is None:
+        ap.error("--vae is required")
+    if args.vae_of:
+        args.vae = str(vae_of(args.vae_of, args.vae, Path(args.work)))
     if args.refine and not args.lifting:
         ap.error("--refine goes with --lifting")
     if args.lifting:
         rows = lifting_trade(stage, args)
-        write_results("geometry_lifting" + ("_refined" if args.refine else ""), rows, list(dict.fromkeys(k for r in rows for k in r)),
+        name = args.name or "geometry_lifting" + ("_refined" if args.refine else "")
+        write_results(name, rows, list(dict.fromkeys(k for r in rows for k in r)),
                       notes=f"the shipped predictor's config{', refine: true' if args.refine else ''}, "
                             f"{args.steps} steps each, frozen VAE {args.vae}, "
                             f"{args.eval_split} split, {args.data}")

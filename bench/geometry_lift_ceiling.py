@@ -65,7 +65,7 @@ def measure(data: Path, split: str, limit: int | None, floor_share: float, floor
     import torch
     from rich.progress import track
 
-    from scube_sim.model.geometry import _flat_keys
+    from scube_sim.model.geometry import flat_keys
     from scube_sim.model.geometry_metrics import visible_voxels, voxel_iou
     from scube_sim.model.stages import get_stage
 
@@ -81,11 +81,11 @@ def measure(data: Path, split: str, limit: int | None, floor_share: float, floor
         item = ds[i]
         grid, gt = item["gt_grid"], item["gt_ijk"]
         dims = grid.dims
-        gt_keys = _flat_keys(gt, dims)
+        gt_keys = flat_keys(gt, dims)
         seen = visible_voxels(gt, grid.voxel_size, grid.origin, item["intrinsics"], item["distortion"],
                               item["cam_to_chunk"], item["depth"], item["image_size"])
         floor_iou.append(voxel_iou(floor, gt))
-        floor_keys = _flat_keys(floor, dims)
+        floor_keys = flat_keys(floor, dims)
         for (stride, placement), rows in acc.items():
             keys = surface_voxels(item, stride, placement)
             both = torch.unique(torch.cat([floor_keys, keys]))
