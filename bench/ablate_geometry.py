@@ -367,7 +367,7 @@ def main(argv=None) -> None:
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", required=True)
-    ap.add_argument("--vae", default=None, help="the coarse structure VAE's checkpoint (geometry-vae run)")
+    ap.add_argument("--vae", required=True, help="the coarse structure VAE's checkpoint (geometry-vae run)")
     ap.add_argument("--steps", type=int, default=600, help="training steps of every variant (the budget)")
     ap.add_argument("--work", default=str(BENCH_DIR / ".cache" / "ablate_geometry"))
     ap.add_argument("--eval-split", default="test")
@@ -390,8 +390,6 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     stage = get_stage("geometry")
     Path(args.work).mkdir(parents=True, exist_ok=True)
-    if args.vae is None:
-        ap.error("--vae is required")
     if args.vae_of:
         args.vae = str(vae_of(args.vae_of, args.vae, Path(args.work)))
     if args.refine and not args.lifting:
