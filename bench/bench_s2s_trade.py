@@ -4,7 +4,8 @@ against seconds, on held-out worlds samples (`model.sensor_to_sensor`), a table 
 Knobs (each changed alone from the shipped `cpu` profile): the geometry stage's input resolution
 (its images resized to half the training focal length), the appearance stage's, the Gaussians'
 size cap (`max_scale_voxels`), M (the most opaque Gaussians kept per voxel), the fine geometry level
-(its voxels grouped into 0.4 m, or its own 0.2 m), the conversion range (`max_range`), soft mode's alpha floor
+(its voxels grouped into 0.4 m, or its own 0.2 m), the appearance stage's test-time fit to the
+input views (`fit_steps`), the conversion range (`max_range`), soft mode's alpha floor
 (`soft_alpha_min`, where each Gaussian's box ends), the trace mode of the converted
 scene (soft vs hard `max_response`), and with `--diffusion CKPT` a diffusion geometry stage
 instead of the single-step predictor at 1 and 10 DDIM steps. Every variant runs on the same
@@ -62,6 +63,10 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
         ("coarse + fine level, 0.2 m voxels, M = 1", base.model_copy(update={
             "fine": FINE_04.model_copy(update={"output_voxel_size": 0.2}),
             "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, None),
+        # the appearance stage's test-time fit to the input views (`appearance.fit_input_views`)
+        *[(f"coarse + fine level, 0.4 m voxels, M = 1, fitted to the input views ({n} steps)", base.model_copy(update={
+            "fine": FINE_04, "appearance": a.model_copy(update={"gaussians_per_voxel": 1, "fit_steps": n})}), {}, None)
+          for n in (25, 50)],
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
         # soft mode's alpha floor: each Gaussian's box ends where its response reaches it
         ("M = 1, traced with soft alpha_min 0.05", base.model_copy(update={"appearance": a.model_copy(

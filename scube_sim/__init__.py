@@ -10,7 +10,7 @@ from .voxsplat import Gaussians, VoxSplat
 
 
 def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=None, sky=True,
-            max_range=None) -> VoxSplat:
+            max_range=None, fit_steps=None) -> VoxSplat:
     """The sensor-to-sensor converter: posed camera `frames` (`scube_sim.camera.Frames`) -> a
     VoxSplat in their ego frame, with semantics, sky, per-voxel observation and confidence, and
     provenance (`scube_sim.model.converter.Converter.convert`). torch and the models load on the
@@ -18,7 +18,7 @@ def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=No
     from .model.converter import convert as _convert  # the one upward import: keeps the package torch-free
 
     return _convert(frames, profile=profile, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
-                    max_range=max_range)
+                    max_range=max_range, fit_steps=fit_steps)
 
 
 __all__ = ["Gaussians", "ScubeSimError", "VoxSplat", "convert"]

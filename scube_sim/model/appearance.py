@@ -38,7 +38,7 @@ from ..errors import InputError
 from ..labels import NUM_LABELS, reflectance_from_labels
 from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
-from .activations import activate
+from .activations import OFFSET, OPACITY, QUAT, RGB, SCALE, activate
 from .augment import AugmentConfig, photometric
 from .data import DataConfig, WorldsTorchDataset, item_generator
 from .image_metrics import psnr, ssim
@@ -53,6 +53,11 @@ NUM_RAW = 14
 NO_AUGMENT = AugmentConfig(**{k: {"p": 0.0} for k in ("color_jitter", "exposure", "blur", "noise", "jpeg")})
 LOSS_WEIGHTS = {"l1": 0.9, "alpha": 1.0, "ssim": 0.1}
 EVAL_OFFSETS = (5, 10)  # the paper's novel-view instants T+5, T+10: never in the loss
+# The test-time fit (`fit_input_views`): Adam rates per kind of raw value, in the raw layout's order, and
+# for the panorama's features. Offsets are r * tanh(raw) with r one voxel, so 0.02 is about 3DGS's
+# position rate for a 100 m scene (1.6e-4 x extent) at 0.4 m; colours are SH degree 0 (x 0.28).
+FIT_RATES = {"offset": 0.02, "opacity": 0.05, "scale": 0.01, "quat": 0.005, "rgb": 0.02, "pano": 0.01}
+_RAW_SLOTS = {"offset": OFFSET, "opacity": OPACITY, "scale": SCALE, "quat": QUAT, "rgb": RGB}
 
 
 class AppearanceModelConfig(StrictModel):
@@ -305,11 +310,7 @@ class AppearanceNet(nn.Module):
         bias = torch.zeros(NUM_RAW, dtype=raw.dtype)
         bias[3] = self._opacity_bias
         bias[4:7] = math.log(self.cfg.init_scale_voxels * vs)
-        raw = raw + bias
-        g = activate(raw, centres, vs, self.cfg.offset_range)
-        flat = {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
-                "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
-                "colors": g["colors"].reshape(-1, 3), "raw": raw}
+        flat = self.splats(raw + bias, item)
         if not sky:
             return {**flat, "pano": None, "pano_weight": None}
         sky_small = F.interpolate((item["sky"] & item["valid"])[:, None].to(feats.dtype), size=(h, w),
@@ -318,6 +319,16 @@ class AppearanceNet(nn.Module):
         pano, weight = build_panorama(feats, sky_small, item["cam_to_chunk"].double(), k_half, item["distortion"],
                                       *self.cfg.panorama)
         return {**flat, "pano": pano, "pano_weight": weight}
+
+    def splats(self, raw: torch.Tensor, item: dict) -> dict:
+        """(V, M, 14) raw values of the item's voxels -> the flat Gaussians (chunk frame): means
+        (V*M, 3), quats, scales, opacities, colors, and ``raw`` itself."""
+        vs = float(item["voxel_size"])
+        centres = torch.as_tensor(CHUNK_CORNER, dtype=raw.dtype) + (item["ijk"].to(raw.dtype) + 0.5) * vs
+        g = activate(raw, centres, vs, self.cfg.offset_range)
+        return {"means": g["means"].reshape(-1, 3), "quats": g["quats"].reshape(-1, 4),
+                "scales": g["scales"].reshape(-1, 3), "opacities": g["opacities"].reshape(-1),
+                "colors": g["colors"].reshape(-1, 3), "raw": raw}
 
     def sky_rgb(self, out: dict, height: int, width: int) -> torch.Tensor:
         """(height, width, 3) the decoded sky on the equirectangular grid of `sky` (chunk axes)."""
@@ -392,6 +403,46 @@ def view_losses(model: AppearanceNet, out: dict, item: dict, views=None) -> tupl
         logs["alpha"] += float(la.detach()) / len(views)
         logs["ssim"] += float(1 - ls.detach()) / len(views)
     return total / len(views), logs
+
+
+def fit_input_views(model: AppearanceNet, out: dict, item: dict, steps: int, on_step=None) -> dict:
+    """Test-time fitting, after the network: its prediction `out` for `item` (made with the sky)
+    optimised for `steps` Adam steps (`FIT_RATES`) on the item's own input views at T, one
+    camera per step in order, with the training loss -> a prediction of the same form, without
+    gradients. What moves is what the network outputs: every Gaussian's raw values and the
+    panorama's features; the network (its sky decoder too) stays as it is. Not the paper's
+    method (SCube is feed-forward): a speed/accuracy knob, off by default (0 steps).
+    on_step(step, prediction) is called after each step (evaluation hooks)."""
+    if isinstance(steps, bool) or not isinstance(steps, (int, np.integer)) or steps < 0:
+        raise InputError(f"fit steps: expected an integer >= 0, got {steps!r}")
+    if steps == 0:
+        return out
+    if out.get("pano") is None:
+        raise InputError("fit_input_views: the prediction has no sky panorama (the loss composites the sky behind the "
+                         "Gaussians); run the network with sky=True")
+    parts = {k: out["raw"][..., s].detach().clone().requires_grad_(True) for k, s in _RAW_SLOTS.items()}
+    pano = out["pano"].detach().clone().requires_grad_(True)
+    leaves = [*parts.values(), pano]
+    opt = torch.optim.Adam([{"params": [parts[k]], "lr": FIT_RATES[k]} for k in parts]
+                           + [{"params": [pano], "lr": FIT_RATES["pano"]}])
+
+    def current() -> dict:
+        return {**model.splats(torch.cat(list(parts.values()), dim=-1), item), "pano": pano,
+                "pano_weight": out.get("pano_weight")}
+
+    n_views = item["images"].shape[0]
+    for step in range(1, int(steps) + 1):
+        with torch.enable_grad():
+            loss, _ = view_losses(model, current(), item, views=[(0, (step - 1) % n_views)])
+            # gradients for the prediction alone: the network's weights collect none
+            for leaf, grad in zip(leaves, torch.autograd.grad(loss, leaves)):
+                leaf.grad = grad
+        opt.step()
+        if on_step is not None:
+            with torch.no_grad():
+                on_step(step, current())
+    with torch.no_grad():
+        return {k: (v.detach() if torch.is_tensor(v) else v) for k, v in current().items()}
 
 
 def evaluate_item(model: AppearanceNet, item: dict, cameras: str = "front", out: dict | None = None) -> dict:

@@ -99,6 +99,31 @@ def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(tiny_conv
         conv.convert(frames, max_range=-1.0)
 
 
+def test_a_fit_to_the_input_views_is_a_profile_knob_with_provenance(tiny_converter, tmp_path):
+    """fit_steps: the Gaussians after the network, fitted to the input views; the voxels stay,
+    the Gaussians move; recorded in the metadata; deterministic; LiDAR-only keeps no sky."""
+    conv = Converter(tiny_converter["profile"])
+    frames = _frames(tiny_converter)
+    plain = conv.convert(frames, seed=0)
+    steps = []
+    fitted = conv.convert(frames, seed=0, fit_steps=3, progress=lambda step, total: steps.append((step, total)))
+    assert steps == [(1, 3), (2, 3), (3, 3)]
+    assert plain.metadata["fit_steps"] == 0 and fitted.metadata["fit_steps"] == 3
+    np.testing.assert_array_equal(fitted.ijk, plain.ijk)
+    assert np.isfinite(fitted.params).all() and not np.array_equal(fitted.params, plain.params)
+    again = conv.convert(frames, seed=0, fit_steps=3)
+    np.testing.assert_array_equal(again.params, fitted.params)
+    np.testing.assert_array_equal(again.channel("sky_panorama"), fitted.channel("sky_panorama"))
+    lidar = conv.convert(frames, seed=0, fit_steps=3, sky=False)
+    assert "sky_panorama" not in lidar.channels
+    np.testing.assert_array_equal(lidar.params, fitted.params)
+    with pytest.raises(InputError, match="fit_steps"):
+        conv.convert(frames, fit_steps=-2)
+    r = CliRunner().invoke(app, ["convert", str(tiny_converter["sample"]), "--profile", str(tiny_converter["profile"]),
+                                 "--fit-steps", "-1", "-o", str(tmp_path / "x.npz")])
+    assert r.exit_code == 2 and "--fit-steps" in r.output and not (tmp_path / "x.npz").exists()
+
+
 def _moved(frames: Frames, offset) -> Frames:
     out = copy.deepcopy(frames)
     out.ego_pose[:3, 3] += offset
