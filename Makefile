@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # The CPU wheel of torch lies on this machine's disk; a looser pin would pull a CUDA build.
 PIP_FLAGS ?= --disable-pip-version-check -q
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test bench check-wheel venv clean
 
 # The compiled tracer core builds on install: a change to its source reinstalls.
 $(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp
@@ -27,6 +27,10 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m bench.run_all
+
+# The wheel, installed into a fresh environment and used from there (CI runs it after test).
+check-wheel: $(STAMP)
+	$(PY) tools/check_wheel.py
 
 clean:
 	rm -rf out $(VENV) *.egg-info

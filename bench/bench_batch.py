@@ -23,11 +23,11 @@ from pathlib import Path
 
 import yaml
 
-from scube_sim.batch.jobs import make_job
-from scube_sim.batch.runner import run_batch
-from scube_sim.batch.tasks import Job, Task
+from scube_sim.parallel.runner import run_batch
+from scube_sim.parallel.tasks import Job, Task
 from scube_sim.run_manifest import RunManifest
-from scube_sim.sim.scenario import shared_data_dir
+from scube_sim.runs.batch_jobs import make_job
+from scube_sim.runs.scenario import shared_data_dir
 
 from .common import write_results
 

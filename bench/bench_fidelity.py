@@ -19,11 +19,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-
 from scube_sim.datasets import open_dataset
-from scube_sim.fidelity import compare, moving_rays, real_rays, simulate_rays
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.reconstruct import BuildOptions, build_from_dataset
+from scube_sim.realdata.build import BuildOptions, build_from_dataset
+from scube_sim.realdata.fidelity import compare, moving_rays, real_rays, simulate_rays
 
 from .common import RESULTS, write_results
 
@@ -108,9 +107,9 @@ def main() -> None:
 
 def plot(rows: list[dict], path: Path) -> None:
     """p90 against hit agreement per study: the trade the knobs move along."""
-    from scube_sim.viz import _plt, _save
+    from scube_sim.viz import pyplot, save_png
 
-    plt = _plt()
+    plt = pyplot()
     studies = list(dict.fromkeys(r["study"] for r in rows))
     fig, axes = plt.subplots(1, len(studies), figsize=(5.5 * len(studies), 4.6), dpi=110, squeeze=False)
     for ax, study in zip(axes[0], studies):
@@ -126,7 +125,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.grid(alpha=0.3)
     fig.suptitle("LiDAR-built VoxSplats: build knobs (red: default); lower right is better", fontsize=10)
     fig.tight_layout()
-    _save(fig, path)
+    save_png(fig, path)
 
 
 if __name__ == "__main__":

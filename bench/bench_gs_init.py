@@ -31,8 +31,8 @@ from rich.progress import track
 
 from scube_sim.io.ply3dgs import read_3dgs_ply, write_3dgs_ply
 from scube_sim.model.converter import Converter
-from scube_sim.model.image_metrics import psnr
-from scube_sim.model.splat_render import rasterization
+from scube_sim.model.nn.image_metrics import psnr
+from scube_sim.model.nn.splat_render import rasterization
 from scube_sim.transforms import invert_pose
 from scube_sim.worlds.dataset import render_frames
 from scube_sim.worlds.generator import WorldConfig, generate_world

@@ -45,7 +45,7 @@ def frustum_scene(n: int, seed: int = 0, hfov_deg: float = 70.0, width: int = WI
 def _render(intr, scene, grad: bool):
     import torch
 
-    from scube_sim.model.splat_render import rasterization
+    from scube_sim.model.nn.splat_render import rasterization
 
     leaves = [t.clone().requires_grad_(grad) for t in scene]
     K = torch.tensor(intr.K, dtype=torch.float32)[None]

@@ -96,9 +96,9 @@ def _row_of_ring(sweep):
 
 
 def plot(rows, path):
-    from scube_sim.viz import _plt
+    from scube_sim.viz import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), dpi=110)
     for ax, key, label in ((axes[0], "median_err_cm", "median |range error| [cm]"),
                            (axes[1], "p90_err_cm", "p90 |range error| [cm]")):

@@ -31,11 +31,11 @@ import numpy as np
 from rich.progress import track
 
 from scube_sim.model.converter import Converter
-from scube_sim.model.sensor_to_sensor import geometric_lidar
+from scube_sim.model.eval.sensor_to_sensor import geometric_lidar
 from scube_sim.raytrace.tracer import Tracer
+from scube_sim.runs.scenario import route_stops
 from scube_sim.sim.converted import remove_boxes, scene_part
-from scube_sim.sim.scenario import route_stops
-from scube_sim.sim.sim_scene import Part, SimScene
+from scube_sim.sim.scene import Part, SimScene
 from scube_sim.transforms import invert_pose, transform_points
 from scube_sim.worlds.dataset import render_frames
 from scube_sim.worlds.generator import WorldConfig, generate_world

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from scube_sim.model.converter import Converter, load_profile
-from scube_sim.model.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
+from scube_sim.model.eval.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
 
 from .common import BENCH_DIR, write_results
 

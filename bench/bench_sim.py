@@ -35,7 +35,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def _scenario(name, **changes):
-    from scube_sim.sim.scenario import load_scenario
+    from scube_sim.runs.scenario import load_scenario
 
     sc, base = load_scenario(REPO / "scenarios" / f"{name}.yaml")
     for k, v in changes.items():
@@ -48,7 +48,7 @@ def _scenario(name, **changes):
 
 
 def speed(ticks: int = 20) -> list[dict]:
-    from scube_sim.sim.scenario import SensorSpec, build_run
+    from scube_sim.runs.scenario import SensorSpec, build_run
 
     rows = []
     work = Path(tempfile.mkdtemp(prefix="scube-bench-sim-"))
@@ -105,7 +105,7 @@ def speed(ticks: int = 20) -> list[dict]:
 def split(ticks: int = 10) -> list[dict]:
     """Seconds per stage of one sweep, by wrapping the stages' entry points (min over `ticks`)."""
     from scube_sim.raytrace.tracer import Tracer
-    from scube_sim.sim.scenario import SensorSpec, build_run
+    from scube_sim.runs.scenario import SensorSpec, build_run
 
     rows = []
     work = Path(tempfile.mkdtemp(prefix="scube-bench-split-"))
@@ -171,7 +171,7 @@ def _fds() -> int:
 def soak(ticks: int = 3000) -> list[dict]:
     from rich.progress import Progress
 
-    from scube_sim.sim.scenario import SensorSpec, build_run
+    from scube_sim.runs.scenario import SensorSpec, build_run
 
     work = Path(tempfile.mkdtemp(prefix="scube-soak-"))
     try:
@@ -225,9 +225,9 @@ class _Looped:
 
 
 def _plot_rss(x, y, path):
-    from scube_sim.viz import _plt, _save
+    from scube_sim.viz import pyplot, save_png
 
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7, 3.5), dpi=110)
     ax.plot(x, y, ".-")
     ax.set_xlabel("tick")
@@ -235,7 +235,7 @@ def _plot_rss(x, y, path):
     ax.set_title("soak: 3 LiDARs, files + USD value clips")
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_png(fig, path)
 
 
 def main():

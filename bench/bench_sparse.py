@@ -42,7 +42,7 @@ def run_case(method: str, channels: int, repeat: int) -> dict:
     import torch
     import torch.nn.functional as F
 
-    from scube_sim.model.sparse import Grid, SparseTensor, SubmanifoldConv3d
+    from scube_sim.model.nn.sparse import Grid, SparseTensor, SubmanifoldConv3d
 
     torch.manual_seed(0)
     ijk = torch.from_numpy(street_sites())

@@ -94,8 +94,8 @@ def rays_off(h, want) -> int:
 def demo_scene():
     """The demo's VoxSplat (the default world at 0.2 m; cached like the street scenes) and its
     source mesh in the same (chunk) frame, cropped to the fitted region."""
-    from scube_sim.demo import DEFAULT_WORLD, REGION
     from scube_sim.mesh import TriangleMesh
+    from scube_sim.runs.demo import DEFAULT_WORLD, REGION
     from scube_sim.transforms import invert_pose, transform_points
     from scube_sim.voxsplat import VoxSplat
     from scube_sim.worlds.generator import generate_world
@@ -266,9 +266,9 @@ def soft_rows() -> list[dict]:
 
 
 def plot(rows, path):
-    from scube_sim.viz import _plt
+    from scube_sim.viz import pyplot
 
-    plt = _plt()
+    plt = pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5), dpi=110)
     for ax, mode in zip(axes, MODES):
         for core, threads, ls in (("compiled", 2, "-"), ("compiled", 1, ":"), ("reference (open3d)", 2, "--")):

@@ -51,10 +51,11 @@ def machine() -> dict:
             "date": time.strftime("%Y-%m-%d %H:%M")}
 
 
-def write_results(name: str, rows: list[dict], header: list[str], notes: str = "") -> Path:
-    """bench/results/<name>.json (all fields) and <name>.md (the `header` columns)."""
-    RESULTS.mkdir(exist_ok=True)
-    (RESULTS / f"{name}.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
+def write_results(name: str, rows: list[dict], header: list[str], notes: str = "", results: Path = RESULTS) -> Path:
+    """<results>/<name>.json (all fields) and <name>.md (the `header` columns); results: bench/results
+    by default (experiments/ writes to its own)."""
+    results.mkdir(exist_ok=True)
+    (results / f"{name}.json").write_text(json.dumps({"machine": machine(), "rows": rows}, indent=1))
     lines = [f"# {name}", "", f"machine: {machine()}", ""]
     if notes:
         lines += [notes, ""]
@@ -62,7 +63,7 @@ def write_results(name: str, rows: list[dict], header: list[str], notes: str = "
     lines.append("|" + "---|" * len(header))
     for r in rows:
         lines.append("| " + " | ".join(_fmt(r.get(h, "")) for h in header) + " |")
-    path = RESULTS / f"{name}.md"
+    path = results / f"{name}.md"
     path.write_text("\n".join(lines) + "\n")
     return path
 

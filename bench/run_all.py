@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import sys
 
-from . import (bench_batch, bench_fidelity, bench_render, bench_representation, bench_sim, bench_sparse, bench_tracer,
-               bench_voxel_cast)
+from . import (
+    bench_batch,
+    bench_fidelity,
+    bench_render,
+    bench_representation,
+    bench_sim,
+    bench_sparse,
+    bench_tracer,
+    bench_voxel_cast,
+)
 
 
 def main() -> None:

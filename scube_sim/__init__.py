@@ -4,9 +4,12 @@ Public faces: this package (the VoxSplat container and the error base), `scube_s
 `scube_sim.lidar`, `scube_sim.camera`, `scube_sim.worlds`, `scube_sim.datasets`, `scube_sim.sim`.
 """
 
+from . import _moved
+from ._version import __version__
 from .errors import ScubeSimError
 from .voxsplat import Gaussians, VoxSplat
 
+_moved.install()  # an import of an earlier layout's module names its new place
 
 
 def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=None, sky=True,
@@ -21,5 +24,4 @@ def convert(frames, *, profile="cpu", steps=None, seed=0, confidence=False, k=No
                     max_range=max_range, fit_steps=fit_steps)
 
 
-__all__ = ["Gaussians", "ScubeSimError", "VoxSplat", "convert"]
-__version__ = "0.1.0"
+__all__ = ["Gaussians", "ScubeSimError", "VoxSplat", "__version__", "convert"]

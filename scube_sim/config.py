@@ -93,6 +93,21 @@ def load_yaml(path: str | Path, error: type[Exception] = ConfigError) -> object:
         raise error(f"{path}: not valid YAML{where}: {getattr(exc, 'problem', exc)}") from None
 
 
+def parse_key_values(items: list[str], flag: str) -> dict:
+    """`KEY=VALUE` items (VALUE is YAML) -> {KEY: value}, later items over earlier ones; a ConfigError
+    names `flag` and the item: `--set 'x': expected KEY=VALUE`."""
+    out = {}
+    for item in items:
+        key, eq, value = item.partition("=")
+        if not eq or not key.strip():
+            raise ConfigError(f"{flag} {item!r}: expected KEY=VALUE")
+        try:
+            out[key.strip()] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"{flag} {item!r}: VALUE is not YAML ({exc})") from None
+    return out
+
+
 def normalize_name(name: str) -> str:
     """Lower case, letters and digits only: 'VLP-16', 'vlp_16' and 'vlp16' are one name."""
     return re.sub(r"[^a-z0-9]", "", name.lower())

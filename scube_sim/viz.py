@@ -10,7 +10,8 @@ from .atomic import atomic_path
 from .labels import LABEL_COLORS, LABEL_NAMES
 
 
-def _plt():
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (no screen), imported on first use."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -19,12 +20,12 @@ def _plt():
     return plt
 
 
-def _save(fig, path: str | Path) -> Path:
+def save_png(fig, path: str | Path) -> Path:
     """Write a figure as PNG atomically and close it."""
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
-    _plt().close(fig)
+    pyplot().close(fig)
     return path
 
 
@@ -33,7 +34,7 @@ def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = No
             title: str = "", point_size: float = 0.3, sensor_xy=(0.0, 0.0)) -> Path:
     """Top-down scatter of (N, 3) points (x forward/right on the page, y up), coloured by
     semantic label (with a legend of the classes present) or by a scalar (with a colour bar)."""
-    plt = _plt()
+    plt = pyplot()
     xyz = np.asarray(xyz, np.float64)
     fig, ax = plt.subplots(figsize=(8, 8), dpi=120)
     order = np.argsort(xyz[:, 2]) if len(xyz) else np.zeros(0, int)  # high points drawn last
@@ -59,7 +60,7 @@ def bev_png(path: str | Path, xyz: np.ndarray, *, labels: np.ndarray | None = No
     ax.set_title(title)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def bev_compare_png(path: str | Path, panels: dict[str, tuple[np.ndarray, np.ndarray | None]], *,
@@ -67,7 +68,7 @@ def bev_compare_png(path: str | Path, panels: dict[str, tuple[np.ndarray, np.nda
     """Top-down views side by side: name -> ((N, 3) points, sensor frame; (N,) values or None).
     Panels without values are coloured by height (z), those with values by them (magma, one shared
     colour bar); same axes everywhere, the sensor at the origin."""
-    plt = _plt()
+    plt = pyplot()
     n = len(panels)
     fig, axes = plt.subplots(1, n, figsize=(6.2 * n, 6.6), dpi=110, squeeze=False)
     z_all = np.concatenate([np.asarray(p, np.float64)[:, 2] for p, v in panels.values() if v is None and len(p)]
@@ -96,13 +97,13 @@ def bev_compare_png(path: str | Path, panels: dict[str, tuple[np.ndarray, np.nda
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: float | None = None,
                      title: str = "") -> Path:
     """Stack (rings, columns) images one above the other (NaN = no return)."""
-    plt = _plt()
+    plt = pyplot()
     n = len(images)
     fig, axes = plt.subplots(n, 1, figsize=(14, 1.6 * n + 0.8), dpi=110, squeeze=False)
     for ax, (name, img) in zip(axes[:, 0], images.items()):
@@ -115,12 +116,12 @@ def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: f
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", cols: int = 3) -> Path:
     """Camera images (name -> (H, W, 3) uint8) in a grid, titled by name."""
-    plt = _plt()
+    plt = pyplot()
     n = len(images)
     rows = int(np.ceil(n / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.6 * rows), dpi=100, squeeze=False)
@@ -132,14 +133,14 @@ def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = 
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_size: float, *,
                   corner=(0.0, 0.0, 0.0), visible: np.ndarray | None = None, title: str = "") -> Path:
     """Top view of a voxel grid: each column shows the class of its highest voxel; with
     `visible`, a second panel shows which voxels the input cameras saw."""
-    plt = _plt()
+    plt = pyplot()
     ijk = np.asarray(ijk, np.int64)
     n = int(ijk[:, :2].max()) + 1 if len(ijk) else 1
     order = np.lexsort((ijk[:, 2], ijk[:, 1], ijk[:, 0]))
@@ -168,7 +169,7 @@ def voxel_bev_png(path: str | Path, ijk: np.ndarray, labels: np.ndarray, voxel_s
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", error_m: float = 0.5,
@@ -177,7 +178,7 @@ def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str 
     any row named 'error ...' as a signed difference (blue nearer, red farther, clipped at
     +-`error_m`); `mismatch` (rows, cols) bool marks in black the cells where only one of the
     two returns, white where neither does."""
-    plt = _plt()
+    plt = pyplot()
     n = len(images)
     fig, axes = plt.subplots(n, 1, figsize=(14, 1.9 * n + 0.8), dpi=110, squeeze=False)
     ranges = [v for k, v in images.items() if not k.startswith("error")]
@@ -202,7 +203,7 @@ def fidelity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str 
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def intensity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "",
@@ -210,7 +211,7 @@ def intensity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str
     """Intensity range images one above the other ('real' first, then each simulation), on one
     shared 0-1 scale (the 99th percentile of the real image tops the colour map; black = no
     return), with an optional caption per image (its metrics)."""
-    plt = _plt()
+    plt = pyplot()
     n = len(images)
     fig, axes = plt.subplots(n, 1, figsize=(14, 1.9 * n + 0.8), dpi=110, squeeze=False)
     real = images.get("real")
@@ -229,4 +230,4 @@ def intensity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str
     if title:
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_png(fig, path)

@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.model.checkpoint import load_checkpoint
-from scube_sim.model.trainer import evaluate
+from scube_sim.model.eval.evaluate import evaluate
 from tests.conftest import one_line_error
 from tests.model.test_trainer import TOY, write_config
 

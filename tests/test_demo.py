@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from scube_sim.fidelity import sweep_agreement
+from scube_sim.lidar.compare import sweep_agreement
 
 
 def test_sweep_agreement_by_hand():

@@ -12,7 +12,7 @@ import pytest
 from scube_sim.datasets.base import LidarSweep
 from scube_sim.errors import InputError
 from scube_sim.lidar.config import load_lidar_config
-from scube_sim.raydrop import blind_sector, measure_cycle_us, rebuild_firing_grid
+from scube_sim.realdata.raydrop import blind_sector, measure_cycle_us, rebuild_firing_grid
 from scube_sim.transforms import make_pose
 
 CYCLE_US = 55.296  # the VLP-32C's firing cycle

@@ -12,9 +12,21 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from scube_sim.transforms import (
-    FRAME_CONVENTIONS, carla_rotation_matrix, carla_transform_to_pose, check_rotation, frame_convention,
-    hpr_to_rotmat, make_pose, points_from_ours, points_to_ours, pose_from_ours, pose_to_carla_transform,
-    pose_to_ours, rotmat_to_hpr, transform_points, usd_frame_convention,
+    FRAME_CONVENTIONS,
+    carla_rotation_matrix,
+    carla_transform_to_pose,
+    check_rotation,
+    frame_convention,
+    hpr_to_rotmat,
+    make_pose,
+    points_from_ours,
+    points_to_ours,
+    pose_from_ours,
+    pose_to_carla_transform,
+    pose_to_ours,
+    rotmat_to_hpr,
+    transform_points,
+    usd_frame_convention,
 )
 from tests.conftest import look_at, require
 

@@ -9,13 +9,13 @@ import pytest
 
 from scube_sim.datasets.base import LidarSweep
 from scube_sim.errors import InputError
-from scube_sim.fidelity import real_rays
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.drop import DropModel
 from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
-from scube_sim.raydrop import auc, drop_scores, drop_study, fit_logistic, log_loss
 from scube_sim.raytrace.tracer import Tracer
+from scube_sim.realdata.fidelity import real_rays
+from scube_sim.realdata.raydrop import auc, drop_scores, drop_study, fit_logistic, log_loss
 from scube_sim.transforms import make_pose
 from scube_sim.worlds import primitives as pr
 
@@ -105,7 +105,7 @@ def test_drop_study_needs_the_no_returns():
 def test_transfer_study_fits_one_sensor_and_scores_another(tmp_path):
     """Fitted on one sensor's grid, scored on another's (another column count, so other rays) of
     the same scene, both dropping every return beyond 25 m."""
-    from scube_sim.raydrop import transfer_study
+    from scube_sim.realdata.raydrop import transfer_study
 
     scene, cfg, sweep_a, _ = full_grid_sweep(columns=360)
     _, _, sweep_b, roof_b = full_grid_sweep(columns=300)

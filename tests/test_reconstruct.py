@@ -10,18 +10,26 @@ import numpy as np
 
 from scube_sim.boxes import Box, points_in_boxes
 from scube_sim.datasets.base import LidarSpec, LidarSweep, Sample
-from scube_sim.fidelity import RealRays, SimRays, compare, poisson_mesh, real_rays, simulate_rays, voxel_cube_mesh
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.reconstruct import (
+from scube_sim.realdata.build import (
     accumulate,
     build_voxsplat,
     free_space_mask,
     grow_to_objects,
     height_above_ground,
     range_image_mesh,
+)
+from scube_sim.realdata.fidelity import (
+    RealRays,
+    SimRays,
+    compare,
+    poisson_mesh,
+    real_rays,
+    simulate_rays,
+    voxel_cube_mesh,
 )
 from scube_sim.transforms import make_pose
 from scube_sim.worlds import primitives as pr

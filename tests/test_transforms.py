@@ -13,10 +13,22 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation, Slerp
 
-from scube_sim.transforms import (check_pose, euler_to_rotmat, interpolate_poses, invert_pose,
-                                  make_pose, normalize_quat, pose_from_xyz_rpy, quat_multiply,
-                                  quat_to_rotmat, rotate_vectors, rotmat_to_euler, rotmat_to_quat,
-                                  slerp, transform_points)
+from scube_sim.transforms import (
+    check_pose,
+    euler_to_rotmat,
+    interpolate_poses,
+    invert_pose,
+    make_pose,
+    normalize_quat,
+    pose_from_xyz_rpy,
+    quat_multiply,
+    quat_to_rotmat,
+    rotate_vectors,
+    rotmat_to_euler,
+    rotmat_to_quat,
+    slerp,
+    transform_points,
+)
 
 PROPS = settings(max_examples=50, deadline=None)
 

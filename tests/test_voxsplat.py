@@ -17,8 +17,21 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 from scipy.special import expit
 
-from scube_sim.voxsplat import (FORMAT_NAME, FORMAT_VERSION, NUM_RAW, OFFSET, OPACITY, QUAT, RGB, SCALE,
-                                SH_C0, Gaussians, VoxSplat, unique_voxels, voxel_keys)
+from scube_sim.voxsplat import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    NUM_RAW,
+    OFFSET,
+    OPACITY,
+    QUAT,
+    RGB,
+    SCALE,
+    SH_C0,
+    Gaussians,
+    VoxSplat,
+    unique_voxels,
+    voxel_keys,
+)
 
 PROPS = settings(max_examples=50, deadline=None)
 

@@ -25,11 +25,11 @@ import torch  # noqa: E402
 
 from scube_sim.camera.model import Intrinsics  # noqa: E402
 from scube_sim.camera.render import render_camera  # noqa: E402
-from scube_sim.model.appearance import frame_at, is_front_camera, static_mask  # noqa: E402
+from scube_sim.model.appearance.data import frame_at, is_front_camera, static_mask  # noqa: E402
+from scube_sim.model.checkpoint import load_model  # noqa: E402
 from scube_sim.model.config import stage_configs  # noqa: E402
-from scube_sim.model.image_metrics import psnr  # noqa: E402
+from scube_sim.model.nn.image_metrics import psnr  # noqa: E402
 from scube_sim.model.stages import get_stage  # noqa: E402
-from scube_sim.model.trainer import load_model  # noqa: E402
 from scube_sim.raytrace.tracer import Tracer  # noqa: E402
 from scube_sim.worlds.generator import WorldConfig, generate_world  # noqa: E402
 from scube_sim.worlds.textures import albedo  # noqa: E402

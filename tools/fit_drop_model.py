@@ -32,8 +32,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from scube_sim.datasets import open_dataset  # noqa: E402
-from scube_sim.raydrop import blind_sector, drop_study, rebuild_firing_grid, transfer_study  # noqa: E402
-from scube_sim.reconstruct import BuildOptions, build_from_dataset  # noqa: E402
+from scube_sim.realdata.build import BuildOptions, build_from_dataset  # noqa: E402
+from scube_sim.realdata.raydrop import blind_sector, drop_study, rebuild_firing_grid, transfer_study  # noqa: E402
 from scube_sim.voxsplat import VoxSplat  # noqa: E402
 
 FOLDER = "nuscenes-mmdet3d-demo"

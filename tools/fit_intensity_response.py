@@ -28,7 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from scube_sim.datasets import open_dataset  # noqa: E402
-from scube_sim.reconstruct import height_above_ground, range_image_mesh  # noqa: E402
+from scube_sim.realdata.build import height_above_ground, range_image_mesh  # noqa: E402
 from scube_sim.voxsplat import unique_voxels  # noqa: E402
 
 LOGS = [("nuscenes", "nuscenes-mmdet3d-demo", "HDL-32E", [0]),

@@ -28,9 +28,10 @@ def main(argv=None) -> None:
     from matplotlib.figure import Figure
 
     from scube_sim.atomic import atomic_path
-    from scube_sim.model.geometry import GeometryDataConfig, _sample_seed
+    from scube_sim.model.checkpoint import load_model
+    from scube_sim.model.geometry.data import GeometryDataConfig
+    from scube_sim.model.geometry.stage import sample_seed
     from scube_sim.model.stages import get_stage
-    from scube_sim.model.trainer import load_model
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("checkpoints", nargs="+", help="geometry checkpoints (run files or shipped names)")
@@ -53,7 +54,7 @@ def main(argv=None) -> None:
         grids = [("ground truth", item["gt_ijk"].numpy())]
         for (model, _), title in zip(models, titles):
             with torch.no_grad():
-                ijk, _ = model.predict(item, seed=_sample_seed(item))
+                ijk, _ = model.predict(item, seed=sample_seed(item))
             grids.append((title, ijk.numpy()))
         for ax, (title, ijk) in zip(row, grids):
             ax.imshow(height_map(ijk, dims).T, origin="lower", cmap="viridis", vmin=0, vmax=dims[2] * 0.6)

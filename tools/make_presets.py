@@ -23,7 +23,7 @@ sys.path.insert(0, str(REPO))
 
 from scube_sim.io.safe_pickle import load_pickle  # noqa: E402
 from scube_sim.lidar.config import dump_config  # noqa: E402
-from scube_sim.lidar.importers import (  # noqa: E402
+from scube_sim.lidar.importers import (
     from_hesai_csv,
     from_ouster_json,
     from_velodyne_yaml,

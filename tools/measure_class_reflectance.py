@@ -32,7 +32,7 @@ sys.path.insert(0, str(REPO))
 
 from scube_sim.datasets import open_dataset  # noqa: E402
 from scube_sim.labels import LABEL_NAMES  # noqa: E402
-from scube_sim.reconstruct import accumulate, height_above_ground, return_reflectance, surface_patches  # noqa: E402
+from scube_sim.realdata.build import accumulate, height_above_ground, return_reflectance, surface_patches  # noqa: E402
 
 LOGS = [("nuscenes", "nuscenes-mmdet3d-demo", [0], "calibrated (HDL-32E reflectivity)"),
         ("argoverse2", "argoverse2-sensor-log-7fab2350", [0], "assumed calibrated (VLP-32C)"),

@@ -13,11 +13,10 @@ from pathlib import Path
 
 import yaml
 
-from scube_sim.model.checkpoint import load_checkpoint, save_checkpoint
+from scube_sim.model.checkpoint import export_weights, load_checkpoint, load_model, save_checkpoint
 from scube_sim.model.config import config_from_dict, stage_configs
-from scube_sim.model.geometry import calibrate_latent_std
+from scube_sim.model.geometry.stage import calibrate_latent_std
 from scube_sim.model.stages import get_stage
-from scube_sim.model.trainer import export_weights, load_model
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "scube_sim" / "model" / "checkpoints"
 

@@ -26,8 +26,13 @@ from scube_sim.lidar import load_lidar_config
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace import Tracer
 from scube_sim.sim import LidarSensor, Simulator
-from scube_sim.transforms import (carla_transform_to_pose, points_from_ours, points_to_ours, pose_to_carla_transform,
-                                  transform_points)
+from scube_sim.transforms import (
+    carla_transform_to_pose,
+    points_from_ours,
+    points_to_ours,
+    pose_to_carla_transform,
+    transform_points,
+)
 from scube_sim.worlds import primitives as pr
 
 BUILDING, FENCE, ROAD = label_id("building"), label_id("fence"), label_id("road")

@@ -33,9 +33,9 @@ from ..errors import InputError
 from ..io.safe_pickle import load_pickle
 from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
-from ..registration import register_sequence
 from ..transforms import make_pose, transform_points
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, index_check, require_file
+from .icp import register_sequence
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "HDL-64E"

@@ -17,6 +17,7 @@ from __future__ import annotations
 import os
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -39,10 +40,17 @@ _SUFFIXES = USD_SUFFIXES
 _KSIGMA = 3.0  # extent = the 3-sigma ellipsoids' bounding box
 
 
-def _vt_types():
-    from pxr import Sdf, Vt
+def _pxr() -> SimpleNamespace:
+    """pxr's modules, imported on first use (~0.2 s): `scube_sim.sim` imports this module for its UsdSink, and
+    only a run that writes a stage needs USD."""
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdVol, Vt
 
-    t = Sdf.ValueTypeNames
+    return SimpleNamespace(Gf=Gf, Sdf=Sdf, Tf=Tf, Usd=Usd, UsdGeom=UsdGeom, UsdVol=UsdVol, Vt=Vt)
+
+
+def _vt_types():
+    pxr = _pxr()
+    t, Vt = pxr.Sdf.ValueTypeNames, pxr.Vt
     # USD has no 8/16-bit signed or 16-bit unsigned scalars: those widen to int / uint (exact);
     # the original numpy dtype is kept in the attribute's customData "scube_sim:dtype".
     return {
@@ -68,7 +76,7 @@ def set_stage_metadata(stage, *, documentation: str = "Exported by scube_sim", t
     """upAxis Z, metersPerUnit 1, ``/World`` (an Xform) as the default prim; optionally the
     time base (timeCodesPerSecond, and framesPerSecond the same so playback runs in real time).
     Returns the /World prim."""
-    from pxr import UsdGeom
+    UsdGeom = _pxr().UsdGeom
 
     UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
     UsdGeom.SetStageMetersPerUnit(stage, UsdGeom.LinearUnits.meters)
@@ -86,9 +94,7 @@ def set_stage_metadata(stage, *, documentation: str = "Exported by scube_sim", t
 
 def vec3f(a: np.ndarray):
     """(N, 3) -> Vt.Vec3fArray (float32)."""
-    from pxr import Vt
-
-    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3))
+    return _pxr().Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(a, dtype=np.float32).reshape(-1, 3))
 
 
 _vec3f = vec3f
@@ -97,16 +103,12 @@ _vec3f = vec3f
 def matrix4d(pose: np.ndarray):
     """(4, 4) float64 column-vector pose -> Gf.Matrix4d (row-vector convention: the transpose),
     exact in double precision."""
-    from pxr import Gf
-
-    return Gf.Matrix4d(np.asarray(pose, np.float64).T.tolist())
+    return _pxr().Gf.Matrix4d(np.asarray(pose, np.float64).T.tolist())
 
 
 def _quatf_wxyz(q: np.ndarray):
-    from pxr import Vt
-
     xyzw = np.ascontiguousarray(np.roll(np.asarray(q, np.float32), -1, axis=1))
-    return Vt.QuatfArray.FromNumpy(xyzw)
+    return _pxr().Vt.QuatfArray.FromNumpy(xyzw)
 
 
 def primvar_type(dtype, what: str = "field", who: str = "export_usd"):
@@ -130,11 +132,9 @@ def declare_primvar(prim, name: str, dtype, interpolation: str, element_size: in
                     source_name: str | None = None, who: str = "export_usd"):
     """Create primvars:<name> (no value) for values of numpy `dtype`; the original dtype goes to
     the attribute's customData "scube_sim:dtype" (and the field name to "scube_sim:field")."""
-    from pxr import UsdGeom
-
     dtype = np.dtype(dtype)
     type_name, _, _ = primvar_type(dtype, f"field {source_name or name!r}", who)
-    pv = UsdGeom.PrimvarsAPI(prim).CreatePrimvar(name, type_name, interpolation, element_size)
+    pv = _pxr().UsdGeom.PrimvarsAPI(prim).CreatePrimvar(name, type_name, interpolation, element_size)
     attr = pv.GetAttr()
     attr.SetCustomDataByKey("scube_sim:dtype", dtype.newbyteorder("=").str)
     if source_name is not None and source_name != name:
@@ -153,7 +153,8 @@ def _add_primvar(prim, name: str, values: np.ndarray, interpolation: str, source
 
 def _set_translate(xformable, origin: np.ndarray, pose: np.ndarray | None = None) -> None:
     """xformOpOrder = [transform (the optional pose), translate (the local origin)], doubles."""
-    from pxr import Gf, UsdGeom
+    pxr = _pxr()
+    Gf, UsdGeom = pxr.Gf, pxr.UsdGeom
 
     if pose is not None:
         xformable.AddTransformOp(UsdGeom.XformOp.PrecisionDouble).Set(Gf.Matrix4d(pose.T.tolist()))
@@ -170,7 +171,8 @@ def _gaussian_extent(local: np.ndarray, scales: np.ndarray, quats: np.ndarray) -
 def add_gaussians(stage, path: str, g: Gaussians, labels: np.ndarray | None = None,
                   voxel_size: float | None = None):
     """Define `path` as a ParticleField3DGaussianSplat holding `g` (see `export_usd`); returns it."""
-    from pxr import UsdGeom, UsdVol, Vt
+    pxr = _pxr()
+    UsdGeom, UsdVol, Vt = pxr.UsdGeom, pxr.UsdVol, pxr.Vt
 
     g.check_finite("export_usd")
     pf = UsdVol.ParticleField3DGaussianSplat.Define(stage, path)
@@ -215,7 +217,8 @@ def add_points_prim(stage, path: str, *, width: float = 0.05, primvars: dict | N
     """Define `path` as a UsdGeom.Points with constant `width`, an (unset) points attribute,
     optionally an (unset) extent, and vertex primvars declared (no values) from
     `primvars`: name -> numpy dtype. For writers that author values later (e.g. time samples)."""
-    from pxr import Tf, UsdGeom, Vt
+    pxr = _pxr()
+    Tf, UsdGeom, Vt = pxr.Tf, pxr.UsdGeom, pxr.Vt
 
     geom = UsdGeom.Points.Define(stage, path)
     geom.CreatePointsAttr()
@@ -237,7 +240,8 @@ def points_extent(local: np.ndarray, width: float) -> np.ndarray:
 
 
 def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
-    from pxr import Tf, UsdGeom, Vt
+    pxr = _pxr()
+    Tf, UsdGeom, Vt = pxr.Tf, pxr.UsdGeom, pxr.Vt
 
     prim_name = Tf.MakeValidIdentifier(str(name))
     cloud = np.asarray(cloud)
@@ -282,7 +286,7 @@ def _add_points(stage, name: str, cloud, width: float, color, pose) -> None:
 def write_layer(layer, path: str | Path) -> Path:
     """Export `layer` to `path` atomically. USD picks the file format from the suffix, so the
     export goes to a temporary name that keeps it, then moves onto atomic_path's temporary."""
-    from pxr import Tf
+    Tf = _pxr().Tf
 
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -333,7 +337,8 @@ def export_usd(
     point_width: metres, constant. point_colors: name -> (3,) or (N, 3) RGB in [0, 1].
     points_poses: name -> (4, 4) pose of the cloud's frame in the world (e.g. the sensor pose).
     """
-    from pxr import Tf, Usd, UsdGeom
+    pxr = _pxr()
+    Tf, Usd, UsdGeom = pxr.Tf, pxr.Usd, pxr.UsdGeom
 
     path = Path(path)
     suffix = check_usd_suffix(path)

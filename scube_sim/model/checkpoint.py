@@ -13,9 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import nn
 
 from ..atomic import atomic_path
+from ..config import normalize_name
 from ..errors import InputError
+from .config import RunConfig, config_from_dict, stage_configs
+from .stages import Stage, get_stage
 
 SHIPPED_DIR = Path(__file__).resolve().parent / "checkpoints"  # <name>/model.pt, with its README
 FORMAT = "scube-sim-train"
@@ -125,3 +129,50 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
     np.random.seed(seed % 2**32)
     random.seed(seed)
+
+
+# --- models from checkpoints (inference loads through here, never through the trainer) --------
+
+
+def model_from_checkpoint(stage: Stage, run: RunConfig, ck: dict, path: Path) -> nn.Module:
+    """`stage`'s model for `run`'s config with the weights of checkpoint `ck` (read from `path`),
+    in eval mode."""
+    model_cfg, _ = stage_configs(run, stage.model_config, stage.data_config)
+    model = stage.build_model(model_cfg)
+    try:
+        model.load_state_dict(ck["model"])
+    except RuntimeError as exc:
+        first = (str(exc).strip().splitlines() or ["mismatch"])[0]
+        raise CheckpointError(f"{path}: does not fit stage {stage.name!r}'s model: {first}") from None
+    return model.eval()
+
+
+def stage_checkpoint(stage: Stage, name_or_path: str | Path) -> tuple[Path, dict]:
+    """The checkpoint file (a path or a shipped name) and its contents, which must be `stage`'s."""
+    path = resolve_checkpoint(name_or_path)
+    ck = load_checkpoint(path)
+    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
+        raise CheckpointError(f"{path}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
+    return path, ck
+
+
+def load_model(stage: Stage | str, checkpoint: str | Path) -> tuple[nn.Module, RunConfig]:
+    """The model of a checkpoint (a run's last.pt / best.pt, `export_weights`'s file, or a shipped
+    checkpoint's name: `checkpoint.resolve_checkpoint`), in eval mode, and the run config it was
+    trained with."""
+    stage = get_stage(stage) if isinstance(stage, str) else stage
+    checkpoint, ck = stage_checkpoint(stage, checkpoint)
+    run = config_from_dict(ck["config"], f"{checkpoint} (config)")
+    return model_from_checkpoint(stage, run, ck, checkpoint), run
+
+
+def export_weights(checkpoint: str | Path, out: str | Path) -> Path:
+    """A run's checkpoint without what only resuming needs (optimiser moments, RNG states, data
+    position): stage, config, model weights, step, epoch and best record. `evaluate`,
+    `load_model` and `eval` read it like any checkpoint; `train --resume` cannot."""
+    ck = load_checkpoint(checkpoint)
+    keep = {k: ck[k] for k in ("stage", "config", "model", "step", "epoch", "best") if k in ck}
+    keep["exported_from"] = str(Path(checkpoint).name)
+    return save_checkpoint(out, keep)
+
+

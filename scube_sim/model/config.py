@@ -13,9 +13,12 @@ punctuation ignored, as sensor presets do ('Geometry-Waymo' == 'geometry_waymo')
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 from typing import Any, Literal
 
+import torch
 from pydantic import BaseModel, Field, PrivateAttr, create_model, field_validator, model_validator
 
 from ..config import ConfigError, StrictModel, load_yaml, normalize_name, validate_model
@@ -136,3 +139,26 @@ def resolved_config(run: RunConfig, model_cfg: BaseModel, data_cfg: BaseModel) -
     """The full config with every default filled in, as plain JSON values (stored in checkpoints)."""
     return {"stage": run.stage, "train": run.train.model_dump(mode="json"),
             "model": model_cfg.model_dump(mode="json"), "data": data_cfg.model_dump(mode="json")}
+
+
+@contextlib.contextmanager
+def torch_settings(tc: TrainConfig, world: int):
+    """Threads and deterministic algorithms for the run, restored afterwards (the caller's process
+    keeps its own settings)."""
+    threads, det, warn = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
+                          torch.is_deterministic_algorithms_warn_only_enabled())
+    if tc.threads is not None:
+        torch.set_num_threads(tc.threads)
+    elif world > 1:  # ranks share the cores
+        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+    # Only on a change: the call also sets torch._inductor's flag, importing it (seconds) if needed.
+    if (det, warn) != (tc.deterministic, False):
+        torch.use_deterministic_algorithms(tc.deterministic)
+    try:
+        yield
+    finally:
+        if (det, warn) != (tc.deterministic, False):
+            torch.use_deterministic_algorithms(det, warn_only=warn)
+        torch.set_num_threads(threads)
+
+

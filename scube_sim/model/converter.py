@@ -39,15 +39,17 @@ from ..datasets import open_dataset
 from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
 from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
 from ..errors import InputError
+from ..labels import NUM_LABELS
 from ..memory import peak_mb, reset_peak
 from ..transforms import invert_pose
 from ..voxsplat import SCALE, VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
-from .appearance import AppearanceNet, first_hit_voxels, fit_input_views
-from .checkpoint import resolve_checkpoint
-from .data import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
-from .geometry import NUM_LABELS, GeometryDataConfig, GeometryNet, flat_keys, observed_voxels
-from .trainer import load_model
+from .appearance.fit import fit_input_views
+from .appearance.net import AppearanceNet, first_hit_voxels
+from .checkpoint import load_model, resolve_checkpoint
+from .data.worlds import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
+from .geometry.data import GeometryDataConfig
+from .geometry.net import GeometryNet, flat_keys, observed_voxels
 
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 # How a converted scene is traced (metadata ``trace_mode``, which `scube-sim lidar --mode auto`

@@ -33,10 +33,9 @@ from torch.utils.data import Dataset, default_collate
 from ..config import normalize_name
 from ..errors import NotFoundError, ScubeSimError
 
-# Modules that register a stage when imported. The geometry and appearance stages add theirs
-# here (e.g. "scube_sim.model.geometry") when they are written.
-STAGE_MODULES: list[str] = ["scube_sim.model.voxel_semantics", "scube_sim.model.appearance",
-                             "scube_sim.model.geometry"]
+# Modules that register a stage when imported (each stage folder's `stage` module).
+STAGE_MODULES: list[str] = ["scube_sim.model.semantics.stage", "scube_sim.model.appearance.stage",
+                             "scube_sim.model.geometry.stage"]
 
 
 class StageError(ScubeSimError):

@@ -22,10 +22,8 @@ consistent earlier point from which the rest of the run replays identically.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
-import os
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -36,19 +34,32 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 import yaml
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.progress import Progress
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
+from .._moved import moved_name_getattr
 from ..atomic import atomic_path
 from ..config import ConfigError, normalize_name
 from ..errors import InputError, ScubeSimError
-from .checkpoint import (CheckpointError, load_checkpoint, resolve_checkpoint, rng_state, save_checkpoint,
-                         seed_everything, set_rng_state)
-from .config import RunConfig, TrainConfig, config_from_dict, resolved_config, stage_configs
+from .checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    model_from_checkpoint,
+    rng_state,
+    save_checkpoint,
+    seed_everything,
+    set_rng_state,
+    stage_checkpoint,
+)
+from .config import RunConfig, TrainConfig, config_from_dict, resolved_config, stage_configs, torch_settings
+from .eval.evaluate import bar_columns, evaluate_model
 from .stages import Stage, StageError, get_stage
 
 LAST, BEST, METRICS, CURVE, CONFIG = "last.pt", "best.pt", "metrics.jsonl", "loss.png", "config.yaml"
+
+__getattr__ = moved_name_getattr(__name__)  # load_model, evaluate...: a message naming their new module
+
 
 # `train` keys a resumed run may change: they set how long the run goes on and how it is executed,
 # not the sequence of updates up to a given step.
@@ -68,9 +79,6 @@ def learning_rate(tc: TrainConfig, step: int, total_steps: int) -> float:
     span = max(1, total_steps - tc.warmup_steps - 1)
     p = min(1.0, (step - tc.warmup_steps) / span)
     return tc.lr * (tc.lr_final_ratio + (1.0 - tc.lr_final_ratio) * 0.5 * (1.0 + math.cos(math.pi * p)))
-
-
-# --- deterministic data order ------------------------------------------------------------------
 
 
 def _derive_seed(*parts: int) -> int:
@@ -111,9 +119,6 @@ class ShardSampler:
         for b in range(self.start, self.batches_per_epoch):
             lo = b * self.batch_size + self.rank * shard
             yield order[lo:lo + shard].tolist()
-
-
-# --- the run -----------------------------------------------------------------------------------
 
 
 @dataclass
@@ -272,31 +277,10 @@ def _check_resumable(ck: dict, stage: Stage, resolved: dict, path: Path) -> None
                               f"{new.get(key)!r}; a resumed run may change only {', '.join(RESUMABLE_KEYS)}")
 
 
-@contextlib.contextmanager
-def _torch_settings(tc: TrainConfig, world: int):
-    """Threads and deterministic algorithms for the run, restored afterwards (the caller's process
-    keeps its own settings)."""
-    threads, det, warn = (torch.get_num_threads(), torch.are_deterministic_algorithms_enabled(),
-                          torch.is_deterministic_algorithms_warn_only_enabled())
-    if tc.threads is not None:
-        torch.set_num_threads(tc.threads)
-    elif world > 1:  # ranks share the cores
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
-    # Only on a change: the call also sets torch._inductor's flag, importing it (seconds) if needed.
-    if (det, warn) != (tc.deterministic, False):
-        torch.use_deterministic_algorithms(tc.deterministic)
-    try:
-        yield
-    finally:
-        if (det, warn) != (tc.deterministic, False):
-            torch.use_deterministic_algorithms(det, warn_only=warn)
-        torch.set_num_threads(threads)
-
-
 def _run_rank(rank: int, job: _Job, progress: bool, on_step, init_file: str | None) -> None:
     """One rank's whole run (`mp.spawn` calls it with the rank first)."""
     tc = TrainConfig.model_validate(job.resolved["train"])
-    with _torch_settings(tc, job.world):
+    with torch_settings(tc, job.world):
         if job.world > 1:
             dist.init_process_group("gloo", init_method=f"file://{init_file}", rank=rank, world_size=job.world)
         try:
@@ -335,7 +319,7 @@ class _Loop:
             seed_everything(_derive_seed(tc.seed, rank))
 
     def _init_from(self, name_or_path: str) -> None:
-        path, ck = _stage_checkpoint(self.stage, name_or_path)
+        path, ck = stage_checkpoint(self.stage, name_or_path)
         try:
             self.model.load_state_dict(ck["model"])
         except (RuntimeError, KeyError) as exc:
@@ -364,7 +348,7 @@ class _Loop:
             self._write_metrics()  # after a resume: drop records newer than the checkpoint
             with atomic_path(job.out_dir / CONFIG) as tmp:
                 tmp.write_text(yaml.safe_dump(job.resolved, sort_keys=False), encoding="utf-8")
-        with Progress(*_bar_columns(), disable=not self.progress) as bar:
+        with Progress(*bar_columns(), disable=not self.progress) as bar:
             task = bar.add_task(f"{self.stage.name}", total=job.total_steps, completed=s.step)
             while s.step < job.total_steps:
                 sampler = ShardSampler(job.train_samples, self.tc.batch_size, self.tc.seed, s.epoch, s.batch,
@@ -501,7 +485,7 @@ class _Loop:
 def _result(job: _Job) -> TrainResult:
     ck = load_checkpoint(job.out_dir / LAST)
     run = config_from_dict(ck["config"], str(job.out_dir / LAST))
-    model = _model_from_checkpoint(job.stage, run, ck, job.out_dir / LAST)
+    model = model_from_checkpoint(job.stage, run, ck, job.out_dir / LAST)
     best = job.out_dir / BEST
     records = ck["history"]["val"]
     return TrainResult(run_dir=job.out_dir, last=job.out_dir / LAST, best=best if best.is_file() else None,
@@ -509,128 +493,10 @@ def _result(job: _Job) -> TrainResult:
                        best_metric=ck["best"]["value"], best_step=ck["best"]["step"], model=model)
 
 
-def _model_from_checkpoint(stage: Stage, run: RunConfig, ck: dict, path: Path) -> nn.Module:
-    model_cfg, _ = stage_configs(run, stage.model_config, stage.data_config)
-    model = stage.build_model(model_cfg)
-    try:
-        model.load_state_dict(ck["model"])
-    except RuntimeError as exc:
-        first = (str(exc).strip().splitlines() or ["mismatch"])[0]
-        raise CheckpointError(f"{path}: does not fit stage {stage.name!r}'s model: {first}") from None
-    return model.eval()
-
-
-def _stage_checkpoint(stage: Stage, name_or_path: str | Path) -> tuple[Path, dict]:
-    """The checkpoint file (a path or a shipped name) and its contents, which must be `stage`'s."""
-    path = resolve_checkpoint(name_or_path)
-    ck = load_checkpoint(path)
-    if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
-        raise CheckpointError(f"{path}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
-    return path, ck
-
-
-def load_model(stage: Stage | str, checkpoint: str | Path) -> tuple[nn.Module, RunConfig]:
-    """The model of a checkpoint (a run's last.pt / best.pt, `export_weights`'s file, or a shipped
-    checkpoint's name: `checkpoint.resolve_checkpoint`), in eval mode, and the run config it was
-    trained with."""
-    stage = get_stage(stage) if isinstance(stage, str) else stage
-    checkpoint, ck = _stage_checkpoint(stage, checkpoint)
-    run = config_from_dict(ck["config"], f"{checkpoint} (config)")
-    return _model_from_checkpoint(stage, run, ck, checkpoint), run
-
-
-def export_weights(checkpoint: str | Path, out: str | Path) -> Path:
-    """A run's checkpoint without what only resuming needs (optimiser moments, RNG states, data
-    position): stage, config, model weights, step, epoch and best record. `evaluate`,
-    `load_model` and `eval` read it like any checkpoint; `train --resume` cannot."""
-    ck = load_checkpoint(checkpoint)
-    keep = {k: ck[k] for k in ("stage", "config", "model", "step", "epoch", "best") if k in ck}
-    keep["exported_from"] = str(Path(checkpoint).name)
-    return save_checkpoint(out, keep)
-
-
-# --- evaluation --------------------------------------------------------------------------------
-
-
-def evaluate_model(stage: Stage, model: nn.Module, dataset: Dataset, batch_size: int,
-                   num_workers: int = 0, progress: bool = False) -> dict[str, float]:
-    """The stage's metrics over the whole `dataset`, in order, in eval mode without gradients
-    (`progress`: a bar over the batches)."""
-    loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=stage.collate,
-                        num_workers=num_workers, generator=torch.Generator().manual_seed(0))
-    was_training = model.training
-    model.eval()
-    try:
-        with torch.no_grad(), _batch_bar(progress, len(loader), f"eval {stage.name}") as tick:
-            metrics = stage.evaluate(model, (tick(b) for b in loader))
-    finally:
-        model.train(was_training)
-    if stage.primary_metric not in metrics:
-        raise StageError(f"stage {stage.name!r}: evaluate returned no {stage.primary_metric!r} "
-                         f"(got {', '.join(metrics) or 'nothing'})")
-    return {str(k): float(v) for k, v in metrics.items()}
-
-
-def _bar_columns() -> tuple:
-    """The progress bar's columns, for training and evaluation alike."""
-    return (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-            TimeRemainingColumn())
-
-
-@contextlib.contextmanager
-def _batch_bar(enabled: bool, total: int, what: str):
-    """A rich progress bar over `total` batches; yields tick(batch) -> batch."""
-    if not enabled:
-        yield lambda b: b
-        return
-    with Progress(*_bar_columns()) as bar:
-        task = bar.add_task(what, total=total)
-
-        def tick(b):
-            bar.advance(task)
-            return b
-
-        yield tick
-
-
-def evaluate(stage: Stage | str, checkpoint: str | Path, data_dir: str | Path, split: str = "test",
-             data_overrides: dict | None = None, progress: bool = False) -> dict[str, float]:
-    """The stage's metrics of a checkpoint's weights on one split of a data folder.
-    data_overrides: fields of the stage's data config to change from the checkpoint's (e.g.
-    ``{"eval_frames": True}``; validated like the config)."""
-    stage = get_stage(stage) if isinstance(stage, str) else stage
-    checkpoint, data_dir = resolve_checkpoint(checkpoint), Path(data_dir)
-    model, run = load_model(stage, checkpoint)
-    if split not in stage.splits:
-        raise InputError(f"split: {split!r} is not a split of stage {stage.name!r} ({', '.join(stage.splits)})")
-    if not data_dir.is_dir():
-        raise InputError(f"{data_dir}: no such data folder")
-    _, data_cfg = stage_configs(run, stage.model_config, stage.data_config)
-    if data_overrides:
-        unknown = sorted(set(data_overrides) - set(type(data_cfg).model_fields))
-        if unknown:
-            raise InputError(f"data option {', '.join(unknown)}: not a field of stage {stage.name!r}'s data config "
-                             f"(fields: {', '.join(type(data_cfg).model_fields)})")
-        try:
-            data_cfg = type(data_cfg)(**{**data_cfg.model_dump(), **data_overrides})
-        except ValueError as exc:
-            raise InputError(f"data options {data_overrides}: {exc}") from None
-    with _torch_settings(run.train, 1):
-        dataset = stage.dataset(data_dir, data_cfg, split, run.train.seed)
-        if len(dataset) == 0:
-            raise InputError(f"{data_dir}: the {split} split has no samples")
-        return evaluate_model(stage, model, dataset, run.train.batch_size, run.train.num_workers, progress)
-
-
-# --- the loss curve ----------------------------------------------------------------------------
-
-
 def plot_loss_curve(train_log: dict[str, list[float]], records: list[dict], metric: str, path: str | Path) -> Path:
     """PNG: training loss per step (train_log["loss"][i] is step i + 1's; left, log scale when
     positive) and the validation `metric` of each record (right)."""
-    from matplotlib.figure import (
-        Figure,  # no pyplot: no global figure state, no GUI backend
-    )
+    from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
 
     fig = Figure(figsize=(9, 3.5), dpi=100)
     ax_loss, ax_val = fig.subplots(1, 2)

@@ -1,13 +1,13 @@
-"""The simulator: sensors on an ego in a scene, stepping in time, frames out to sinks.
+"""The simulator engine: sensors on an ego in a scene, stepping in time, frames out to sinks.
+Scenario files, replay and batches drive it from `scube_sim.runs`.
 
 - `Simulator` (`simulator`): host-driven `step(t, ego_pose)` or self-driven `run(source)`;
   `LidarSensor` places a LiDAR model on the rig. Each tick gives a `Frame` (`frame`).
-- `SimScene` (`sim_scene`): static `Part`s, moving actors traced as instances, `ChunkSet`s of
+- `SimScene` (`scene`): static `Part`s, moving actors traced as instances, `ChunkSet`s of
   VoxSplat chunks loaded near the ego; `StaticScene` wraps a bare `Tracer`.
 - Pose sources (`sources`, `can`): `TrajectorySource`, `EditedTrajectory`, `HeldPoses`,
   `CanPoseSource` / `CanTrajectory`; the vehicle model in `vehicle`.
 - Sinks (`sinks`): files, a USD stage, CAN "frame ready" messages, in-process callbacks.
-- Scenario files (`scenario`): `load_scenario` and `build_run`.
 - The contracts between them (`contracts`): `SimulatedScene`, `PoseSource`; sinks derive from
   `sinks.Sink`.
 
@@ -17,8 +17,7 @@ pxr, cantools and python-can are imported only when a USD stage, a DBC or a bus 
 from .can import CanPoseSource, CanTrajectory
 from .contracts import PoseSource, SimulatedScene
 from .frame import Frame, SensorFrame
-from .scenario import Scenario, build_run, load_scenario
-from .sim_scene import ChunkSet, ChunkSpec, Part, SimScene, StaticScene
+from .scene import ChunkSet, ChunkSpec, Part, SimScene, StaticScene
 from .simulator import LidarSensor, Simulator
 from .sinks import CallbackSink, CanFrameSink, FileSink, QueueSink, RunInfo, Sink, SinkError, SinkRunner, UsdSink
 from .sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
@@ -32,5 +31,8 @@ __all__ = [
     "CanPoseSource", "CanTrajectory", "DeadReckoner",
     "Sink", "RunInfo", "SinkRunner", "SinkError", "FileSink", "UsdSink", "CanFrameSink", "CallbackSink",
     "QueueSink",
-    "Scenario", "load_scenario", "build_run",
 ]
+
+from .._moved import moved_name_getattr
+
+__getattr__ = moved_name_getattr(__name__)  # names of the earlier layout: a message naming their module

@@ -1,5 +1,5 @@
-"""Converted scenes in the simulator loop: camera frames -> a VoxSplat (`scube_sim.convert`)
-placed in the world, with the moving actors the loop traces as instances cut out of it.
+"""Converted scenes in the simulator loop: a VoxSplat the caller converted from camera frames
+(`scube_sim.convert`) placed in the world, with the moving actors the loop traces as instances cut out of it.
 
 The converter sees each actor where it stood when the cameras fired; the loop also traces the
 actor's own mesh where it is at each fire time. Left in, the actor would be seen twice (a frozen
@@ -20,7 +20,7 @@ from ..raytrace.posed import scene_to_world
 from ..raytrace.tracer import Tracer
 from ..transforms import transform_points
 from ..voxsplat import VoxSplat
-from .sim_scene import Part, SimScene
+from .scene import Part, SimScene
 
 DEFAULT_MODE = "max_response"  # scenes that name no trace mode (ground-truth and measured VoxSplats)
 
@@ -55,15 +55,11 @@ def remove_boxes(scene: VoxSplat, boxes: list[Box], *, margin: float | None = No
     return out, int(cut.sum())
 
 
-def simulated_scene(frames: Frames, *, profile="cpu", seed: int = 0, actors: list[Part] | None = None,
-                    static_boxes: list[Box] | None = None, max_range: float | None = None,
-                    sky: bool = False) -> tuple[SimScene, VoxSplat]:
-    """A host's frames -> (a `SimScene` of the converted VoxSplat and `actors`, the converted
-    VoxSplat with the actors' voxels removed). The actors' boxes are taken at the frames'
-    timestamp. sky: build the sky panorama (a LiDAR loop needs none)."""
-    from ..model.converter import convert  # torch: only when a scene is converted
-
+def simulated_scene(frames: Frames, scene: VoxSplat, *, actors: list[Part] | None = None,
+                    static_boxes: list[Box] | None = None) -> tuple[SimScene, VoxSplat]:
+    """A host's frames and the VoxSplat converted from them (`scube_sim.convert(frames, ...)`) ->
+    (a `SimScene` of that VoxSplat and `actors`, the VoxSplat with the actors' voxels removed).
+    The actors' boxes are taken at the frames' timestamp."""
     actors = list(actors or [])
-    scene = convert(frames, profile=profile, seed=seed, sky=sky, max_range=max_range)
     scene, _ = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
     return SimScene(static=[scene_part(scene, name="converted")], actors=actors, static_boxes=static_boxes), scene

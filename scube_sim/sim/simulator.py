@@ -26,7 +26,7 @@ from ..lidar.model import Lidar
 from ..transforms import PoseFn, check_pose, interpolate_poses, quat_to_rotmat
 from .contracts import PoseSource, SimulatedScene
 from .frame import Frame, SensorFrame
-from .sim_scene import as_simulated_scene
+from .scene import as_simulated_scene
 from .sinks.base import RunInfo, Sink, SinkRunner
 
 

@@ -8,15 +8,15 @@ World frame: z up, metres; the ego starts at x = 0 heading +x.
 """
 
 from .dataset import (
-                      DatasetConfig,
-                      ensure_dataset_config,
-                      generate_dataset,
-                      load_sample,
-                      make_sample,
-                      read_dataset_config,
-                      sample_frames,
-                      sample_world_config,
-                      write_sample,
+           DatasetConfig,
+           ensure_dataset_config,
+           generate_dataset,
+           load_sample,
+           make_sample,
+           read_dataset_config,
+           sample_frames,
+           sample_world_config,
+           write_sample,
 )
 from .generator import STYLES, Actor, World, WorldConfig, generate_world
 from .groundtruth import CHUNK_CORNER, CHUNK_SIZE, VoxelGrid, gt_voxsplat

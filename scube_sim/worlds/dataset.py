@@ -43,8 +43,6 @@ from PIL import Image
 from pydantic import Field, field_validator
 
 from ..atomic import atomic_path
-from ..batch.runner import run_batch
-from ..batch.tasks import BatchError, Job, Task
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..camera.render import render_camera
@@ -55,6 +53,8 @@ from ..labels import LABEL_TABLE_VERSION, LABELS, label_id
 from ..lidar.config import load_lidar_config
 from ..lidar.model import Lidar
 from ..mesh import TriangleMesh
+from ..parallel.runner import run_batch
+from ..parallel.tasks import BatchError, Job, Task
 from ..raytrace.tracer import Tracer
 from ..run_manifest import RunManifest
 from ..transforms import invert_pose, transform_points

@@ -20,11 +20,11 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
-from scube_sim.batch.jobs import make_job
-from scube_sim.batch.runner import BatchError, expand_inputs, run_batch
 from scube_sim.cli import app
+from scube_sim.parallel.runner import BatchError, expand_inputs, run_batch
 from scube_sim.run_manifest import is_complete, read_manifest
-from scube_sim.sim.replay import replay_manifest
+from scube_sim.runs.batch_jobs import make_job
+from scube_sim.runs.replay import replay_manifest
 from tests.conftest import one_line_error
 
 runner = CliRunner()

@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
-from scube_sim.fidelity import run_fidelity
-from scube_sim.reconstruct import BuildOptions, build_from_dataset
+from scube_sim.realdata.build import BuildOptions, build_from_dataset
+from scube_sim.realdata.fidelity import run_fidelity
 from scube_sim.voxsplat import VoxSplat
 from tests.conftest import one_line_error, require
 
@@ -146,7 +146,7 @@ def test_fidelity_unknown_sensor_is_one_line(nus_scene, tmp_path):
 def test_nuscenes_drop_model_on_held_out_sectors(nus_scene, tmp_path):
     """The fitted drop model against the preset's hand-set rules on nuScenes' held-out sectors
     (report, tools/fit_drop_model.py: hit agreement 0.939 vs 0.906, log loss 0.142 vs 0.159)."""
-    from scube_sim.raydrop import drop_study
+    from scube_sim.realdata.raydrop import drop_study
     from scube_sim.voxsplat import VoxSplat
 
     root, scene = nus_scene
@@ -161,8 +161,8 @@ def test_nuscenes_drop_model_on_held_out_sectors(nus_scene, tmp_path):
 
 
 def test_a_build_batch_writes_what_build_writes_and_skips_it_when_run_again(nus_scene, tmp_path):
-    from scube_sim.batch.jobs import make_job
-    from scube_sim.batch.runner import run_batch
+    from scube_sim.parallel.runner import run_batch
+    from scube_sim.runs.batch_jobs import make_job
 
     root, scene = nus_scene
     job = make_job("build", {"dataset": "nuscenes"})

@@ -18,12 +18,12 @@ from scube_sim.datasets import DatasetError, LidarSpec, LidarSweep, Sample, open
 from scube_sim.datasets.base import merge_sweeps
 from scube_sim.datasets.folder import FolderDataset, write_folder_dataset
 from scube_sim.datasets.origins import MergedCloudError, check_origin
-from scube_sim.fidelity import run_fidelity
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.reconstruct import BuildOptions, accumulate, build_from_dataset
+from scube_sim.realdata.build import BuildOptions, accumulate, build_from_dataset
+from scube_sim.realdata.fidelity import run_fidelity
 from scube_sim.transforms import pose_from_xyz_rpy, transform_points
 from scube_sim.worlds import primitives as pr
 from tests.conftest import require

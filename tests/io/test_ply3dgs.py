@@ -10,9 +10,7 @@ import numpy as np
 import pytest
 
 from scube_sim.errors import InputError, ScubeSimWarning
-from scube_sim.io.ply3dgs import (
-    default_voxel_size, read_3dgs_ply, read_3dgs_ply_info, read_splat_file, write_3dgs_ply,
-)
+from scube_sim.io.ply3dgs import default_voxel_size, read_3dgs_ply, read_3dgs_ply_info, read_splat_file, write_3dgs_ply
 from scube_sim.voxsplat import SH_C0, Gaussians
 from tests.conftest import require
 

@@ -12,8 +12,17 @@ from hypothesis.extra import numpy as hnp
 
 from scube_sim.io import pointcloud as pc
 from scube_sim.io.pointcloud import (
-    pcd_header, read_kitti_bin, read_npz, read_pcd, read_ply_points, read_points, write_kitti_bin,
-    write_npz, write_pcd, write_ply_points, write_points,
+    pcd_header,
+    read_kitti_bin,
+    read_npz,
+    read_pcd,
+    read_ply_points,
+    read_points,
+    write_kitti_bin,
+    write_npz,
+    write_pcd,
+    write_ply_points,
+    write_points,
 )
 from tests.conftest import require
 

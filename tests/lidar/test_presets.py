@@ -11,13 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from scube_sim.lidar.config import (
-    ConfigError,
-    LidarConfig,
-    SpinningPattern,
-    load_lidar_config,
-    preset_paths,
-)
+from scube_sim.lidar.config import ConfigError, LidarConfig, SpinningPattern, load_lidar_config, preset_paths
 from tests.conftest import require
 
 

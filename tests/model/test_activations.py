@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from scube_sim import splat_params as sp
-from scube_sim.model import activations as act
+from scube_sim.model.nn import activations as act
 from scube_sim.transforms import normalize_quat, quat_to_rotmat
 from scube_sim.voxsplat import VoxSplat
 

@@ -15,8 +15,10 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.errors import InputError
-from scube_sim.model.appearance import AppearanceNet, evaluate_item, fit_input_views, view_losses
-from scube_sim.model.image_metrics import psnr, ssim
+from scube_sim.model.appearance.fit import fit_input_views
+from scube_sim.model.appearance.losses import evaluate_item, view_losses
+from scube_sim.model.appearance.net import AppearanceNet
+from scube_sim.model.nn.image_metrics import psnr, ssim
 from scube_sim.model.stages import get_stage
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
@@ -137,7 +139,8 @@ def test_train_and_eval_through_the_cli(data, tmp_path):
     assert m5["data_options"] == {"eval_frames": True} and m5["metrics"]["psnr_t0"] == metrics["psnr_t0"]
     assert m5["metrics"]["views_t0"] == 3 and 0 < m5["metrics"]["psnr_t5"] < 60
     # the weights alone (what a shipped checkpoint holds) evaluate the same, from a smaller file
-    from scube_sim.model.trainer import evaluate, export_weights
+    from scube_sim.model.checkpoint import export_weights
+    from scube_sim.model.eval.evaluate import evaluate
     small = export_weights(tmp_path / "run" / "last.pt", tmp_path / "weights.pt")
     assert small.stat().st_size < 0.6 * (tmp_path / "run" / "last.pt").stat().st_size
     assert evaluate("appearance", small, data, split="val") == metrics
@@ -177,7 +180,7 @@ def test_an_empty_grid_renders_the_sky_alone(data):
 
 
 def test_training_targets_are_the_clean_images_and_only_the_inputs_are_augmented(data):
-    from scube_sim.model.data import DataConfig, WorldsTorchDataset
+    from scube_sim.model.data.worlds import DataConfig, WorldsTorchDataset
 
     stage = get_stage("appearance")
     item = stage.dataset(data, stage.data_config(**DATA), "train", 0)[0]
@@ -237,7 +240,7 @@ def test_evaluation_masks_moving_actors_and_takes_the_front_cameras(data):
 
 def test_the_prediction_exports_as_a_voxsplat_that_renders_the_same(data, tmp_path):
     from scube_sim.camera.rig import load_rig
-    from scube_sim.model.views import render_rig
+    from scube_sim.model.nn.views import render_rig
     from scube_sim.voxsplat import VoxSplat
 
     stage = get_stage("appearance")

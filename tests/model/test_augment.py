@@ -10,7 +10,7 @@ import torch
 from pydantic import ValidationError
 
 from scube_sim.errors import InputError
-from scube_sim.model.augment import (
+from scube_sim.model.data.augment import (
     AugmentConfig,
     BlurConfig,
     CameraSelection,

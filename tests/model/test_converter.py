@@ -281,8 +281,8 @@ def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(tiny_converter):
 def test_a_convert_batch_loads_the_model_once_per_worker_and_writes_what_convert_writes(tiny_converter, tmp_path):
     """Three worlds samples on one worker process: the converter loads for the first task only,
     and each scene.npz equals `scube-sim convert` of that sample, byte for byte."""
-    from scube_sim.batch.jobs import make_job
-    from scube_sim.batch.runner import run_batch
+    from scube_sim.parallel.runner import run_batch
+    from scube_sim.runs.batch_jobs import make_job
 
     samples = [tiny_converter["data"] / split / "000000" for split in ("train", "val", "test")]
     out = tmp_path / "batch"

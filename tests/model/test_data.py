@@ -19,8 +19,8 @@ from scube_sim.camera.rig import load_rig
 from scube_sim.datasets import open_dataset
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
-from scube_sim.model.augment import CameraSelection
-from scube_sim.model.data import (
+from scube_sim.model.data.augment import CameraSelection
+from scube_sim.model.data.worlds import (
     DataConfig,
     WorldsTorchDataset,
     collate,

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from scube_sim.model.diffusion import NoiseSchedule, ddim_sample, ddim_timesteps
+from scube_sim.model.nn.diffusion import NoiseSchedule, ddim_sample, ddim_timesteps
 
 
 def test_linear_schedule_matches_its_definition():

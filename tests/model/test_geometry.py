@@ -16,12 +16,14 @@ from typer.testing import CliRunner
 from scube_sim.cli import app
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
-from scube_sim.model.geometry import GeometryDataConfig, GeometryModelConfig, GeometryNet, _grid_metrics, grid_in_box
-from scube_sim.model.geometry_nets import VAEConfig, prune_decode
-from scube_sim.model.lifting import LiftGrid
+from scube_sim.model.config import config_from_dict
+from scube_sim.model.geometry.data import GeometryDataConfig, grid_in_box
+from scube_sim.model.geometry.dense_nets import VAEConfig, prune_decode
+from scube_sim.model.geometry.net import GeometryModelConfig, GeometryNet
+from scube_sim.model.geometry.stage import grid_metrics
+from scube_sim.model.nn.lifting import LiftGrid
 from scube_sim.model.stages import get_stage
 from scube_sim.model.trainer import train
-from scube_sim.model.config import config_from_dict
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
 TINY = DatasetConfig(image_scale=0.04, visibility_scale=0.04, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0],
@@ -57,7 +59,7 @@ def test_grid_metrics_by_hand():
     road, car = label_id("road"), label_id("car")
     gt = {"gt_ijk": torch.tensor([[0, 0, 0], [1, 0, 0], [2, 0, 0]]), "gt_labels": torch.tensor([road, road, car])}
     pred = (torch.tensor([[1, 0, 0], [2, 0, 0], [3, 0, 0]]), torch.tensor([road, road, car]))
-    m = _grid_metrics([pred], [gt], split=False)
+    m = grid_metrics([pred], [gt], split=False)
     assert m["iou"] == pytest.approx(2 / 4)
     # road: TP 1 (voxel 1), FP 1 (voxel 2 predicted road), FN 1 (voxel 0) -> 1/3; car: TP 0 -> 0
     assert m["label_iou_road"] == pytest.approx(1 / 3) and m["label_iou_car"] == 0.0
@@ -397,7 +399,7 @@ def test_the_depth_prior_baseline_puts_voxels_where_its_depth_says(data):
 
 @pytest.mark.parametrize("level", ["coarse", "fine"])
 def test_calibrated_latents_have_unit_rms(data, level):
-    from scube_sim.model.geometry import calibrate_latent_std
+    from scube_sim.model.geometry.stage import calibrate_latent_std
 
     torch.manual_seed(0)
     stage = get_stage("geometry-vae")
@@ -406,7 +408,7 @@ def test_calibrated_latents_have_unit_rms(data, level):
     model = stage.build_model(stage.model_config(level=level, vae=VAEConfig(**VAE)))
     std = calibrate_latent_std(model, ds)
     batch = [ds[0]]
-    from scube_sim.model.geometry import _dense_batch, _sparse_batch
+    from scube_sim.model.geometry.stage import _dense_batch, _sparse_batch
 
     with torch.no_grad():
         if level == "fine":
@@ -536,7 +538,7 @@ def test_observed_voxels_are_the_first_surface_each_camera_sees():
     """A pinhole camera at the origin looking along +x at two walls, 10 m and 14 m out: the near
     wall's voxels inside the field of view are observed, the far wall (behind it) and the near
     wall's voxels outside the view are not."""
-    from scube_sim.model.geometry import observed_voxels
+    from scube_sim.model.geometry.net import observed_voxels
 
     grid = LiftGrid(origin=(-8.0, -8.0, -8.0), voxel_size=1.0, dims=(32, 16, 16))
     near = torch.tensor([[18, j, k] for j in range(16) for k in range(16)])  # x in [10, 11) m
@@ -563,7 +565,7 @@ def test_observed_voxels_are_the_first_surface_each_camera_sees():
 
 
 def test_confidence_is_the_share_of_samples_holding_each_voxel(data):
-    from scube_sim.model.geometry import observed_voxels
+    from scube_sim.model.geometry.net import observed_voxels
 
     _, item = _geometry_item(data)
     torch.manual_seed(0)  # the weights: otherwise they depend on which tests ran before

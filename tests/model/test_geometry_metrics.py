@@ -15,8 +15,15 @@ from scipy.spatial.transform import Rotation
 from scube_sim.camera.model import Intrinsics
 from scube_sim.errors import InputError
 from scube_sim.labels import NUM_LABELS, label_id
-from scube_sim.model.geometry_metrics import (chamfer_voxels, geometry_sample_metrics, semantic_confusion,
-                                              semantic_iou, summarise, visible_voxels, voxel_iou)
+from scube_sim.model.geometry.metrics import (
+    chamfer_voxels,
+    geometry_sample_metrics,
+    semantic_confusion,
+    semantic_iou,
+    summarise,
+    visible_voxels,
+    voxel_iou,
+)
 
 CAR, ROAD, BUILDING = label_id("car"), label_id("road"), label_id("building")
 E = NUM_LABELS  # the 'empty' row / column of a confusion
@@ -136,7 +143,7 @@ def test_chamfer_of_empty_grids():
 def test_chamfer_is_the_brute_force_mean_of_nearest_distances(seed, low, high):
     """Random grids with repeated and shared voxels (the shared ones skip the nearest-site query)
     against every pairwise distance in float64."""
-    from scube_sim.model.geometry_metrics import _nearest_distance_sum
+    from scube_sim.model.geometry.metrics import _nearest_distance_sum
 
     rng = np.random.default_rng(seed)
     g = rng.integers(low, high, (300, 3))
@@ -157,7 +164,7 @@ def test_chamfer_is_the_brute_force_mean_of_nearest_distances(seed, low, high):
 def test_chamfer_auto_route_splits_near_and_far_queries_exactly(monkeypatch):
     """The 'auto' route's mix (a bounded tree query for near voxels, the distance transform for the
     rest), forced at a small size, against every pairwise distance."""
-    import scube_sim.model.geometry_metrics as gm
+    import scube_sim.model.geometry.metrics as gm
 
     monkeypatch.setattr(gm, "_EDT_MIN_FAR", 10)
     rng = np.random.default_rng(7)

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from scube_sim.model.config import configs_dir, load_config, stage_configs
-from scube_sim.model.geometry_nets import Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
-from scube_sim.model.geometry_sparse import SparseDenoiser, SparseSelfAttention, SparseStructureVAE
+from scube_sim.model.geometry.dense_nets import Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
+from scube_sim.model.geometry.sparse_nets import SparseDenoiser, SparseSelfAttention, SparseStructureVAE
 from scube_sim.model.stages import get_stage
 
 META = torch.device("meta")

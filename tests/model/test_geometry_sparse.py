@@ -8,10 +8,17 @@ from __future__ import annotations
 import pytest
 import torch
 
-from scube_sim.model.geometry_nets import NUM_LABELS, Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
-from scube_sim.model.geometry_sparse import (SparseDenoiser, SparseSelfAttention, SparseStructureVAE, avg_pool2,
-                                             row_ids, upsample_nearest2)
-from scube_sim.model.sparse import SparseTensor, unique_coords
+from scube_sim.labels import NUM_LABELS
+from scube_sim.model.geometry.dense_nets import Denoiser3d, SelfAttention3d, StructureVAE, VAEConfig
+from scube_sim.model.geometry.sparse_nets import (
+    SparseDenoiser,
+    SparseSelfAttention,
+    SparseStructureVAE,
+    avg_pool2,
+    row_ids,
+    upsample_nearest2,
+)
+from scube_sim.model.nn.sparse import SparseTensor, unique_coords
 
 META = torch.device("meta")
 

@@ -12,7 +12,7 @@ import torch
 
 from scube_sim.config import ConfigError, validate_model
 from scube_sim.errors import InputError
-from scube_sim.model.image_encoder import (
+from scube_sim.model.nn.image_encoder import (
     LITE_MEAN,
     LITE_STD,
     ImageEncoderConfig,

@@ -7,8 +7,16 @@ import pytest
 import torch
 
 from scube_sim.camera.model import Intrinsics
-from scube_sim.model.lifting import (LiftGrid, depth_bin_centres, depth_bin_edges, depth_focal_loss, depth_to_bin,
-                                     feature_intrinsics, frustum_points, lift)
+from scube_sim.model.nn.lifting import (
+    LiftGrid,
+    depth_bin_centres,
+    depth_bin_edges,
+    depth_focal_loss,
+    depth_to_bin,
+    feature_intrinsics,
+    frustum_points,
+    lift,
+)
 
 # camera at (1, 2, 3) in the chunk looking along +x: camera z -> chunk x, camera x -> -y, camera y -> -z
 POSE = torch.tensor([[0.0, 0.0, 1.0, 1.0], [-1.0, 0.0, 0.0, 2.0], [0.0, -1.0, 0.0, 3.0], [0.0, 0.0, 0.0, 1.0]],

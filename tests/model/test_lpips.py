@@ -13,8 +13,9 @@ import torch
 from numpy.lib.stride_tricks import sliding_window_view
 
 from scube_sim.errors import InputError
-from scube_sim.model.appearance import AppearanceNet, evaluate_item, view_losses
-from scube_sim.model.lpips import LPIPS, LPIPSConfig, load_lpips
+from scube_sim.model.appearance.losses import evaluate_item, view_losses
+from scube_sim.model.appearance.net import AppearanceNet
+from scube_sim.model.nn.lpips import LPIPS, LPIPSConfig, load_lpips
 from scube_sim.model.stages import get_stage
 
 from .test_appearance import DATA, MODEL, data  # noqa: F401  (the tiny worlds fixture)

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.errors import InputError
-from scube_sim.model.sensor_to_sensor import (
+from scube_sim.model.eval.sensor_to_sensor import (
     ahead_poses,
     evaluate_split,
     geometric_lidar,

@@ -8,13 +8,18 @@ import pytest
 import torch
 
 from scube_sim.datasets import open_dataset
-from scube_sim.model.appearance import evaluate_item
-from scube_sim.model.converter import Converter, load_profile, shipped_profiles
-from scube_sim.model.geometry import GeometryNet
-from scube_sim.model.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, shipped_checkpoints
+from scube_sim.model.appearance.losses import evaluate_item
+from scube_sim.model.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    load_model,
+    resolve_checkpoint,
+    shipped_checkpoints,
+)
 from scube_sim.model.config import stage_configs
+from scube_sim.model.converter import Converter, load_profile, shipped_profiles
+from scube_sim.model.geometry.net import GeometryNet
 from scube_sim.model.stages import get_stage
-from scube_sim.model.trainer import load_model
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
 
@@ -127,8 +132,8 @@ def test_the_fine_checkpoint_labels_its_sub_voxels_from_the_images(held_out_worl
     its 0.2 m voxels lie inside the coarse sites, and far more of them carry the ground truth's
     label than the VAE's zero latent gives (the prior's mean, no images; measured on this world:
     0.51 against 0.22 of the voxels; on the test split: mIoU 0.222 against 0.021)."""
-    from scube_sim.model.geometry_sparse import decoded_voxels
-    from scube_sim.model.sparse import SparseTensor
+    from scube_sim.model.geometry.sparse_nets import decoded_voxels
+    from scube_sim.model.nn.sparse import SparseTensor
 
     ck = load_checkpoint(resolve_checkpoint("geometry-fine-cpu"))
     assert ck["stage"] == "geometry" and "optimizer" not in ck and "rng" not in ck

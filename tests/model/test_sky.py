@@ -9,7 +9,7 @@ import math
 import numpy as np
 import torch
 
-from scube_sim.model.sky import (
+from scube_sim.model.nn.sky import (
     SkyDecoder,
     build_panorama,
     camera_ray_directions,

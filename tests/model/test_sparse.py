@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scube_sim.errors import InputError
-from scube_sim.model.sparse import (
+from scube_sim.model.nn.sparse import (
     Grid,
     SparseBatchNorm,
     SparseConv3d,

@@ -14,8 +14,8 @@ import pytest
 import torch
 
 from scube_sim.camera.model import Intrinsics
-from scube_sim.model.camera import distort, distort_jacobian
-from scube_sim.model.splat_render import project_gaussians, rasterization
+from scube_sim.model.nn.camera import distort, distort_jacobian
+from scube_sim.model.nn.splat_render import project_gaussians, rasterization
 
 W, H = 40, 24  # three by two tiles of 16, the right and bottom ones partial
 

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 from scube_sim.camera.rig import load_rig
 from scube_sim.cli import app
 from scube_sim.io.ply3dgs import write_3dgs_ply
-from scube_sim.model.views import render_rig
+from scube_sim.model.nn.views import render_rig
 from scube_sim.voxsplat import SH_C0, Gaussians, VoxSplat
 
 

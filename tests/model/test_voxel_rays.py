@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from scube_sim.model.voxel_rays import VoxelRayCaster, deposit_mean
+from scube_sim.model.nn.voxel_rays import VoxelRayCaster, deposit_mean
 from scube_sim.raytrace import compiled
 
 from ..raytrace.engines import engine_kw

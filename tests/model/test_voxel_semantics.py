@@ -13,11 +13,13 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
-from scube_sim.labels import LABEL_NAMES, label_id
+from scube_sim.labels import LABEL_NAMES, NUM_LABELS, label_id
 from scube_sim.model.config import load_config
+from scube_sim.model.eval.evaluate import evaluate
+from scube_sim.model.semantics.data import collate_grids
+from scube_sim.model.semantics.stage import semantic_metrics
 from scube_sim.model.stages import get_stage
-from scube_sim.model.trainer import evaluate, train
-from scube_sim.model.voxel_semantics import NUM_LABELS, collate_grids, semantic_metrics
+from scube_sim.model.trainer import train
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
 TINY = DatasetConfig(image_scale=0.04, visibility_scale=0.04, fine_voxel_m=0.4, coarse_factor=2, frame_offsets=[0],

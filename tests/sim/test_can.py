@@ -15,13 +15,7 @@ import numpy as np
 import pytest
 
 from scube_sim.errors import ScubeSimWarning
-from scube_sim.geodesy import (
-    ecef_to_enu,
-    ecef_to_geodetic,
-    enu_rotation,
-    enu_to_ecef,
-    geodetic_to_ecef,
-)
+from scube_sim.geodesy import ecef_to_enu, ecef_to_geodetic, enu_rotation, enu_to_ecef, geodetic_to_ecef
 from scube_sim.sim.can import (
     FRAME_READY_DBC,
     FRAME_READY_ID,

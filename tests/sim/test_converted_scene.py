@@ -18,9 +18,9 @@ from scube_sim.lidar.config import ConfigError
 from scube_sim.mesh import TriangleMesh
 from scube_sim.model.converter import Converter, open_frames
 from scube_sim.raytrace.tracer import Tracer
+from scube_sim.runs.scenario import load_scenario
 from scube_sim.sim.converted import remove_boxes, scene_part, simulated_scene
-from scube_sim.sim.scenario import load_scenario
-from scube_sim.sim.sim_scene import Part
+from scube_sim.sim.scene import Part
 from scube_sim.transforms import pose_from_xyz_rpy
 
 
@@ -62,7 +62,7 @@ def test_a_chunk_frame_scene_is_placed_by_its_pose_and_traced_in_its_mode():
     part = scene_part(wall)
     assert part.tracer.mode == "soft"
     np.testing.assert_array_equal(part.pose, c2w)
-    from scube_sim.sim.sim_scene import SimScene
+    from scube_sim.sim.scene import SimScene
 
     h = SimScene(static=[part]).trace_world(np.array([[100.0, 50.0, 1.5]]), np.array([[0.0, 1.0, 0.0]]))
     assert h.hit[0] and h.t[0] == pytest.approx(9.9, abs=0.15)
@@ -80,20 +80,13 @@ def test_scene_frames_validation_names_the_key(tmp_path):
     assert load_scenario(p)[0].scene.frames.path == "some/sample"  # the shorthand
 
 
-def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(tiny_converter, monkeypatch):
-    import scube_sim.model.converter as converter
+def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(tiny_converter):
+    import scube_sim
 
-    real = converter.convert
-
-    def convert_with_a_car(*args, **kwargs):
-        # the tiny model predicts terrain only: make its first voxel a car the actor stands in
-        vs = real(*args, **kwargs)
-        vs.labels[0] = LABEL_IDS["car"]
-        return vs
-
-    monkeypatch.setattr(converter, "convert", convert_with_a_car)
     frames = open_frames(tiny_converter["sample"])
-    plain = convert_with_a_car(frames, profile=tiny_converter["profile"], sky=False)
+    # the tiny model predicts terrain only: make its first voxel a car the actor stands in
+    plain = scube_sim.convert(frames, profile=tiny_converter["profile"], sky=False)
+    plain.labels[0] = LABEL_IDS["car"]
     c2w = np.asarray(plain.metadata["chunk_to_world"])
     centre = c2w[:3, :3] @ (plain.voxel_centers()[0] + plain.origin) + c2w[:3, 3]
     mesh = TriangleMesh(np.array([[0, 0, 0.0], [1, 0, 0], [0, 1, 0]]), np.array([[0, 1, 2]]))
@@ -101,7 +94,7 @@ def test_host_frames_become_a_simulated_scene_with_the_actor_cut_out(tiny_conver
     pose[:3, 3] = centre - c2w[:3, 2] * 0.5  # the box's footprint half a metre under the voxel centre
     actor = Part(Tracer(mesh), pose_fn=lambda t, p=pose: np.repeat(p[None], len(np.atleast_1d(t)), 0), instance=9,
                  label=LABEL_IDS["car"], size=np.array([1.0, 1.0, 1.0]))
-    scene, vs = simulated_scene(frames, profile=tiny_converter["profile"], actors=[actor])
+    scene, vs = simulated_scene(frames, plain, actors=[actor])
     assert scene.actors == [actor] and scene.has_provenance
     # the car voxel is gone; the terrain voxels beside it (inside the grown box too) stay
     assert vs.metadata["removed_actor_voxels"] == 1 and vs.num_voxels == plain.num_voxels - 1
@@ -142,7 +135,7 @@ def _held_trajectory(tmp_path, tiny_converter):
 
 
 def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(tiny_converter, tmp_path):
-    from scube_sim.sim.scenario import build_scene, route_stops
+    from scube_sim.runs.scenario import build_scene, route_stops
     from scube_sim.worlds.generator import WorldConfig, generate_world
     from scube_sim.worlds.groundtruth import chunk_frames
 
@@ -180,8 +173,8 @@ def test_a_route_converts_one_chunk_per_stop_from_the_rig_held_at_its_origin(tin
 def test_scene_soft_alpha_min_reaches_the_tracer_and_drops_fainter_contributions(tmp_path):
     """`scene.soft_alpha_min`: three layers of Gaussians of opacity 0.3 composite to about 0.66
     (a return at the tracer's default floor); with the floor at 0.35 each is dropped (no return)."""
-    from scube_sim.sim.scenario import build_scene
-    from scube_sim.sim.sim_scene import SimScene
+    from scube_sim.runs.scenario import build_scene
+    from scube_sim.sim.scene import SimScene
 
     slab = fit_voxsplat(_slab(9.8, 10.4, -3, 3, 0, 3, 0.05), 0.2, gaussians_per_voxel=1)
     slab.params[..., 3] = np.log(0.3 / 0.7)  # raw opacity: sigmoid -> 0.3

@@ -24,7 +24,7 @@ from scube_sim.run_manifest import (
     prepare_output,
     read_manifest,
 )
-from scube_sim.sim import scenario as scenario_mod
+from scube_sim.runs import scenario as scenario_mod
 from scube_sim.sim.sinks import FileSink
 from scube_sim.worlds.generator import WorldConfig
 

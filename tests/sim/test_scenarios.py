@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from scube_sim.cli import app
 from scube_sim.io.pointcloud import read_kitti_bin, read_pcd
 from scube_sim.lidar.config import ConfigError
-from scube_sim.sim.scenario import build_run, load_scenario
+from scube_sim.runs.scenario import build_run, load_scenario
 from scube_sim.sim.sinks import CallbackSink
 
 REPO = Path(__file__).resolve().parents[2]

@@ -13,7 +13,7 @@ from scube_sim.lidar.config import config_from_dict
 from scube_sim.lidar.model import Lidar
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.sim.contracts import SimulatedScene
-from scube_sim.sim.sim_scene import Part, SimScene, StaticScene, as_simulated_scene
+from scube_sim.sim.scene import Part, SimScene, StaticScene, as_simulated_scene
 from scube_sim.sim.simulator import LidarSensor, Simulator
 from scube_sim.sim.sources import track_pose_fn
 from scube_sim.transforms import invert_pose, pose_from_xyz_rpy
@@ -151,7 +151,7 @@ def _spin_rays(rng, n_cols=720, rings=16, centre=(0.0, 0.0, 1.8), spread=0.5):
 def test_the_cull_keeps_every_ray_the_per_ray_sphere_test_keeps(rng, layout):
     # Blocks of directions and the origins' ball against the per-ray test written out, part by
     # part; the rays left out must be ones the per-ray test leaves out.
-    from scube_sim.sim.sim_scene import _RayBatch
+    from scube_sim.sim.scene import _RayBatch
 
     parts = []
     for k in range(10):

@@ -13,7 +13,7 @@ from scube_sim.labels import label_id
 from scube_sim.lidar.config import config_from_dict, load_lidar_config
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
-from scube_sim.sim.sim_scene import ChunkSet, ChunkSpec, Part, SimScene
+from scube_sim.sim.scene import ChunkSet, ChunkSpec, Part, SimScene
 from scube_sim.sim.simulator import LidarSensor, Simulator
 from scube_sim.sim.sinks import CallbackSink, FileSink, SinkError
 from scube_sim.sim.sources import EditedTrajectory, TrajectorySource, track_pose_fn

@@ -141,7 +141,7 @@ def simulated_run(path: Path, ticks: int = 3) -> list:
     from scube_sim.labels import label_id
     from scube_sim.lidar.config import load_lidar_config
     from scube_sim.raytrace.tracer import Tracer
-    from scube_sim.sim.sim_scene import Part, SimScene
+    from scube_sim.sim.scene import Part, SimScene
     from scube_sim.sim.simulator import LidarSensor, Simulator
     from scube_sim.sim.sources import track_pose_fn
     from scube_sim.transforms import pose_from_xyz_rpy

@@ -30,6 +30,13 @@ BACKWARD_TOLERANCE_S = 1e-3
 GAP_S = 1.0
 
 
+def _can():
+    """python-can, imported on first use: `scube_sim.sim` imports this module; only an opened bus or log needs it."""
+    import can
+
+    return can
+
+
 @dataclass
 class TimeJumps:
     """Timestamp faults met while reading a log: `backward` messages stamped more than
@@ -154,9 +161,7 @@ class CanPoseSource:
             decoder = CanVehicleDecoder(dbc, channels=channels)
         self = cls(decoder, reckoner, start=start, stop=stop, name="CAN bus")
         if isinstance(bus, dict):
-            import can
-
-            self._bus = can.Bus(**bus)
+            self._bus = _can().Bus(**bus)
             self._owns_bus = True
             self.name = f"CAN bus {bus.get('interface', '?')}:{bus.get('channel', '?')}"
         else:
@@ -168,7 +173,7 @@ class CanPoseSource:
     def _window(self, path: Path) -> Iterator:
         """The log's messages inside the window that the decoder reads (assumes a time-ordered
         log, as candump / ASC / BLF loggers write; reading stops at the window's end)."""
-        import can
+        can = _can()
 
         n, last_t, newest = 0, None, None
         jumps = self.jumps = TimeJumps()
@@ -240,7 +245,7 @@ class CanPoseSource:
                       f"{used} of the window (0 to {stop})", ScubeSimWarning, stacklevel=3)
 
     def _replay(self) -> None:
-        import can
+        can = _can()
 
         try:
             # MessageSync sleeps by timestamp differences: compress them by `speed`

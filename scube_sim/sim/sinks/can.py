@@ -10,6 +10,13 @@ from ..frame import Frame
 from .base import RunInfo, Sink
 
 
+def _can():
+    """python-can, imported on first use: `scube_sim.sim` imports this sink, and only a run that sends needs it."""
+    import can
+
+    return can
+
+
 class CanFrameSink(Sink):
     """Sends one "frame ready" CAN message per frame.
 
@@ -57,9 +64,7 @@ class CanFrameSink(Sink):
 
     def open(self, run: RunInfo | None = None) -> None:
         if self.bus is None:
-            import can
-
-            self.bus = can.Bus(interface=self.interface, channel=self.channel, **self.bus_kwargs)
+            self.bus = _can().Bus(interface=self.interface, channel=self.channel, **self.bus_kwargs)
             self._owns_bus = True
         self.counter = 0
 
@@ -75,7 +80,7 @@ class CanFrameSink(Sink):
         return self._message.encode(values, scaling=False, padding=True, strict=False)
 
     def write(self, frame: Frame) -> None:
-        import can
+        can = _can()
 
         if self.bus is None:
             self.open(None)

@@ -33,6 +33,7 @@ from __future__ import annotations
 import re
 from io import StringIO
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Literal
 
 import numpy as np
@@ -143,16 +144,31 @@ class RosbagConfig(RosNamesConfig):
         return self.frame_ids.get(sensor, ros_name(sensor))
 
 
+def _rosbags() -> SimpleNamespace:
+    """What this sink uses of rosbags, imported on first use (~0.05 s): `scube_sim.sim` imports this module, and
+    only a run that writes a bag needs it."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+    from rosbags.rosbag2.metadata import dump_qos_v8
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    return SimpleNamespace(
+        Qos=Qos, QosDurability=QosDurability, QosHistory=QosHistory, QosLiveliness=QosLiveliness,
+        QosReliability=QosReliability, QosTime=QosTime, StoragePlugin=StoragePlugin, Writer=Writer,
+        CompressionFormat=CompressionFormat, CompressionMode=CompressionMode, dump_qos_v8=dump_qos_v8,
+        Stores=Stores, get_types_from_msg=get_types_from_msg, get_typestore=get_typestore)
+
+
 def typestore():
     """The rosbags typestore of ROS 2 Jazzy with vision_msgs registered. Every message written
     here has the same fields in Humble's store (Marker's texture and mesh_file included; only a
     constant differs), so one bag serves both."""
-    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
-
-    ts = get_typestore(Stores.ROS2_JAZZY)
+    rb = _rosbags()
+    ts = rb.get_typestore(rb.Stores.ROS2_JAZZY)
     types = {}
     for name, text in VISION_MSGS.items():
-        types.update(get_types_from_msg(text, name))
+        types.update(rb.get_types_from_msg(text, name))
     ts.register(types)
     return ts
 
@@ -177,9 +193,9 @@ class RosbagSink(Sink):
 
     # ---------------------------------------------------------------- setup
     def open(self, run: RunInfo) -> None:
-        from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
-        from rosbags.rosbag2 import StoragePlugin, Writer
-        from rosbags.rosbag2.enums import CompressionFormat, CompressionMode
+        rb = _rosbags()
+        Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime = (
+            rb.Qos, rb.QosDurability, rb.QosHistory, rb.QosLiveliness, rb.QosReliability, rb.QosTime)
 
         cfg = self.config
         if self.folder.exists():
@@ -206,9 +222,9 @@ class RosbagSink(Sink):
                        QosDurability.TRANSIENT_LOCAL if latched else QosDurability.VOLATILE, zero, zero,
                        QosLiveliness.AUTOMATIC, zero, False)
 
-        w = Writer(self.folder, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        w = rb.Writer(self.folder, version=BAG_VERSION, storage_plugin=rb.StoragePlugin.MCAP)
         if cfg.compression == "zstd":
-            w.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)
+            w.set_compression(rb.CompressionMode.STORAGE, rb.CompressionFormat.ZSTD)
         w.set_custom_data("scube_sim.origin", " ".join(repr(float(v)) for v in np.asarray(run.origin).reshape(3)))
         w.set_custom_data("scube_sim.start_time", repr(float(run.start_time)))
         w.set_custom_data("scube_sim.time_offset_s", repr(float(cfg.time_offset_s)))
@@ -401,8 +417,9 @@ _NP = {"bool": np.bool_, "int8": np.int8, "uint8": np.uint8, "byte": np.uint8, "
 
 def _metadata_yaml(w) -> str:
     """metadata.yaml for what `w` (a rosbags Writer) has written so far, as its close() writes it."""
-    from rosbags.rosbag2.metadata import dump_qos_v8
     from ruamel.yaml import YAML
+
+    dump_qos_v8 = _rosbags().dump_qos_v8
 
     start = w.min_timestamp if w.counts and sum(w.counts.values()) else 0
     duration = max(0, w.max_timestamp - w.min_timestamp) if start else 0

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -72,6 +73,14 @@ SENSORS_PATH = "/World/Sensors"
 POINTS_NAME = "Points"
 DEFAULT_PRIMVARS = ("intensity", "ring", "label", "time", "instance")
 CLIP_SET = "default"
+
+
+def _pxr() -> SimpleNamespace:
+    """pxr's modules, imported on first use (~0.2 s): `scube_sim.sim` imports this sink, and only a run that
+    writes a stage needs USD."""
+    from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
+
+    return SimpleNamespace(Gf=Gf, Sdf=Sdf, Tf=Tf, Usd=Usd, UsdGeom=UsdGeom, Vt=Vt)
 
 
 @dataclass
@@ -139,7 +148,8 @@ class UsdSink(Sink):
 
     # ---------------------------------------------------------------- setup
     def open(self, run: RunInfo) -> None:
-        from pxr import Gf, Usd, UsdGeom
+        pxr = _pxr()
+        Gf, Usd, UsdGeom = pxr.Gf, pxr.Usd, pxr.UsdGeom
 
         self._tcps = float(run.time_codes_per_second)
         self._start = float(run.start_time)
@@ -168,16 +178,12 @@ class UsdSink(Sink):
             self._save_root()  # a valid (empty) stage from the start
 
     def _declare(self, prim, name: str, type_name: str):
-        from pxr import Sdf
-
-        prim.CreateAttribute(name, getattr(Sdf.ValueTypeNames, type_name), custom=True)
+        prim.CreateAttribute(name, getattr(_pxr().Sdf.ValueTypeNames, type_name), custom=True)
         self._register(prim.GetPath().pathString, name, type_name, custom=True)
 
     def _register(self, prim: str, name: str, type_name, custom: bool) -> None:
-        from pxr import Sdf
-
         if isinstance(type_name, str):
-            type_name = getattr(Sdf.ValueTypeNames, type_name)
+            type_name = getattr(_pxr().Sdf.ValueTypeNames, type_name)
         entry = _Sampled(prim, name, type_name, custom)
         self._sampled.append(entry)
         if self._chunk is not None:
@@ -186,7 +192,8 @@ class UsdSink(Sink):
     def _define_sensor(self, name: str, info: dict, fields=()) -> _Track:
         """The sensor's prims; `fields`: the first sweep's point fields (a converted scene's
         observed / confidence become primvars where present; later sweeps without them write 1)."""
-        from pxr import Tf, UsdGeom
+        pxr = _pxr()
+        Tf, UsdGeom = pxr.Tf, pxr.UsdGeom
 
         prim_name = Tf.MakeValidIdentifier(name)
         if prim_name in self._prim_names:
@@ -225,7 +232,8 @@ class UsdSink(Sink):
         return (float(t) - self._start) * self._tcps
 
     def write(self, frame: Frame) -> None:
-        from pxr import Sdf, Tf
+        pxr = _pxr()
+        Sdf, Tf = pxr.Sdf, pxr.Tf
 
         if self._stage is None:
             raise RuntimeError("UsdSink.write before open()")
@@ -294,9 +302,7 @@ class UsdSink(Sink):
         if not self.clips:
             return self._stage.GetRootLayer()
         if self._chunk is None:
-            from pxr import Sdf
-
-            self._chunk = Sdf.Layer.CreateAnonymous(f"scube_sim_clip{self.clip_suffix}")
+            self._chunk = _pxr().Sdf.Layer.CreateAnonymous(f"scube_sim_clip{self.clip_suffix}")
             _add_specs(self._chunk, self._sampled)
         return self._chunk
 
@@ -319,7 +325,8 @@ class UsdSink(Sink):
         return True
 
     def _save_root(self) -> None:
-        from pxr import Gf, Sdf, Vt
+        pxr = _pxr()
+        Gf, Sdf, Vt = pxr.Gf, pxr.Sdf, pxr.Vt
 
         root = self._stage.GetRootLayer()
         if self.clips:
@@ -368,7 +375,7 @@ class UsdSink(Sink):
 
 def _add_specs(layer, entries) -> None:
     """`over` prim specs with the sampled attributes declared (type only) in `layer`."""
-    from pxr import Sdf
+    Sdf = _pxr().Sdf
 
     for e in entries:
         prim = layer.GetPrimAtPath(e.prim) or Sdf.CreatePrimInLayer(layer, e.prim)
@@ -379,8 +386,6 @@ def _add_specs(layer, entries) -> None:
 
 def _manifest(entries):
     """The value-clip manifest: every sampled attribute, declared, without values."""
-    from pxr import Sdf
-
-    layer = Sdf.Layer.CreateAnonymous("scube_sim_manifest.usda")
+    layer = _pxr().Sdf.Layer.CreateAnonymous("scube_sim_manifest.usda")
     _add_specs(layer, entries)
     return layer

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Literal
 
 import numpy as np
@@ -86,12 +87,28 @@ def viewer_points(points: np.ndarray) -> np.ndarray:
     return out
 
 
+def _protobuf() -> SimpleNamespace:
+    """protobuf's descriptor modules, imported on first use: `scube_sim.sim` imports this module, and only
+    recording or reading back a viewer file needs them."""
+    from google.protobuf import descriptor_pool, message_factory
+    from google.protobuf.descriptor_pb2 import FileDescriptorSet
+
+    return SimpleNamespace(descriptor_pool=descriptor_pool, message_factory=message_factory,
+                           FileDescriptorSet=FileDescriptorSet)
+
+
+def _mcap() -> SimpleNamespace:
+    """mcap's writer and reader, imported on first use (as `_protobuf`)."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    return SimpleNamespace(CompressionType=CompressionType, Writer=Writer, make_reader=make_reader)
+
+
 def _descriptor_set(descriptor) -> bytes:
     """The serialized FileDescriptorSet of a message's file and its imports, imports first (what
     MCAP's protobuf profile stores as the schema)."""
-    from google.protobuf.descriptor_pb2 import FileDescriptorSet
-
-    fds, seen = FileDescriptorSet(), set()
+    fds, seen = _protobuf().FileDescriptorSet(), set()
 
     def add(fd):
         if fd.name in seen:
@@ -126,8 +143,9 @@ class ViewerSink(Sink):
         from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
         from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
         from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
-        from mcap.writer import CompressionType, Writer
 
+        mcap = _mcap()
+        CompressionType = mcap.CompressionType
         cfg = self.config
         if self.path.is_dir():
             raise InputError(f"ViewerSink: {self.path} is a folder; give the .mcap file's path")
@@ -141,7 +159,7 @@ class ViewerSink(Sink):
         except OSError as exc:
             raise with_path(exc, self.path) from exc
         comp = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[cfg.compression]
-        w = self._writer = Writer(self._fh, compression=comp)
+        w = self._writer = mcap.Writer(self._fh, compression=comp)
         w.start(profile="", library="scube_sim")
         w.add_metadata("scube_sim", {"start_time": repr(float(run.start_time)),
                                      "origin": " ".join(repr(float(v)) for v in np.asarray(run.origin).reshape(3)),
@@ -257,9 +275,9 @@ class Recording:
 
 def read_recording(path: str | Path) -> Recording:
     """Decode a `ViewerSink` file with the protobuf schemas stored in it."""
-    from google.protobuf import descriptor_pool, message_factory
-    from google.protobuf.descriptor_pb2 import FileDescriptorSet
-    from mcap.reader import make_reader
+    pb = _protobuf()
+    descriptor_pool, message_factory, FileDescriptorSet = pb.descriptor_pool, pb.message_factory, pb.FileDescriptorSet
+    make_reader = _mcap().make_reader
 
     path = Path(path)
     out = Recording()

@@ -1,0 +1,76 @@
+"""What every command module shares: the typer app and its sub-apps, the `handle_errors` decorator
+that turns errors into one-line messages and exit codes, and option parsing (--pose, index lists)."""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import typer
+
+from ..errors import ScubeSimError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
+                  help="LiDAR simulation on VoxSplats (SCube): hard-opacity Gaussian ray tracing with Embree.")
+datasets_app = typer.Typer(no_args_is_help=True, help="Real sensor datasets: export to the generic folder format.")
+app.add_typer(datasets_app, name="datasets")
+worlds_app = typer.Typer(no_args_is_help=True, help="Procedural driving worlds and their datasets.")
+app.add_typer(worlds_app, name="worlds")
+
+EXIT_USAGE = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as shells report it
+
+
+class CliError(ScubeSimError):
+    """An input problem to report in one line (exit code 2)."""
+
+
+def _fail(msg: str) -> None:
+    typer.echo(f"error: {msg}", err=True)
+    raise typer.Exit(EXIT_USAGE)
+
+
+def handle_errors(command):
+    """Decorate a command (under `@app.command`): our errors (`ScubeSimError`) and file-system errors
+    become one-line messages and exit code 2, Ctrl-C one line and exit code 130; anything else is
+    a bug and shows its traceback. `functools.wraps` keeps the signature typer reads the options from."""
+
+    @functools.wraps(command)
+    def run(*args, **kwargs):
+        try:
+            return command(*args, **kwargs)
+        except ScubeSimError as exc:
+            msg = str(exc).strip().splitlines()
+            _fail(msg[0] if len(msg) == 1 else "; ".join(msg))
+        except OSError as exc:
+            if exc.strerror is None and exc.args:  # raised with a message of ours, e.g. "X: no such scene file"
+                _fail(str(exc.args[0]))
+            _fail(f"{getattr(exc, 'filename', '') or ''}: {exc.strerror or exc}".lstrip(": "))
+        except KeyboardInterrupt:
+            # every output is whole (atomic files, sinks closed with the frames completed)
+            typer.echo("interrupted: the outputs written so far are complete files", err=True)
+            raise typer.Exit(EXIT_INTERRUPTED) from None
+
+    return run
+
+
+def parse_pose(text: str) -> np.ndarray:
+    """--pose x,y,z,roll,pitch,yaw (metres, degrees) -> (4, 4) pose."""
+    from ..transforms import pose_from_xyz_rpy
+
+    try:
+        vals = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise CliError(f"--pose: expected six numbers x,y,z,roll,pitch,yaw (metres, degrees), got {text!r}")
+    if len(vals) != 6 or not np.all(np.isfinite(vals)):
+        raise CliError(f"--pose: expected six finite numbers x,y,z,roll,pitch,yaw (metres, degrees), got {text!r}")
+    return pose_from_xyz_rpy(vals[:3], vals[3:])
+
+
+def int_list(text: str, flag: str) -> list[int]:
+    """Comma-separated sample indices of option `flag` ("" -> [])."""
+    try:
+        vals = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise CliError(f"{flag}: expected comma-separated sample indices, got {text!r}")
+    return vals

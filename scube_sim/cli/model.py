@@ -1,0 +1,118 @@
+"""The converter's model commands: `train` (a stage) and `eval` (a checkpoint, or the whole
+converter end to end with `eval sensor-to-sensor`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ._common import CliError, app, handle_errors
+
+
+@app.command("train")
+@handle_errors
+def train_cmd(
+    stage: str = typer.Argument(..., help="converter stage to train (geometry, appearance)"),
+    data: Path = typer.Option(..., "--data", help="dataset folder"),
+    config: Optional[str] = typer.Option(None, "--config", "-c", help="shipped training config name or a YAML path "
+                                         "(with --resume, default: the run's own)"),
+    output: Path = typer.Option(..., "-o", "--output", help="run folder (checkpoints, metrics.jsonl, loss.png)"),
+    resume: bool = typer.Option(False, "--resume", help="continue the run in -o from its last.pt"),
+    ranks: Optional[int] = typer.Option(None, "--ranks", help="processes (torch.distributed, gloo); default: the config's train.ranks"),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="show a progress bar"),
+) -> None:
+    """Train a converter stage (Adam; resumable bit for bit; data-parallel over CPU processes)."""
+    from ..model.checkpoint import load_checkpoint
+    from ..model.config import config_from_dict, load_config
+    from ..model.stages import get_stage
+    from ..model.trainer import LAST, train
+
+    st = get_stage(stage)
+    if config is not None:
+        cfg = load_config(config)
+    elif resume:
+        last = output / LAST
+        if not last.is_file():
+            raise CliError(f"{last}: no checkpoint to resume from")
+        cfg = config_from_dict(load_checkpoint(last)["config"], f"{last} (config)")
+    else:
+        raise CliError("--config: required for a new run (a shipped config name or a YAML path)")
+    res = train(st, cfg, data, output, resume=resume, progress=progress, ranks=ranks)
+    shown = ", ".join(f"{k} {v:.4g}" for k, v in res.metrics.items())
+    best = f"; best {st.primary_metric} {res.best_metric:.4g} at step {res.best_step}" if res.best_metric is not None else ""
+    typer.echo(f"{st.name}: step {res.step}, epoch {res.epoch}; val {shown}{best} -> {res.last}")
+
+
+@app.command("eval")
+@handle_errors
+def eval_cmd(
+    stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
+                                "appearance), or sensor-to-sensor: the whole converter, end to end"),
+    data: Path = typer.Option(..., "--data", help="dataset folder"),
+    checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
+                                             "checkpoint's name (appearance-cpu); a stage's evaluation needs it"),
+    split: str = typer.Option("test", "--split", help="train | val | test"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
+    data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
+                                          "config to change from the checkpoint's (repeatable; VALUE is YAML), "
+                                          "e.g. eval_frames=true"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+    profile: str = typer.Option("cpu", "--profile", help="sensor-to-sensor: converter profile (shipped name or YAML)"),
+    sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
+    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="sensor-to-sensor: the split's first N samples"),
+    gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="sensor-to-sensor: the ground-truth VoxSplat's voxel (m)"),
+    seed: int = typer.Option(0, "--seed", min=0, help="sensor-to-sensor: converter and LiDAR seed"),
+) -> None:
+    """Evaluate a checkpoint on one split of a dataset folder; `eval sensor-to-sensor` converts
+    each held-out worlds sample's cameras and sweeps a LiDAR through the result against the same
+    LiDAR on the world's mesh (model/eval/sensor_to_sensor.py)."""
+    import json
+
+    from ..atomic import atomic_path
+    from ..config import parse_key_values
+    from ..model.eval.evaluate import evaluate
+    from ..model.stages import get_stage
+
+    if stage == "sensor-to-sensor":
+        _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress)
+        return
+    if checkpoint is None:
+        raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
+
+    overrides = parse_key_values(data_option, "--data-option")
+    st = get_stage(stage)
+    metrics = evaluate(st, checkpoint, data, split=split, data_overrides=overrides, progress=progress)
+    if output is not None:
+        with atomic_path(output) as tmp:
+            tmp.write_text(json.dumps({"stage": st.name, "checkpoint": str(checkpoint), "split": split,
+                                       "data_options": overrides, "metrics": metrics}, indent=2) + "\n", encoding="utf-8")
+    order = "higher" if st.higher_is_better else "lower"
+    for k, v in metrics.items():
+        typer.echo(f"{k}: {v:.6g}" + (f"  (primary, {order} is better)" if k == st.primary_metric else ""))
+    if output is not None:
+        typer.echo(f"-> {output}")
+
+
+def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, limit: int | None, gt_voxel: float,
+                           seed: int, output: Path | None, progress: bool) -> None:
+    import json
+
+    from rich.progress import track
+
+    from ..atomic import atomic_path
+    from ..model.eval.sensor_to_sensor import evaluate_split, format_table
+
+    if not gt_voxel > 0:
+        raise CliError(f"--gt-voxel: expected a positive voxel size in metres, got {gt_voxel}")
+    bar = (lambda xs: track(xs, description="sensor to sensor")) if progress else None
+    res = evaluate_split(data, split=split, profile=profile, sensor=sensor, limit=limit, gt_voxel=gt_voxel,
+                         seed=seed, progress=bar)
+    if output is not None:
+        with atomic_path(output) as tmp:
+            tmp.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
+    for line in format_table(res, split, gt_voxel):
+        typer.echo(line)
+    if output is not None:
+        typer.echo(f"-> {output}")

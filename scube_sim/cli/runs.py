@@ -1,0 +1,100 @@
+"""Commands that run the program's jobs: `demo`, `replay` (a scenario end to end) and `batch`
+(one job over many inputs, locally or on Ray)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ._common import CliError, app, handle_errors
+
+
+@app.command("demo")
+@handle_errors
+def demo_cmd(
+    output: Path = typer.Option(Path("out"), "-o", "--output", help="output folder"),
+    sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
+    voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
+    seed: int = typer.Option(0, "--seed"),
+    profile: str = typer.Option("cpu-lidar", "--profile", help="converter profile for the camera-to-LiDAR part "
+                                "(cpu-lidar: one Gaussian per voxel; cpu-lidar-fine: with the fine geometry level, "
+                                "half its range error at about twice the conversion time)"),
+    convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),
+) -> None:
+    """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/; convert the
+    scene's camera images with the SCube converter and sweep that too."""
+    from ..runs.demo import run_demo
+
+    run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo,
+             profile=profile if convert else None)
+
+
+@app.command("replay")
+@handle_errors
+def replay_cmd(
+    scenario: Path = typer.Argument(..., help="scenario YAML (see scenarios/)"),
+    output: Path = typer.Option(..., "-o", "--output", help="output folder (new or empty; see --overwrite, --resume)"),
+    duration: Optional[float] = typer.Option(None, "--duration", help="seconds to simulate (default: the scenario's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="override the scenario's seed"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="clear the output folder's earlier run first "
+                                   "(the VoxSplat chunk cache scene_chunks/ is kept)"),
+    resume: bool = typer.Option(False, "--resume", help="continue the same run (same inputs and settings, "
+                                "by its manifest.json): nothing to do if complete, else run it again"),
+) -> None:
+    """Run a scenario end to end: frames (PCD/BIN/NPZ + manifest), a USD stage, CAN out."""
+    from ..runs.replay import replay
+
+    r = replay(scenario, output, duration=duration, seed=seed, overwrite=overwrite, resume=resume,
+               echo=lambda m: typer.echo(m))
+    if r.state == "complete":
+        typer.echo(f"{r.name}: {output} already holds this run, complete ({r.outputs} output "
+                   f"files, checksums verified); nothing to do")
+        return
+    typer.echo(f"{r.name}: {r.ticks} ticks ({r.simulated_s:.1f} s simulated), {r.sweeps} sweeps, {r.points} points "
+               f"in {r.run_s:.1f} s ({r.ticks / max(r.run_s, 1e-9):.1f} ticks/s; scene set-up {r.setup_s:.1f} s) "
+               f"-> {output}" + (" (run again: the earlier attempt was incomplete)" if r.state == "redo" else ""))
+
+
+@app.command("batch")
+@handle_errors
+def batch_cmd(
+    job: str = typer.Argument(..., help="worlds | build | replay | convert"),
+    inputs: list[str] = typer.Option(..., "--inputs", "-i", help="inputs: comma-separated, a glob, or a list file "
+                                     "(@FILE, one per line); worlds: SPLIT:INDEX or SPLIT:FIRST-LAST (repeatable)"),
+    output: Path = typer.Option(..., "-o", "--output", help="batch folder (created, or resumed: complete tasks are skipped)"),
+    workers: int = typer.Option(1, "--workers", "-w", help="tasks at a time (worker processes)"),
+    executor: str = typer.Option("local", "--executor", help="local (a process pool here) | ray"),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster address (default: start a local Ray)"),
+    retries: int = typer.Option(1, "--retries", help="further attempts after a failed one"),
+    threads: int = typer.Option(1, "--threads", help="BLAS / OpenMP / torch threads per worker"),
+    settings: Optional[Path] = typer.Option(None, "--settings", help="YAML mapping of the job's settings "
+                                            "(docs/batch.md)"),
+    set_: list[str] = typer.Option([], "--set", help="KEY=VALUE (YAML value): one setting, over --settings"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """Run one job over many inputs, resumably: locally or on Ray (docs/batch.md)."""
+    import yaml
+
+    from ..config import parse_key_values
+    from ..parallel.runner import run_batch
+    from ..runs.batch_jobs import make_job
+
+    data = {}
+    if settings is not None:
+        data = yaml.safe_load(settings.read_text(encoding="utf-8")) or {}
+        if not isinstance(data, dict):
+            raise CliError(f"--settings {settings}: expected a YAML mapping of settings")
+    data.update(parse_key_values(set_, "--set"))
+    rep = run_batch(make_job(job, data), inputs, output, executor=executor, workers=workers, retries=retries,
+                    threads=threads, address=address, progress=progress)
+    rate = f", {rep.tasks_per_minute:.1f} tasks/min" if rep.completed else ""
+    typer.echo(f"batch {job}: {rep.total} task(s): {rep.completed} done, {rep.skipped} already complete, "
+               f"{rep.failed} failed ({rep.attempts} attempt(s) in {rep.seconds:.1f} s{rate}; {executor}, "
+               f"{workers} worker(s)) -> {output / 'batch.json'}")
+    if rep.failed:
+        for key, r in rep.records.items():
+            if r["status"] == "failed":
+                typer.echo(f"failed: {key} ({r['input']}): {r['error']}", err=True)
+        raise typer.Exit(1)

@@ -1,0 +1,293 @@
+"""The converter measured end to end on the worlds' held-out split: camera frames -> converted
+VoxSplat -> LiDAR, against the same LiDAR on the world's exact mesh (`scube-sim eval
+sensor-to-sensor`).
+
+Each sample's world is regenerated from its ``meta.json`` (the generator is deterministic in its
+config and seed; the stored chunk pose is checked against the regenerated one). Three scenes are
+swept with the same rays from the same poses: the world's mesh at the frames' instant (the
+reference), the ground-truth VoxSplat fitted to that mesh at `gt_voxel` metres (the
+representation's own error: the upper bound any converter meets) and the converted VoxSplat (its
+own trace mode, metadata ``trace_mode``). Poses: the sensor on the ego at the input instant and
+moved `ahead` metres along the ego's heading (the paper's LiDAR simulation drives forward through
+the converted scene). The sensor model is geometric: no range noise, no drops, strongest return,
+no ego-body box, so the figures are the scenes', not the sensor's.
+
+Rays compared: those whose mesh return lies inside the converted chunk (0.5 m in from its faces).
+Seen / unseen: whether the mesh return's fine ground-truth voxel was seen by an input camera
+(the dataset's ``fine_visible``, from the input cameras' depth maps), independent of the
+prediction. Chamfer: the mean of the two directed mean nearest-neighbour distances between the
+two sweeps' points inside the chunk (metres).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from ...camera.rig import load_rig
+from ...errors import InputError
+from ...lidar.compare import fidelity_config, sweep_agreement
+from ...lidar.config import Drop, load_lidar_config
+from ...lidar.model import Lidar
+from ...memory import peak_mb, reset_peak
+from ...raytrace.tracer import Tracer
+from ...transforms import invert_pose, transform_points
+from ...voxsplat import VoxSplat, voxel_keys
+from ...worlds.generator import WorldConfig, generate_world
+from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, gt_voxsplat
+from ..converter import Converter, open_frames
+from ..data.worlds import resize_bilinear
+from ..geometry.metrics import chamfer_voxels, voxel_iou
+from ..nn.image_metrics import psnr
+from ..nn.views import render_rig
+
+AHEAD_M = (0.0, 20.0, 60.0)
+CHUNK_MARGIN_M = 0.5
+SCENES = ("ground-truth VoxSplat", "converted")
+
+__all__ = ["AHEAD_M", "SCENES", "SweepPoses", "ahead_poses", "evaluate_sample", "evaluate_split",
+           "format_table", "geometric_lidar", "seen_points", "summarise_rows",
+           "sweep_metrics"]
+
+
+def geometric_lidar(sensor: str) -> Lidar:
+    """The preset's rays and range limits without noise, drops, second returns or ego body."""
+    return Lidar(fidelity_config(load_lidar_config(sensor), noise=False, drop=Drop()))
+
+
+@dataclass
+class SweepPoses:
+    """One LiDAR pose: `ahead` metres along the ego heading; sensor-to-chunk and -world (4, 4)."""
+
+    ahead: float
+    chunk: np.ndarray
+    world: np.ndarray
+
+
+def ahead_poses(lidar: Lidar, chunk_to_world: np.ndarray, ahead: Sequence[float] = AHEAD_M) -> list[SweepPoses]:
+    """The sensor's poses on the ego at the chunk origin and moved along its x axis (forward)."""
+    out = []
+    for d in ahead:
+        ego = np.eye(4)
+        ego[0, 3] = float(d)
+        chunk = lidar.sensor_pose(ego)
+        out.append(SweepPoses(float(d), chunk, np.asarray(chunk_to_world, np.float64) @ chunk))
+    return out
+
+
+def _mean_nn(a: np.ndarray, b: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    if len(a) == 0 or len(b) == 0:
+        return float("nan")
+    return float(cKDTree(b).query(a, k=1)[0].mean())
+
+
+def sweep_metrics(ref_img: np.ndarray, cand_img: np.ndarray, rays: np.ndarray, ref_xyz: np.ndarray,
+                  cand_xyz: np.ndarray) -> dict:
+    """A candidate sweep against the reference over the rays `rays` (rings, columns) bool where
+    the reference returns: median / p90 |range error| (m) where both return, hit agreement (share
+    of `rays` the candidate returns too), Chamfer (m) between the point sets (N, 3) given."""
+    return {**sweep_agreement(ref_img, cand_img, rays),
+            "chamfer_m": 0.5 * (_mean_nn(ref_xyz, cand_xyz) + _mean_nn(cand_xyz, ref_xyz))}
+
+
+def _inside_chunk(p_chunk: np.ndarray) -> np.ndarray:
+    lo = CHUNK_CORNER + CHUNK_MARGIN_M
+    hi = CHUNK_CORNER + CHUNK_SIZE * np.array([1.0, 1.0, 0.25]) - CHUNK_MARGIN_M
+    return np.all((p_chunk >= lo) & (p_chunk < hi), axis=1)
+
+
+def seen_points(p_chunk: np.ndarray, voxels: dict) -> np.ndarray:
+    """Whether each chunk-frame point's fine ground-truth voxel was seen by an input camera."""
+    size = float(voxels["fine_voxel_size"])
+    seen_keys = np.sort(voxel_keys(voxels["fine_ijk"][voxels["fine_visible"]]))
+    keys = voxel_keys(np.floor((p_chunk - CHUNK_CORNER) / size).astype(np.int64))
+    pos = np.searchsorted(seen_keys, keys)
+    return seen_keys[np.minimum(pos, len(seen_keys) - 1)] == keys if len(seen_keys) else np.zeros(len(keys), bool)
+
+
+def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
+    """PSNR (dB) of the converted scene rendered through the sample's rig on the ego at the chunk
+    origin, at the input images' scale, against the input images: how well the appearance stage
+    reproduces what it saw."""
+    rig_cfg = load_rig(rig)
+    native = {c.name: c.intrinsics().width for c in rig_cfg.cameras}
+    first = frames.images[0]
+    views = render_rig(scene, rig_cfg, np.eye(4), scale=first.intrinsics.width / native[first.name])
+    vals = []
+    for im in frames.images:
+        if im.name not in views:
+            continue
+        pred = torch.from_numpy(views[im.name]).permute(2, 0, 1)
+        img = torch.from_numpy(np.asarray(im.image, np.float32) / (255.0 if im.image.dtype == np.uint8 else 1.0))
+        gt = resize_bilinear(img.permute(2, 0, 1), pred.shape[1:])
+        vals.append(psnr(pred[None], gt[None]))  # (1, 3, H, W)
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel: float = 0.4, seed: int = 0,
+                    ahead: Sequence[float] = AHEAD_M, convert_options: dict | None = None,
+                    with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
+                    trace_options: dict | None = None) -> dict:
+    """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
+    voxels, PSNR at the input cameras, seconds, peak MB}, "rows": [{scene, ahead, split, rays,
+    median_m, p90_m, hit_agreement, chamfer_m}]}. gt_cache: a dict kept across calls that holds
+    each sample's regenerated world, mesh sweeps and ground-truth rows (a trade sweep over
+    converter settings then regenerates nothing). trace_mode: how the converted scene is traced
+    (default its metadata ``trace_mode``); trace_options: more `Tracer` settings for it (for
+    example ``soft_alpha_min``)."""
+    sample_dir = Path(sample_dir)
+    meta = json.loads((sample_dir / "meta.json").read_text())
+    key = str(sample_dir.resolve())
+    cached = gt_cache.get(key) if gt_cache is not None else None
+    if cached is None:
+        cached = _reference(sample_dir, meta, lidar, gt_voxel=gt_voxel, seed=seed, ahead=ahead)
+        if gt_cache is not None:
+            gt_cache[key] = cached
+    frames = open_frames(sample_dir)
+    reset_peak()
+    t0 = time.perf_counter()
+    scene = conv.convert(frames, seed=seed, **(convert_options or {}))
+    seconds = time.perf_counter() - t0
+    stages = {"seconds": seconds, "geometry_s": conv.timings["geometry_s"],
+              "appearance_s": conv.timings["appearance_s"], "peak_mb": peak_mb()}
+    ijk = scene.ijk
+    vox = cached["voxels"]
+    gt_ijk = vox["coarse_ijk"].astype(np.int64)
+    if abs(scene.voxel_size - float(vox["coarse_voxel_size"])) < 1e-9:
+        stages["geometry_iou"] = voxel_iou(ijk, gt_ijk)
+        stages["geometry_chamfer_vox"] = chamfer_voxels(ijk, gt_ijk)
+    if with_psnr and "sky_panorama" in scene.channels:
+        stages["input_psnr_db"] = _input_psnr(scene, frames, meta["rig"])
+    tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
+    t1 = time.perf_counter()
+    rows = list(cached["rows"])
+    for ref, p in zip(cached["refs"], cached["poses"]):
+        sweep = lidar.scan(tracer, p.chunk, seed=seed)
+        rows += _rows("converted", p.ahead, ref, sweep, p.chunk)
+    stages["trace_s_per_sweep"] = (time.perf_counter() - t1) / max(len(cached["poses"]), 1)
+    return {"sample": f"{sample_dir.parent.name}/{sample_dir.name}", "stages": stages, "rows": rows,
+            "voxels": len(ijk), "observed_fraction": float(np.mean(scene.channel("observed")))}
+
+
+def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, seed: int,
+               ahead: Sequence[float]) -> dict:
+    """The world regenerated, its mesh sweeps and the ground-truth VoxSplat's rows."""
+    if meta.get("format") != "scube_sim.worlds" or "world" not in meta:
+        raise InputError(f"{sample_dir / 'meta.json'}: not a worlds sample (format scube_sim.worlds with a world key)")
+    world = generate_world(WorldConfig(**meta["world"]))
+    chunk_to_world = np.asarray(meta["chunk_to_world"], np.float64)
+    t = float(meta["frames"][0].get("time", 0.0)) if meta.get("frames") else 0.0
+    if not np.allclose(world.ego_pose_at(t), chunk_to_world, atol=1e-6):
+        raise InputError(f"{sample_dir}: the regenerated world's ego pose differs from meta.json's chunk_to_world "
+                         f"(generator version {meta.get('world_version')}): regenerate the dataset")
+    mesh = world.mesh_at(t)
+    with np.load(sample_dir / "voxels.npz") as z:
+        voxels = {k: z[k] for k in z.files}
+    gt = gt_voxsplat(mesh, chunk_to_world, gt_voxel)
+    mesh_tracer, gt_tracer = Tracer(mesh), Tracer(gt, mode="entry")
+    poses = ahead_poses(lidar, chunk_to_world, ahead)
+    refs, rows = [], []
+    to_chunk = invert_pose(chunk_to_world)
+    for p in poses:
+        m = lidar.scan(mesh_tracer, p.world, seed=seed)
+        pts = transform_points(to_chunk @ p.world, m.xyz().astype(np.float64))
+        rr, cc = m.pixels()
+        inside = _inside_chunk(pts)
+        seen = seen_points(pts, voxels)
+        img_shape = (m.channels, m.columns)
+        masks = {}
+        for name, sel in (("all", inside), ("seen", inside & seen), ("unseen", inside & ~seen)):
+            mk = np.zeros(img_shape, bool)
+            mk[rr[sel], cc[sel]] = True
+            masks[name] = mk
+        ref = {"img": m.range_image(), "masks": masks, "xyz": {k: pts[s] for k, s in
+                                                                 (("all", inside), ("seen", inside & seen),
+                                                                  ("unseen", inside & ~seen))}}
+        refs.append(ref)
+        rows += _rows(SCENES[0], p.ahead, ref, lidar.scan(gt_tracer, p.chunk, seed=seed), p.chunk)
+    return {"voxels": voxels, "poses": poses, "refs": refs, "rows": rows, "gt_gaussians": gt.num_gaussians}
+
+
+def _rows(scene: str, ahead: float, ref: dict, sweep, pose_chunk: np.ndarray) -> list[dict]:
+    img = sweep.range_image()
+    pts = transform_points(pose_chunk, sweep.xyz().astype(np.float64))
+    rr, cc = sweep.pixels()
+    inside = _inside_chunk(pts)
+    out = []
+    for split, mask in ref["masks"].items():
+        # the candidate's points on the split's rays (its own returns there, wherever they land)
+        on = mask[rr, cc] & inside
+        m = sweep_metrics(ref["img"], img, mask, ref["xyz"][split], pts[on])
+        out.append({"scene": scene, "ahead_m": ahead, "split": split, **m})
+    return out
+
+
+def summarise_rows(samples: list[dict]) -> list[dict]:
+    """Per (scene, ahead, split): the ray-weighted means of the samples' figures (median and p90
+    are per-sample figures averaged, weighted by their rays)."""
+    groups: dict[tuple, list[dict]] = {}
+    for s in samples:
+        for r in s["rows"]:
+            groups.setdefault((r["scene"], r["ahead_m"], r["split"]), []).append(r)
+    out = []
+    for (scene, ahead, split), rs in groups.items():
+        w = np.array([r["rays"] for r in rs], np.float64)
+        row = {"scene": scene, "ahead_m": ahead, "split": split, "rays": int(w.sum())}
+        for k in ("median_m", "p90_m", "hit_agreement", "chamfer_m"):
+            v = np.array([r[k] for r in rs], np.float64)
+            ok = np.isfinite(v) & (w > 0)
+            row[k] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
+        out.append(row)
+    order = {s: i for i, s in enumerate(SCENES)}
+    return sorted(out, key=lambda r: (r["ahead_m"], ["all", "seen", "unseen"].index(r["split"]),
+                                      order.get(r["scene"], 99)))
+
+
+def evaluate_split(data: Path, *, split: str = "test", profile="cpu", sensor: str = "hdl64e", limit: int | None = None,
+                   gt_voxel: float = 0.4, seed: int = 0, ahead: Sequence[float] = AHEAD_M,
+                   convert_options: dict | None = None, with_psnr: bool = True,
+                   progress: Callable | None = None) -> dict:
+    """`evaluate_sample` over a worlds split (the first `limit` samples) -> {"rows": summarised,
+    "stages": means, "samples": per sample}."""
+    root = Path(data) / split
+    if not root.is_dir():
+        raise InputError(f"{root}: no such split folder (a worlds dataset: DIR/<split>/NNNNNN)")
+    dirs = sorted(d for d in root.iterdir() if (d / "meta.json").is_file())
+    if limit is not None:
+        dirs = dirs[:limit]
+    if not dirs:
+        raise InputError(f"{root}: no samples")
+    conv = Converter(profile)
+    lidar = geometric_lidar(sensor)
+    samples = []
+    it = progress(dirs) if progress else dirs
+    for d in it:
+        samples.append(evaluate_sample(conv, d, lidar, gt_voxel=gt_voxel, seed=seed, ahead=ahead,
+                                       convert_options=convert_options, with_psnr=with_psnr))
+    stage_keys = dict.fromkeys(k for s in samples for k in s["stages"])
+    stages = {k: float(np.nanmean([s["stages"].get(k, np.nan) for s in samples])) for k in stage_keys}
+    stages["peak_mb"] = float(max(s["stages"]["peak_mb"] for s in samples))
+    return {"split": split, "profile": conv.profile.name, "sensor": lidar.config.name, "gt_voxel_m": gt_voxel,
+            "samples_n": len(samples), "rows": summarise_rows(samples), "stages": stages, "samples": samples}
+
+
+def format_table(res: dict, split: str, gt_voxel: float) -> list[str]:
+    """`evaluate_split`'s result as the lines `scube-sim eval sensor-to-sensor` prints: a title, one
+    row per scene and distance ahead, and the stages' means per sample."""
+    lines = [f"{res['samples_n']} {split} samples, profile {res['profile']}, {res['sensor']}, against the mesh; "
+             f"ground-truth VoxSplat at {gt_voxel:g} m",
+             f"{'ahead':>6s} {'rays':>7s} {'scene':<22s} {'split':<7s} {'median |dr|':>11s} {'p90 |dr|':>9s} "
+             f"{'hits':>7s} {'Chamfer':>8s}"]
+    for r in res["rows"]:
+        lines.append(f"{r['ahead_m']:5.0f}m {r['rays']:7d} {r['scene']:<22s} {r['split']:<7s} {r['median_m']:9.3f} m "
+                     f"{r['p90_m']:7.3f} m {100 * r['hit_agreement']:6.1f}% {r['chamfer_m']:6.3f} m")
+    lines.append("stages (mean per sample): " + ", ".join(f"{k} {v:.4g}" for k, v in res["stages"].items()))
+    return lines

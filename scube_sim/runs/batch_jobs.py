@@ -1,0 +1,252 @@
+"""The jobs of `scube-sim batch`: what one task of each does, what identifies it, where it writes.
+
+    worlds   SPLIT:INDEX | SPLIT:FIRST-LAST   -> OUT/<split>/<index:06d>/ (a worlds dataset folder)
+    build    a dataset folder (one log)       -> OUT/<folder name>/scene.npz   (`scube-sim build`)
+    replay   a scenario YAML                  -> OUT/<stem>[/seed-<S>][/<edit>]/  (`scube-sim replay`),
+                                                 × `seeds` × `edits` (a counterfactual sweep)
+    convert  a worlds sample folder, or a     -> OUT/<split>/<sample>/scene.npz, or
+             dataset folder (`dataset`)          OUT/<folder name>/<index:06d>/scene.npz (`scube-sim convert`)
+
+Settings (one YAML mapping for the whole batch, validated here) are those of the single commands.
+A task is identified by its settings and a fingerprint of its input folder (every file's path,
+size and modification time: reading a log's gigabytes to checksum it would cost more than the
+build); a changed input or setting reruns the task.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, fields
+from pathlib import Path
+
+from pydantic import Field, ValidationError
+
+from .._version import __version__
+from ..config import StrictModel
+from ..datasets import open_dataset
+from ..parallel.tasks import BatchError, Job, Task
+from ..realdata.build import BuildOptions, build_from_dataset
+from ..run_manifest import RunManifest, read_manifest, sha256_file
+from ..worlds.dataset import DatasetConfig, WorldsJob
+from .replay import replay, replay_manifest
+from .scenario import CACHE_FOLDERS, EditSpec
+
+SCENE_FILE = "scene.npz"
+
+
+def folder_fingerprint(path: Path) -> dict:
+    """{files, bytes, digest}: a SHA-256 over every file's relative path, size and mtime (ns)."""
+    path = Path(path)
+    if not path.exists():
+        raise BatchError(f"{path}: no such input")
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    h = hashlib.sha256()
+    total = 0
+    for p in files:
+        st = p.stat()
+        total += st.st_size
+        h.update(f"{p.relative_to(path).as_posix() if p != path else p.name}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return {"files": len(files), "bytes": total, "digest": h.hexdigest()}
+
+
+def _validate(model, data: dict, job: str):
+    try:
+        return model.model_validate(data or {})
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err["loc"]) or "(settings)"
+        raise BatchError(f"batch {job} settings: {where}: {err['msg']}") from None
+
+
+def _unique_names(paths: list[Path], job: str) -> list[str]:
+    names = [p.name for p in paths]
+    for n in set(names):
+        if names.count(n) > 1:
+            clash = [str(p) for p in paths if p.name == n]
+            raise BatchError(f"batch {job}: inputs {clash[0]} and {clash[1]} share the name {n!r}, and so the output "
+                             f"folder; run them as two batches")
+    return names
+
+
+class BuildSettings(StrictModel):
+    dataset: str
+    options: dict = Field(default_factory=dict)  # BuildOptions fields (samples, voxel_size, remove, ...)
+
+
+class BuildJob(Job):
+    """Real LiDAR -> VoxSplat per log (`reconstruct.build_from_dataset`)."""
+
+    name = "build"
+
+    def __init__(self, settings: dict):
+        self.settings = _validate(BuildSettings, settings, self.name)
+        names = {f.name for f in fields(BuildOptions)}
+        bad = sorted(set(self.settings.options) - names)
+        if bad:
+            raise BatchError(f"batch build settings: options.{bad[0]}: not a build option (expected: "
+                             f"{', '.join(sorted(names))})")
+        self.options = BuildOptions(**{"samples": [0], **self.settings.options})
+
+    def tasks(self, inputs, out):
+        paths = [Path(p) for p in inputs]
+        for p in paths:
+            if not p.is_dir():
+                raise BatchError(f"batch build: --inputs {p}: not a dataset folder")
+        return [Task(n, str(p), {"path": str(p.absolute())}) for n, p in zip(_unique_names(paths, self.name), paths)]
+
+    def manifest(self, task, out):
+        return RunManifest("build", {}, {"input": folder_fingerprint(Path(task.params["path"])),
+                                         "dataset": self.settings.dataset, "options": asdict(self.options),
+                                         "scube_sim": __version__})
+
+    def run(self, task, folder, out):
+        vs, rep, _ = build_from_dataset(open_dataset(self.settings.dataset, task.params["path"]), self.options)
+        vs.save(folder / SCENE_FILE)
+        return {"points": rep.points, "voxels": rep.voxels, "gaussians": rep.gaussians}
+
+    def describe(self):
+        return {"dataset": self.settings.dataset, "options": asdict(self.options)}
+
+
+class ReplaySettings(StrictModel):
+    duration_s: float | None = Field(default=None, gt=0)
+    seeds: list[int] | None = None  # one replay per seed (default: the scenario's own)
+    edits: dict[str, EditSpec] | None = None  # one replay per named trajectory edit, replacing the scenario's
+
+
+class ReplayJob(Job):
+    """Scenario replays (`sim.replay`), optionally × seeds × edits. Runs of one scenario file share
+    one VoxSplat chunk cache (OUT/.cache/<stem>-<hash>/), so a sweep fits its world once."""
+
+    name = "replay"
+    own_manifest = True
+    keep = CACHE_FOLDERS
+
+    def __init__(self, settings: dict):
+        self.settings = _validate(ReplaySettings, settings, self.name)
+        for s in self.settings.seeds or []:
+            if s < 0:
+                raise BatchError(f"batch replay settings: seeds: expected integers >= 0, got {s}")
+
+    def tasks(self, inputs, out):
+        paths = [Path(p) for p in inputs]
+        for p in paths:
+            if not p.is_file():
+                raise BatchError(f"batch replay: --inputs {p}: no such scenario file")
+        stems = _unique_names([p.with_suffix("") for p in paths], self.name)
+        seeds = self.settings.seeds or [None]
+        edits = list(self.settings.edits or {}) or [None]
+        tasks = []
+        for stem, p in zip(stems, paths):
+            for seed in seeds:
+                for edit in edits:
+                    key = "/".join([stem] + ([f"seed-{seed}"] if seed is not None else []) + ([edit] if edit else []))
+                    tasks.append(Task(key, str(p), {"path": str(p.absolute()), "seed": seed, "edit": edit}))
+        return tasks
+
+    def _args(self, task):
+        edit = task.params["edit"]
+        return {"duration": self.settings.duration_s, "seed": task.params["seed"],
+                "edit": self.settings.edits[edit].model_dump() if edit else None}
+
+    def manifest(self, task, out):
+        return replay_manifest(task.params["path"], **self._args(task))[2]
+
+    def run(self, task, folder, out):
+        path = Path(task.params["path"])
+        cache = Path(out) / ".cache" / f"{path.stem}-{hashlib.sha256(str(path).encode()).hexdigest()[:8]}"
+        r = replay(path, folder, **self._args(task), resume=read_manifest(folder) is not None if folder.is_dir() else False,
+                   cache=cache, progress=False)
+        return {"state": r.state, "ticks": r.ticks, "sweeps": r.sweeps, "points": r.points}
+
+    def describe(self):
+        return self.settings.model_dump(mode="json")
+
+
+class ConvertSettings(StrictModel):
+    dataset: str | None = None  # None: each input is a worlds sample folder
+    samples: list[int] = Field(default_factory=lambda: [0])  # with `dataset`: the samples of each folder
+    profile: str = "cpu"
+    steps: int | None = Field(default=None, ge=1)
+    seed: int = Field(default=0, ge=0)
+    confidence: int = Field(default=0, ge=0)  # K geometry samples for per-voxel confidence (0: off)
+    sky: bool = True
+    max_range: float | None = Field(default=None, gt=0)
+
+
+class ConvertJob(Job):
+    """Camera frames -> VoxSplat (`scube_sim.convert`). The converter loads once per worker process
+    (`model.converter.convert` keeps it), not once per task."""
+
+    name = "convert"
+
+    def __init__(self, settings: dict):
+        self.settings = _validate(ConvertSettings, settings, self.name)
+        if self.settings.confidence == 1:
+            raise BatchError("batch convert settings: confidence: expected 0 (off) or K >= 2 samples, got 1")
+        self._weights: dict | None = None
+
+    def prepare(self, out):
+        from ..model.checkpoint import resolve_checkpoint
+        from ..model.converter import load_profile
+
+        profile = load_profile(self.settings.profile)
+        self._weights = {"profile": profile.model_dump(mode="json"),
+                         "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
+                                         for stage in ("geometry", "appearance")}}
+
+    def tasks(self, inputs, out):
+        paths = [Path(p) for p in inputs]
+        tasks = []
+        if self.settings.dataset is None:
+            for p in paths:
+                if not (p / "meta.json").is_file():
+                    raise BatchError(f"batch convert: --inputs {p}: not a worlds sample folder (DIR/<split>/NNNNNN); "
+                                     f"set `dataset` for other folders")
+            keys = [f"{p.absolute().parent.name}/{p.name}" for p in paths]
+            for k in keys:
+                if keys.count(k) > 1:
+                    raise BatchError(f"batch convert: two inputs are both {k}; run them as two batches")
+            return [Task(k, str(p), {"path": str(p.absolute()), "sample": 0}) for k, p in zip(keys, paths)]
+        for p in paths:
+            if not p.exists():
+                raise BatchError(f"batch convert: --inputs {p}: no such dataset folder")
+        for name, p in zip(_unique_names(paths, self.name), paths):
+            tasks += [Task(f"{name}/{i:06d}", f"{p}#{i}", {"path": str(p.absolute()), "sample": i})
+                      for i in self.settings.samples]
+        return tasks
+
+    def manifest(self, task, out):
+        s = self.settings
+        return RunManifest("convert", {}, {"input": folder_fingerprint(Path(task.params["path"])),
+                                           "sample": task.params["sample"], "settings": s.model_dump(mode="json"),
+                                           **self._weights, "scube_sim": __version__})
+
+    def run(self, task, folder, out):
+        from ..model.converter import convert, is_loaded, open_frames  # torch: in the worker, when converting
+
+        s = self.settings
+        frames = open_frames(task.params["path"], s.dataset, task.params["sample"])
+        loaded = not is_loaded(s.profile)
+        vs = convert(frames, profile=s.profile, steps=s.steps, seed=s.seed, confidence=s.confidence > 1,
+                               k=s.confidence or None, sky=s.sky, max_range=s.max_range)
+        vs.save(folder / SCENE_FILE)
+        return {"model_loaded": loaded, "voxels": vs.num_voxels, "gaussians": vs.num_gaussians}
+
+    def describe(self):
+        return {**self.settings.model_dump(mode="json"), **(self._weights or {})}
+
+
+def make_job(name: str, settings: dict | None = None) -> Job:
+    """The job called `name` with its settings (a mapping; for worlds: DatasetConfig fields, or
+    none to use the dataset folder's own)."""
+    settings = settings or {}
+    if name == "worlds":
+        return WorldsJob(_validate(DatasetConfig, settings, name) if settings else None)
+    if name in JOBS:
+        return JOBS[name](settings)
+    raise BatchError(f"batch: unknown job {name!r}; expected one of worlds, {', '.join(JOBS)}")
+
+
+JOBS = {"build": BuildJob, "replay": ReplayJob, "convert": ConvertJob}
+JOB_NAMES = ("worlds", *JOBS)

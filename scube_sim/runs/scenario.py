@@ -1,0 +1,625 @@
+"""Scenario files: what to simulate, from where, with which sensors, into which outputs.
+
+A scenario is YAML validated by pydantic (an unknown key or a bad value names the file and the key
+path). Relative paths are relative to the scenario file; a path starting with `shared:` is looked
+up in the third-party data folder (SCUBE_SIM_SHARED_DATA, default `../shared/data` beside the
+repository). `build_run` turns a scenario into a ready `Simulator`, its pose source and time span.
+
+    name: lane-change
+    seed: 0
+    duration_s: 8              # default: the trajectory's span
+    tick_hz: 10
+    scene:                     # exactly one of world / voxsplat / ply / chunks / frames
+      world: {style: boulevard, seed: 5, layout: straight, length_m: 200}
+      representation: voxsplat # or mesh (the world's exact triangles)
+      voxel_size: 0.4
+    trajectory:
+      source: world            # world | file | can
+      edit: {lateral_offset_m: 3.4, lateral_ramp_s: [2, 5]}
+    sensors:
+      - {preset: hdl64e}
+    effects: {noise: true, drops: true, motion_distortion: true, divergence: true}
+    outputs: {files: [pcd], usd: replay.usdc}
+
+`scene.frames` converts camera frames into the scene (`scube_sim.convert`, the converter's
+profile) on first use and caches the result under -o/scene_chunks/: either `path` (a worlds sample
+folder, or any adapter's folder with `dataset` and `sample`; the string shorthand `frames: PATH`)
+or `world` (a generated world whose `rig` cameras are rendered at time 0; the world's ego path and
+moving actors then drive the run, and the actors' voxels are cut out of the converted scene,
+`sim.converted`). With `world` and `route: true`, a long road is converted chunk by chunk
+(`scene.chunk_spacing_m` apart), each from the rig held at the chunk's origin when the ego passes
+it (`route_stops`), and loaded as a `ChunkSet` within the sensors' reach.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath, PureWindowsPath
+from typing import Literal
+
+import numpy as np
+from pydantic import Field, field_validator, model_validator
+
+from .._version import __version__
+from ..atomic import atomic_path
+from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
+from ..errors import ScubeSimWarning
+from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
+from ..raytrace.tracer import Tracer
+from ..run_manifest import RunManifest, sha256_file
+from ..scene_file import load_scene
+from ..sim.can import CanPoseSource, CanTrajectory
+from ..sim.contracts import PoseSource
+from ..sim.converted import DEFAULT_MODE, remove_boxes, scene_part
+from ..sim.scene import ChunkSet, ChunkSpec, Part, SimScene
+from ..sim.simulator import LidarSensor, Simulator
+from ..sim.sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
+from ..sim.sinks.rosbag import RosbagConfig, RosbagSink
+from ..sim.sinks.viewer import ViewerConfig, ViewerSink
+from ..sim.sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
+from ..sim.vehicle import DeadReckoner
+from ..voxsplat import VoxSplat
+from ..worlds.dataset import render_frames
+from ..worlds.generator import World, WorldConfig, generate_world
+from ..worlds.groundtruth import chunk_frames, gt_voxsplat
+
+
+class ChunkEntry(StrictModel):
+    path: str
+    pose: Mount = Mount()  # chunk-to-world: metres and degrees
+
+
+class FramesSpec(StrictModel):
+    """scene.frames (module docstring): exactly one of `path` and `world`."""
+
+    path: str | None = None
+    dataset: str | None = None
+    sample: int = Field(default=0, ge=0)
+    world: WorldConfig | None = None
+    rig: str = "waymo-5"
+    profile: str = "cpu-lidar"  # the loop simulates LiDAR: one Gaussian per voxel (docs/converter.md)
+    max_range_m: float | None = Field(default=None, gt=0)
+    route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.path is None) == (self.world is None):
+            raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
+        if self.route and self.world is None:
+            raise ValueError("route: needs world (the rig is rendered at each chunk along its road)")
+        return self
+
+
+class SceneSpec(StrictModel):
+    world: WorldConfig | None = None
+    representation: Literal["voxsplat", "mesh"] = "voxsplat"
+    voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
+    gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
+    # None: a VoxSplat file's own trace mode (metadata trace_mode; converted scenes: soft), else max_response
+    depth: Literal["entry", "max_response", "soft"] | None = None
+    # soft mode's alpha floor (None: the tracer's 1/255): contributions fainter than it are
+    # dropped and each Gaussian's box ends where its response reaches it; on converted scenes
+    # 0.1 sweeps about 1.6x faster at a lower median error and 1.7 points fewer returns
+    # (docs/converter.md, bench_s2s_trade)
+    soft_alpha_min: float | None = Field(default=None, gt=0, lt=1)
+    chunk_spacing_m: float = Field(default=96.0, gt=10, le=102.4)
+    voxsplat: str | None = None
+    ply: str | None = None
+    chunks: list[ChunkEntry] | None = None
+    frames: FramesSpec | None = None
+
+    @field_validator("frames", mode="before")
+    @classmethod
+    def _frames_path(cls, v):
+        return {"path": v} if isinstance(v, str) else v  # `frames: PATH` is the path alone
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        given = [k for k in ("world", "voxsplat", "ply", "chunks", "frames") if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError(f"give exactly one of world, voxsplat, ply, chunks or frames (got {given or 'none'})")
+        return self
+
+
+class CanSpec(StrictModel):
+    log: str
+    dbc: str
+    start_s: float = Field(default=0.0, ge=0)
+    duration_s: float = Field(default=20.0, gt=0)
+    realtime: bool = False
+    speed: float = Field(default=1.0, gt=0)
+    wheelbase_m: float | None = Field(default=None, gt=0)
+    steering_ratio: float | None = Field(default=None, gt=0)
+
+
+class EditSpec(StrictModel):
+    lateral_offset_m: float = 0.0
+    lateral_ramp_s: tuple[float, float] | None = None
+    speed_scale: float = Field(default=1.0, gt=0)
+    time_shift_s: float = 0.0
+
+    @field_validator("lateral_ramp_s")
+    @classmethod
+    def _ramp_runs_forward(cls, v):
+        if v is not None and not v[1] > v[0]:
+            raise ValueError(f"expected [start, end] seconds with end > start, got {list(v)}")
+        return v
+
+
+class TrajectorySpec(StrictModel):
+    source: Literal["world", "file", "can", "openscenario"] = "world"
+    file: str | None = None
+    entity: str | None = None  # openscenario: the ego's ScenarioObject (default: 'Ego' or the first)
+    rate_hz: float = Field(default=10.0, gt=0)
+    can: CanSpec | None = None
+    edit: EditSpec | None = None
+
+    @model_validator(mode="after")
+    def _needs(self):
+        if self.source in ("file", "openscenario") and not self.file:
+            raise ValueError(f"source '{self.source}' needs 'file'")
+        if self.source == "can" and self.can is None:
+            raise ValueError("source 'can' needs a 'can' section")
+        return self
+
+
+class SensorSpec(StrictModel):
+    preset: str
+    name: str | None = None
+    rate_hz: float | None = Field(default=None, gt=0)
+    mount: Mount | None = None
+    phase_s: float = 0.0
+    overrides: dict = Field(default_factory=dict)
+
+
+class EffectsSpec(StrictModel):
+    noise: bool = True
+    drops: bool = True
+    motion_distortion: bool = True
+    divergence: bool = True
+    output: Literal["raw", "compensated"] | None = None
+
+
+class CanOutputSpec(StrictModel):
+    interface: str = "virtual"
+    channel: str = "scube-sim"
+    arbitration_id: int = Field(default=0x5F0, ge=0, le=0x1FFFFFFF)
+
+
+class RosbagOutputSpec(RosbagConfig):
+    """`outputs.rosbag`: a rosbag2 folder (MCAP) inside -o, and what `RosbagSink` writes."""
+
+    folder: str = "bag"
+
+
+class ViewerOutputSpec(ViewerConfig):
+    """`outputs.viewer`: a Foxglove-schema MCAP file inside -o, and what `ViewerSink` writes."""
+
+    file: str = "viewer.mcap"
+
+
+class OutputsSpec(StrictModel):
+    files: list[Literal["pcd", "bin", "npz", "ply", "las", "laz"]] = Field(default_factory=lambda: ["pcd"])
+    usd: str | None = "replay.usdc"  # a file name inside the output folder (-o)
+    rosbag: RosbagOutputSpec | None = None
+    viewer: ViewerOutputSpec | None = None
+    usd_clips: bool = False
+    frames_per_clip: int = Field(default=100, ge=1)
+    usd_scene: bool = True
+    can: CanOutputSpec | None = None
+
+    @field_validator("rosbag", mode="before")
+    @classmethod
+    def _bag_folder(cls, v):
+        return {"folder": v} if isinstance(v, str) else v  # `rosbag: DIR` is the folder alone
+
+    @field_validator("viewer", mode="before")
+    @classmethod
+    def _viewer_file(cls, v):
+        return {"file": v} if isinstance(v, str) else v
+
+    @field_validator("rosbag", "viewer")
+    @classmethod
+    def _bag_inside(cls, v):
+        if v is not None:
+            cls._inside_the_output_folder(v.folder if isinstance(v, RosbagOutputSpec) else v.file)
+        return v
+
+    @field_validator("usd")
+    @classmethod
+    def _inside_the_output_folder(cls, v: str | None) -> str | None:
+        # Every output stays inside -o: a scenario must not write wherever a path points.
+        if v is None:
+            return v
+        posix, win = PurePosixPath(v), PureWindowsPath(v)
+        if (not v.strip() or posix.is_absolute() or win.is_absolute() or win.drive or v.startswith("~")
+                or ".." in posix.parts or ".." in win.parts):
+            raise ValueError(f"expected a relative path inside the output folder (-o), without '..', got {v!r}")
+        return v
+
+
+class Scenario(StrictModel):
+    name: str
+    description: str = ""
+    seed: int = Field(default=0, ge=0)
+    duration_s: float | None = Field(default=None, gt=0)
+    tick_hz: float = Field(default=10.0, gt=0, le=1000)
+    scene: SceneSpec
+    trajectory: TrajectorySpec = TrajectorySpec()
+    actors: Literal["world", "none"] = "world"
+    sensors: list[SensorSpec] = Field(min_length=1)
+    effects: EffectsSpec = EffectsSpec()
+    outputs: OutputsSpec = OutputsSpec()
+
+
+def shared_data_dir() -> Path:
+    env = os.environ.get("SCUBE_SIM_SHARED_DATA")
+    return Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+def resolve_path(p: str, base: Path) -> Path:
+    """A scenario path: `shared:<rel>` in the third-party data folder, else relative to `base`."""
+    if p.startswith("shared:"):
+        return shared_data_dir() / p[len("shared:"):].lstrip("/")
+    q = Path(os.path.expanduser(p))
+    return q if q.is_absolute() else (base / q).resolve()
+
+
+def load_scenario(path: str | Path) -> tuple[Scenario, Path]:
+    """Validate a scenario file; returns it and the folder its relative paths refer to."""
+    path = Path(path)
+    sc = validate_model(Scenario, load_yaml(path), str(path), "scenario settings")
+    return sc, path.resolve().parent
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str) -> LidarConfig:
+    """A sensor's LiDAR config: the preset, the scenario's overrides, then the effects switches."""
+    preset = str(resolve_path(spec.preset, base)) if spec.preset.endswith((".yaml", ".yml")) else spec.preset
+    cfg = load_lidar_config(preset)
+    data = _merge(cfg.model_dump(mode="json"), spec.overrides)
+    if not effects.noise:
+        data["noise"] = {"range_sigma_m": 0.0, "range_sigma_rel": 0.0, "quantization_m": 0.0}
+    if not effects.drops:
+        data["drop"] = {"random_rate": 0.0, "max_incidence_deg": 90.0, "min_intensity": 0.0}
+    if not effects.divergence:
+        data["beam"]["samples"] = 1
+    if effects.output is not None:
+        data["motion"]["output"] = effects.output
+    if spec.mount is not None:
+        data["mount"] = spec.mount.model_dump(mode="json")
+    return config_from_dict(data, f"{where} (preset {spec.preset!r} with overrides)")
+
+
+CACHE_FOLDERS = ("scene_chunks",)  # kept by --overwrite / --resume (entries checked on use)
+
+
+def run_manifest(sc: Scenario, base: Path, scenario_path: str | Path) -> RunManifest:
+    """The replay's run manifest (`scube_sim.run_manifest`): the scenario file and every file it
+    names, checksummed by role; as settings the validated scenario (CLI overrides applied), each
+    sensor's resolved config and the package version."""
+    inputs = {"scenario": Path(scenario_path)}
+    spec = sc.scene
+    if spec.voxsplat is not None:
+        inputs["scene.voxsplat"] = resolve_path(spec.voxsplat, base)
+    if spec.ply is not None:
+        inputs["scene.ply"] = resolve_path(spec.ply, base)
+    for i, c in enumerate(spec.chunks or []):
+        inputs[f"scene.chunks[{i}]"] = resolve_path(c.path, base)
+    tr = sc.trajectory
+    if tr.source == "file":
+        inputs["trajectory.file"] = resolve_path(tr.file, base)
+    if tr.source == "can":
+        inputs["trajectory.can.log"] = resolve_path(tr.can.log, base)
+        inputs["trajectory.can.dbc"] = resolve_path(tr.can.dbc, base)
+    sensors = [sensor_config(s, sc.effects, base, f"sensors[{i}]").model_dump(mode="json")
+               for i, s in enumerate(sc.sensors)]
+    settings = {"scenario": sc.model_dump(mode="json"), "sensors": sensors, "scube_sim": __version__}
+    return RunManifest.for_inputs("replay", inputs, settings)
+
+
+def build_run(sc: Scenario, base: Path, out: Path, *, progress=None, cache: Path | None = None):
+    """A scenario -> (Simulator, pose source, t_start, t_end). Fits and caches VoxSplat chunks of
+    procedural worlds (and converted frames) in `cache`, default `out/scene_chunks/` (reused by
+    later runs with the same settings; a batch shares one per scenario file among its runs).
+
+    The stages run in this order (the order things are read, drawn and fitted in): sensor
+    configs, scene, pose source, sensors, sinks."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    configs = [sensor_config(s, sc.effects, base, f"sensors[{i}]") for i, s in enumerate(sc.sensors)]
+    built = build_scene(sc, base, Path(cache) if cache is not None else out / CACHE_FOLDERS[0],
+                        reach=max(c.range.max_m for c in configs), progress=progress)
+    source = build_pose_source(sc, base, built.world)
+    t0 = source.t_start
+    t1 = min(source.t_end, t0 + sc.duration_s) if sc.duration_s else source.t_end
+    if not t1 > t0:
+        edit = sc.trajectory.edit
+        why = (f"; trajectory.edit (time_shift_s {edit.time_shift_s:g}, speed_scale {edit.speed_scale:g}) moves it "
+               f"past the end of the {sc.trajectory.source} trajectory") if edit is not None else ""
+        raise ConfigError(f"trajectory: the run would simulate no time (from {t0:.3f} s to {t1:.3f} s){why}")
+    sensors = build_sensors(sc, configs)
+    sinks = build_sinks(sc.outputs, out)
+    info = RunInfo(scene=built.file_scene, metadata={"scenario": sc.model_dump(mode="json")},
+                   time_codes_per_second=100.0)
+    sim = Simulator(built.scene, sensors, sinks, seed=sc.seed, run_info=info)
+    return sim, source, t0, t1
+
+
+@dataclass
+class BuiltScene:
+    """What `build_scene` makes: the simulated scene; the generated world (scene.world) or None;
+    the scene object read from scene.voxsplat / scene.ply (for the USD stage) or None."""
+
+    scene: SimScene
+    world: World | None = None
+    file_scene: object | None = None
+
+
+def build_scene(sc: Scenario, base: Path, cache: Path, *, reach: float, progress=None) -> BuiltScene:
+    """The scenario's scene: a generated world (its mesh, or VoxSplat chunks fitted along its route
+    and loaded within `reach` metres of the ego, plus its actors), a VoxSplat / PLY file, or a
+    list of VoxSplat chunks. Fitted and converted chunks are cached in the folder `cache`."""
+    spec = sc.scene
+    tracer_kw = {"mode": spec.depth or DEFAULT_MODE, **_soft_kw(spec)}
+    if spec.world is not None:
+        world = generate_world(_world_for_run(sc, spec.world))
+        static, chunks = [], None
+        if spec.representation == "mesh":
+            static.append(Part(Tracer(world.static), name="world"))
+        else:
+            chunks = ChunkSet(_world_chunks(world, spec, cache, progress), reach, tracer_kw)
+        scene = SimScene(static=static, actors=_world_actors(sc, world), chunks=chunks,
+                         static_boxes=world.boxes_static)
+        return BuiltScene(scene, world=world)
+    if spec.frames is not None:
+        return _frames_scene(sc, base, cache, reach, progress)
+    if spec.voxsplat is not None or spec.ply is not None:
+        path = resolve_path(spec.voxsplat or spec.ply, base)
+        file_scene = load_scene(path)
+        if isinstance(file_scene, VoxSplat):  # placed by its chunk pose, traced in its own mode
+            part = scene_part(file_scene, name=path.stem, mode=spec.depth, tracer_kw=_soft_kw(spec))
+        else:
+            part = Part(Tracer(file_scene, **tracer_kw), name=path.stem)
+        return BuiltScene(SimScene(static=[part]), file_scene=file_scene)
+    specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in spec.chunks]
+    for s in specs:
+        if not s.path.is_file():
+            raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
+    return BuiltScene(SimScene(chunks=ChunkSet(specs, reach, tracer_kw)))
+
+
+def _soft_kw(spec: SceneSpec) -> dict:
+    """The `Tracer` settings the scene spec names beyond the depth mode."""
+    return {} if spec.soft_alpha_min is None else {"soft_alpha_min": spec.soft_alpha_min}
+
+
+def _world_for_run(sc: Scenario, wcfg: WorldConfig) -> WorldConfig:
+    """The world's config with its duration stretched to cover the run (plus a second)."""
+    need = (sc.duration_s or wcfg.duration_s) + 1.0
+    if wcfg.duration_s < need and sc.trajectory.source == "world":
+        wcfg = wcfg.model_copy(update={"duration_s": need})
+    return wcfg
+
+
+def _world_actors(sc: Scenario, world: World) -> list[Part]:
+    """The world's moving actors as instanced parts (none with `actors: none`)."""
+    if sc.actors != "world":
+        return []
+    return [Part(Tracer(a.mesh), pose_fn=track_pose_fn(a.times, a.poses), instance=a.instance,
+                 label=a.label, size=a.size, name=f"actor{a.instance}") for a in world.actors]
+
+
+def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress=None) -> BuiltScene:
+    """scene.frames: the frames converted (cached in `folder`), the moving actors' voxels
+    cut out (`sim.converted.remove_boxes`), the actors traced as instances. With `route`, one
+    conversion per chunk along the world's road, loaded as a `ChunkSet`."""
+    from ..model.checkpoint import resolve_checkpoint
+    from ..model.converter import TRACE_MODE, load_profile, open_frames  # torch: only for converted scenes
+
+    f = sc.scene.frames
+    profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
+    # the converter's settings, its weights included (a retrained checkpoint at the same path
+    # converts again); each entry adds its frames' digest
+    key = {"spec": f.model_dump(mode="json"), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
+           "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
+                           for stage in ("geometry", "appearance")}}
+    folder.mkdir(parents=True, exist_ok=True)
+    if f.world is None:
+        path = resolve_path(f.path, base)
+        if not path.exists():
+            raise ConfigError(f"scene.frames.path: {path}: no such folder")
+        frames = open_frames(path, f.dataset, f.sample)
+        scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
+        part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
+        return BuiltScene(SimScene(static=[part]), file_scene=scene)
+    world = generate_world(_world_for_run(sc, f.world))
+    actors = _world_actors(sc, world)
+    if not f.route:
+        if progress:
+            progress(f"rendering the {f.rig} cameras of the world")
+        frames = render_frames(world, f.rig)
+        scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
+        scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
+        if progress and removed:
+            progress(f"removed {removed} voxels of {len(actors)} moving actors from the converted scene")
+        part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
+        return BuiltScene(SimScene(static=[part], actors=actors, static_boxes=world.boxes_static), world=world,
+                          file_scene=scene)
+    specs = []
+    for i, (t, pose) in enumerate(route_stops(world, sc.scene.chunk_spacing_m)):
+        if progress:
+            progress(f"route chunk {i + 1}: rendering the {f.rig} cameras at {t:.1f} s")
+        frames = render_frames(world, f.rig, t, ego_pose=pose)
+        scene = _cached_conversion(folder / f"converted_{i:03d}", frames, key, profile, sc.seed, f.max_range_m,
+                                   progress)
+        scene, _ = remove_boxes(scene, [a.box_at(t) for a in actors])
+        cut = folder / f"converted_{i:03d}_without_actors.npz"  # derived each run from the cached one
+        scene.save(cut)
+        specs.append(ChunkSpec(cut, np.asarray(scene.metadata["chunk_to_world"], np.float64)))
+    chunks = ChunkSet(specs, reach, {"mode": sc.scene.depth or TRACE_MODE, **_soft_kw(sc.scene)})
+    return BuiltScene(SimScene(actors=actors, chunks=chunks, static_boxes=world.boxes_static), world=world)
+
+
+def route_stops(world: World, spacing_m: float) -> list[tuple[float, np.ndarray]]:
+    """(time, chunk-to-world pose) per route chunk (`worlds.groundtruth.chunk_frames`): the rig is
+    held at the chunk's origin at the instant the ego passes nearest to it (the actors are where
+    they are then; a chunk beyond the ego's path gets its last instant)."""
+    pos = np.asarray(world.ego_poses)[:, :3, 3]
+    out = []
+    for pose in chunk_frames(world, spacing_m):
+        i = int(np.argmin(np.linalg.norm(pos[:, :2] - pose[:2, 3], axis=1)))
+        out.append((float(world.ego_times[i]), np.asarray(pose, np.float64)))
+    return out
+
+
+def _cached_conversion(stem: Path, frames, key: dict, profile, seed: int, max_range, progress=None) -> VoxSplat:
+    """`frames` converted with `profile`, or the conversion cached at STEM.npz / STEM.json when
+    its key (`key` and the frames' digest) matches and its checksum holds."""
+    from ..model.converter import Converter
+
+    npz, meta_path = stem.with_suffix(".npz"), stem.with_suffix(".json")
+    key = {**key, "frames": frames_digest(frames)}
+    if _cache_entry_valid(npz, meta_path, key):
+        return VoxSplat.load(npz)
+    if progress:
+        progress(f"converting {len(frames)} camera images (profile {profile.name})")
+    scene = Converter(profile).convert(frames, seed=seed, sky=False, max_range=max_range)
+    scene.save(npz)
+    with atomic_path(meta_path) as tmp:
+        Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(npz)}))
+    return scene
+
+
+def frames_digest(frames) -> str:
+    """sha256 of the frames' images, intrinsics and poses (the converter's whole input)."""
+    h = hashlib.sha256()
+    for im in frames.images:
+        h.update(im.name.encode())
+        h.update(np.ascontiguousarray(im.image).tobytes())
+        h.update(np.asarray(im.intrinsics.K, np.float64).tobytes())
+        h.update(np.asarray(im.intrinsics.dist or (), np.float64).tobytes())
+        h.update(np.asarray(im.cam_to_world, np.float64).tobytes())
+    h.update(np.asarray(frames.ego_pose, np.float64).tobytes())
+    h.update(json.dumps({str(k): str(v) for k, v in frames.metadata.items()}, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSource:
+    """The ego's path: the world's, a pose file's or dead-reckoned CAN, then the scenario's edit,
+    then held still within each sweep when motion distortion is off."""
+    tr = sc.trajectory
+    if tr.source == "world":
+        if world is None:
+            raise ConfigError("trajectory.source 'world' needs scene.world")
+        source = TrajectorySource(world.ego_times, world.ego_poses, "world ego path")
+    elif tr.source == "file":
+        source = TrajectorySource.from_file(resolve_path(tr.file, base), tr.rate_hz)
+    elif tr.source == "openscenario":
+        path = resolve_path(tr.file, base)
+        if not path.is_file():
+            raise ConfigError(f"trajectory.file: {path}: no such OpenSCENARIO file")
+        source = TrajectorySource.from_openscenario(path, tr.entity)
+    else:
+        source = _can_source(tr.can, base, world.ego_pose_at(0.0) if world is not None else np.eye(4))
+    if tr.edit is not None:
+        e = tr.edit
+        source = EditedTrajectory(source, lateral_offset_m=e.lateral_offset_m, lateral_ramp=e.lateral_ramp_s,
+                                  speed_scale=e.speed_scale, time_shift=e.time_shift_s)
+    if not sc.effects.motion_distortion:
+        source = HeldPoses(source)
+    return source
+
+
+def build_sensors(sc: Scenario, configs: list[LidarConfig]) -> list[LidarSensor]:
+    """One `LidarSensor` per sensor entry, from its config (`sensor_config`)."""
+    return [LidarSensor.from_config(cfg, spec.name, rate_hz=spec.rate_hz, phase=spec.phase_s)
+            for cfg, spec in zip(configs, sc.sensors)]
+
+
+def build_sinks(outputs: OutputsSpec, out: Path) -> list[Sink]:
+    """The outputs' sinks, in this order: files (under `out/frames`), USD stage, ROS 2 bag, viewer
+    recording, CAN."""
+    sinks = []
+    if outputs.files:
+        sinks.append(FileSink(out / "frames", outputs.files))
+    if outputs.usd:
+        sinks.append(UsdSink(out / outputs.usd, clips=outputs.usd_clips, frames_per_clip=outputs.frames_per_clip,
+                             write_scene=outputs.usd_scene))
+    if outputs.rosbag is not None:
+        o = outputs.rosbag
+        sinks.append(RosbagSink(out / o.folder, RosbagConfig(**o.model_dump(exclude={"folder"}))))
+    if outputs.viewer is not None:
+        o = outputs.viewer
+        sinks.append(ViewerSink(out / o.file, ViewerConfig(**o.model_dump(exclude={"file"}))))
+    if outputs.can is not None:
+        o = outputs.can
+        sinks.append(CanFrameSink(interface=o.interface, channel=o.channel, arbitration_id=o.arbitration_id))
+    return sinks
+
+
+def _can_source(c: CanSpec, base: Path, start_pose: np.ndarray) -> CanTrajectory:
+    kw = {}
+    if c.wheelbase_m is not None:
+        kw["wheelbase"] = c.wheelbase_m
+    if c.steering_ratio is not None:
+        kw["steer_ratio"] = c.steering_ratio
+    src = CanPoseSource.from_log(resolve_path(c.log, base), resolve_path(c.dbc, base),
+                                 reckoner=DeadReckoner(start_pose=start_pose, **kw), start=c.start_s,
+                                 stop=c.start_s + c.duration_s, realtime=c.realtime, speed=c.speed)
+    return CanTrajectory(src, c.duration_s if c.realtime else min(c.duration_s, src.duration))
+
+
+def _world_chunks(world: World, spec: SceneSpec, folder: Path, progress=None) -> list[ChunkSpec]:
+    """Ground-truth VoxSplat chunks along the world's route, fitted once and cached on disk.
+
+    Entry i is ``scene_chunks/chunk_<i>.npz`` and ``chunk_<i>.json`` (the settings that made it
+    and the npz's sha256), both written atomically. An entry is reused when its settings match
+    and its checksum holds; a corrupt one (unreadable JSON, checksum off) is rebuilt with a
+    warning, not fatal."""
+    folder.mkdir(parents=True, exist_ok=True)
+    key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,
+           "M": spec.gaussians_per_voxel, "spacing": spec.chunk_spacing_m}
+    frames = chunk_frames(world, spec.chunk_spacing_m)
+    specs = []
+    for i, c2w in enumerate(frames):
+        path = folder / f"chunk_{i:03d}.npz"
+        meta_path = folder / f"chunk_{i:03d}.json"
+        if not _cache_entry_valid(path, meta_path, key):
+            if progress:
+                progress(f"fitting VoxSplat chunk {i + 1}/{len(frames)}")
+            vs = gt_voxsplat(world.static, c2w, spec.voxel_size, gaussians_per_voxel=spec.gaussians_per_voxel)
+            vs.save(path)
+            with atomic_path(meta_path) as tmp:
+                Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(path)}))
+        specs.append(ChunkSpec(path, np.asarray(c2w)))
+    return specs
+
+
+def _cache_entry_valid(path: Path, meta_path: Path, key: dict) -> bool:
+    """True if the chunk cache entry holds `key`'s chunk, intact; warns when it is corrupt."""
+    if not (path.is_file() and meta_path.is_file()):
+        return False
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        warnings.warn(f"{meta_path}: chunk cache entry unreadable; rebuilding it", ScubeSimWarning, stacklevel=3)
+        return False
+    if not isinstance(meta, dict) or meta.get("key") != key:
+        return False  # made with other settings (or by an older version): refit, nothing is wrong
+    if meta.get("sha256") != sha256_file(path):
+        warnings.warn(f"{path}: chunk cache entry corrupt (checksum differs from {meta_path.name}); rebuilding it",
+                      ScubeSimWarning, stacklevel=3)
+        return False
+    return True
