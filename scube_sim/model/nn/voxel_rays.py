@@ -9,7 +9,7 @@ each voxel up by its packed key. Frames: voxel (i, j, k) spans origin + [ijk, ij
 
 The traversal runs in the compiled trace core (`raytrace/_core.cpp`, multithreaded over rays)
 wherever it is built, and otherwise in the torch loop here; both give the same voxel and t for
-every ray (tests/model/test_voxel_rays.py), so the converter's output does not depend on which ran.
+every ray (tests/model/nn/test_voxel_rays.py), so the converter's output does not depend on which ran.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ import torch
 from scube_sim.model.nn.voxel_rays import VoxelRayCaster, deposit_mean
 from scube_sim.raytrace import compiled
 
-from ..raytrace.engines import engine_kw
+from ...raytrace.engines import engine_kw
 
 # Every traversal test runs on both cores; the compiled one is required (tests/raytrace/engines.py).
 CORES = ("reference", "compiled")

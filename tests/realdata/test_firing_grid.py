@@ -16,7 +16,7 @@ from scube_sim.realdata.raydrop import blind_sector, measure_cycle_us, rebuild_f
 from scube_sim.transforms import make_pose
 
 CYCLE_US = 55.296  # the VLP-32C's firing cycle
-AV2 = Path(os.environ.get("SCUBE_SIM_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")) \
+AV2 = Path(os.environ.get("SCUBE_SIM_SHARED_DATA", Path(__file__).resolve().parents[3] / "shared" / "data")) \
     / "argoverse2-sensor-log-7fab2350"
 
 
@@ -129,5 +129,5 @@ def test_argoverse2_grid_from_timing():
 def test_the_fitted_vlp32c_profile_loads():
     from scube_sim.lidar.drop import DropModel
 
-    m = DropModel.load(Path(__file__).resolve().parents[1] / "sensors" / "lidar" / "vlp32c.drop.yaml")
+    m = DropModel.load(Path(__file__).resolve().parents[2] / "sensors" / "lidar" / "vlp32c.drop.yaml")
     assert m.sensor == "VLP-32C" and "up_lidar" in m.source and "log_range" in m.coefficients

@@ -18,7 +18,7 @@ from scube_sim.model.appearance.net import AppearanceNet
 from scube_sim.model.nn.lpips import LPIPS, LPIPSConfig, load_lpips
 from scube_sim.model.stages import get_stage
 
-from .test_appearance import DATA, MODEL, data  # noqa: F401  (the tiny worlds fixture)
+from ..appearance.test_appearance import DATA, MODEL, data  # noqa: F401  (the tiny worlds fixture)
 
 # torchvision's AlexNet `features`, written out here rather than read from the module under test:
 # (index, in, out, kernel, stride, padding) of each convolution; 3 x 3 / 2 max pools after 1 and 4.
