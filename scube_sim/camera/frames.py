@@ -1,7 +1,9 @@
 """`Frames`: the camera input of the converter, shared by the worlds and the dataset adapters.
 
 A set of posed images: real rigs fire their cameras tens of milliseconds apart, so each image has
-its own camera-to-world pose and timestamp; the set has one reference ego pose and time.
+its own camera-to-world pose and timestamp; the set has one reference ego pose and time. A
+reference set may carry `context`: the frame sets of other instants of the same log (each with its
+own ego pose, time and `offset` in the source's instants), which define nothing of the chunk.
 Frames: cameras are OpenCV (x right, y down, z forward); poses are (4, 4) float64 camera-to-world
 (``T_world_cam``); times are seconds (float64).
 """
@@ -12,6 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..boxes import Box
 from ..errors import InputError, NotFoundError
 from ..transforms import check_pose
 from .model import Intrinsics
@@ -51,17 +54,39 @@ class Frames:
     images: list of CameraImage; ego_pose (4, 4) float64 ego-to-world at `timestamp`;
     metadata: free-form provenance (dataset, sample id, ...); ``ego_height_m``, where an adapter
     knows it, is the ego frame's origin height above the road in metres (0 where the ego frame
-    sits on the road, as in nuScenes and the worlds; KITTI's is its Velodyne, 1.73 m up)."""
+    sits on the road, as in nuScenes and the worlds; KITTI's is its Velodyne, 1.73 m up).
+    log: the log (drive, scene) the instant belongs to ('' where the source is one log); offset:
+    this instant's place among the source's instants, relative to the reference (0: the
+    reference; -1: the instant before); boxes: labelled objects at this instant, world frame,
+    where the source has them (moving actors break the static-scene assumption); context: other
+    instants of the same log, ordered by offset, none at 0 and none with a context of its own."""
 
     images: list[CameraImage]
     ego_pose: np.ndarray
     timestamp: float
     metadata: dict = field(default_factory=dict)
+    log: str = ""
+    offset: int = 0
+    boxes: list[Box] = field(default_factory=list)
+    context: list["Frames"] = field(default_factory=list)
 
     def __post_init__(self):
         self.ego_pose = check_pose(self.ego_pose, "Frames.ego_pose")
         if not np.isfinite(self.timestamp):
             raise InputError("Frames.timestamp is not finite")
+        offsets = []
+        for c in self.context:
+            where = f"context frames at offset {c.offset}"
+            if c.context:
+                raise InputError(f"{where}: a context instant cannot carry a context of its own")
+            if c.log != self.log:
+                raise InputError(f"{where}: from log {c.log!r}, not the reference's {self.log!r}: context "
+                                 f"never crosses a log or scene boundary")
+            if c.offset == 0 or c.offset in offsets:
+                raise InputError(f"{where}: offsets must be non-zero and distinct (have {offsets})")
+            offsets.append(c.offset)
+        if offsets != sorted(offsets):
+            self.context = sorted(self.context, key=lambda c: c.offset)
 
     def __len__(self) -> int:
         return len(self.images)
@@ -69,6 +94,11 @@ class Frames:
     @property
     def names(self) -> list[str]:
         return [im.name for im in self.images]
+
+    def instants(self) -> list["Frames"]:
+        """The reference (without its context) and every context instant, ordered by offset."""
+        ref = Frames(self.images, self.ego_pose, self.timestamp, self.metadata, self.log, self.offset, self.boxes)
+        return sorted([ref, *self.context], key=lambda f: f.offset)
 
     def __getitem__(self, name: str) -> CameraImage:
         for im in self.images:

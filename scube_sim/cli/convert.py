@@ -24,6 +24,12 @@ def convert_cmd(
     confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),
     sky: bool = typer.Option(True, "--sky/--no-sky", help="decode the sky panorama (--no-sky for LiDAR-only use)"),
     max_range: Optional[float] = typer.Option(None, "--max-range", help="keep voxels within this many metres of the ego (a LiDAR's range)"),
+    context: int = typer.Option(0, "--context", min=0, max=100, help="also give the converter the K instants before "
+                                "and the K after the sample in the same log or scene (never across a scene boundary), "
+                                "counted in the source's instants: nuScenes keyframes are 2 Hz, KITTI and KITTI-360 "
+                                "10 Hz, a worlds sample its own stored instants minus the evaluation ones (T+5, T+10). "
+                                "The shipped profiles read the reference instant only: the output is the same VoxSplat, "
+                                "its metadata records the instants given (multi-view depth will use them)"),
     fit_steps: Optional[int] = typer.Option(None, "--fit-steps", help="a test-time fit of the Gaussians to the input views, Adam steps (default: the profile's, 0 in the shipped ones; ~3 s each)"),
 ) -> None:
     """Convert posed camera frames into a VoxSplat (the SCube converter: geometry, then appearance)."""
@@ -37,7 +43,7 @@ def convert_cmd(
         raise CliError(f"--confidence: expected 0 (off) or K >= 2 samples, got {confidence}")
     if fit_steps is not None and fit_steps < 0:
         raise CliError(f"--fit-steps: expected an integer >= 0, got {fit_steps}")
-    frames = open_frames(path, dataset, sample)
+    frames = open_frames(path, dataset, sample, context=context)
     conv = Converter(profile)
     t0 = time.perf_counter()
     n_fit = conv.profile.appearance.fit_steps if fit_steps is None else fit_steps
@@ -51,7 +57,8 @@ def convert_cmd(
     vs.save(output)
     t = conv.timings
     seen = float(vs.channel("observed").mean()) if vs.num_voxels else 0.0
-    typer.echo(f"{frames.metadata.get('sample', path)}: {len(frames)} camera(s) -> {vs.num_voxels} voxels at "
+    given = f" (+{len(frames.context)} context instant(s))" if frames.context else ""
+    typer.echo(f"{frames.metadata.get('sample', path)}: {len(frames)} camera(s){given} -> {vs.num_voxels} voxels at "
                f"{vs.voxel_size:g} m ({100 * seen:.1f} % observed), {vs.num_gaussians} Gaussians; geometry "
                f"{t['geometry_s']:.1f} s, appearance {t['appearance_s']:.1f} s, peak {t['peak_mb']:.0f} MB, "
                f"{time.perf_counter() - t0:.1f} s -> {output}")

@@ -286,6 +286,6 @@ class Argoverse2Dataset:
                 pose_fn=self.sensor_pose_fn(name),
             ))
         return Sample(name=path.stem, timestamp=timestamp, ego_pose=ego_pose, frames=None, sweeps=sweeps,
-                      lidars=dict(self.lidars), boxes=[],
+                      lidars=dict(self.lidars), boxes=[], log=self.root.name,
                       metadata={"dataset": self.name, "log_id": self.root.name, "sweep_file": str(path),
                                 "timestamp_ns": t_ns})

@@ -212,7 +212,9 @@ def merge_sweeps(sweeps: list[LidarSweep], sensor_to_world: np.ndarray, *, name:
 class Sample:
     """One instant of a log. frames: the camera images (None where the set has no images);
     sweeps: real LiDAR sweeps (empty where the set has none); lidars: the rig's LiDAR models by
-    sensor name; boxes: labelled objects; ego_pose (4, 4) ego-to-world at `timestamp`."""
+    sensor name; boxes: labelled objects; ego_pose (4, 4) ego-to-world at `timestamp`; log: the
+    log (drive, scene) it belongs to ('' where the whole set is one log): context instants never
+    cross it (`frames_with_context`)."""
 
     name: str
     timestamp: float
@@ -222,9 +224,14 @@ class Sample:
     lidars: dict[str, LidarSpec] = field(default_factory=dict)
     boxes: list[Box] = field(default_factory=list)
     metadata: dict = field(default_factory=dict)
+    log: str = ""
 
     def __post_init__(self):
         self.ego_pose = check_pose(self.ego_pose, f"sample {self.name!r}: ego_pose")
+        if self.frames is not None:  # the frames know their instant's log and objects
+            self.frames.log = self.log
+            if not self.frames.boxes:
+                self.frames.boxes = list(self.boxes)
 
     def sweep(self, sensor: str | None = None) -> LidarSweep:
         """The sweep of `sensor` (default: the only or first sweep)."""
@@ -239,7 +246,10 @@ class Sample:
 
 
 class Dataset(Protocol):
-    """An adapter: `len(ds)` samples, `ds[i]` -> Sample (loaded on access), in time order."""
+    """An adapter: `len(ds)` samples, `ds[i]` -> Sample (loaded on access), in time order within
+    each log. An adapter whose samples hold several instants of their own (the worlds) may define
+    `context_frames(index, k) -> list[Frames]`; `frames_with_context` then asks it instead of
+    taking neighbouring samples."""
 
     name: str
     root: Path
@@ -284,3 +294,50 @@ def index_check(index: int, n: int, name: str) -> int:
     if not -n <= index < n:
         raise OutOfRangeError(f"{name}: sample {index} out of range (have {n})")
     return index % n
+
+
+def context_indices(logs: list[str], index: int, k: int) -> list[int]:
+    """Indices of up to `k` samples before and `k` after `index` that share its log, nearest
+    first on each side, in dataset order (time order within a log): they stop at the log's ends
+    and at the set's."""
+    if k < 0:
+        raise InputError(f"context: expected a number of instants >= 0, got {k}")
+    out = []
+    for step in (-1, 1):
+        j = index + step
+        while 0 <= j < len(logs) and abs(j - index) <= k and logs[j] == logs[index]:
+            out.append(j)
+            j += step
+    return sorted(out)
+
+
+def frames_with_context(ds: Dataset, index: int, k: int) -> Frames:
+    """The camera frames of sample `index` with `context`: the frames of up to `k` instants before
+    and `k` after it in the same log (`Sample.log`; never across a scene boundary), each with its
+    `offset` in the source's instants, its own ego pose, time and boxes. k = 0: the sample's
+    frames as they are. An adapter with `context_frames(index, k)` gives its own."""
+    sample = ds[index]
+    if sample.frames is None:
+        raise DatasetError(f"{ds.root}: sample {index} ({sample.name}) has no camera images")
+    frames = sample.frames
+    if k == 0:
+        return frames
+    if hasattr(ds, "context_frames"):
+        frames.context = list(ds.context_frames(index, k))
+    else:
+        logs = {index: sample.log}
+        context = []
+        for step in (-1, 1):  # walk out from the reference, loading only the neighbours needed
+            j = index + step
+            while 0 <= j < len(ds) and abs(j - index) <= k:
+                s = ds[j]
+                if s.log != sample.log:
+                    break
+                logs[j] = s.log
+                if s.frames is not None and len(s.frames):
+                    s.frames.offset = j - index
+                    context.append(s.frames)
+                j += step
+        frames.context = context
+    frames.__post_init__()  # the context's checks: same log, distinct offsets, ordered
+    return frames

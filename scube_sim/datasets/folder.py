@@ -198,6 +198,7 @@ class BoxEntry(_Strict):
 class SampleFile(_Strict):
     name: str
     timestamp: float
+    log: str = ""  # the log (drive, scene) of the instant: converter context never crosses it
     ego_pose: Pose
     images: dict[Name, ImageEntry] = {}
     sweeps: dict[Name, SweepEntry] = {}
@@ -295,7 +296,7 @@ class FolderDataset:
         sweeps = [self._sweep(d / e.file, name, e, path, ego_pose) for name, e in s.sweeps.items()]
         boxes = [self._box(b) for b in s.boxes]
         return Sample(name=s.name, timestamp=s.timestamp, ego_pose=ego_pose, frames=frames, sweeps=sweeps,
-                      lidars=dict(self.lidars), boxes=boxes, metadata=dict(s.metadata))
+                      lidars=dict(self.lidars), boxes=boxes, metadata=dict(s.metadata), log=s.log)
 
     def _image(self, file: Path, cam: str, e: ImageEntry, src: Path) -> CameraImage:
 
@@ -440,6 +441,8 @@ def _points_array(sweep: LidarSweep, suffix: str) -> np.ndarray:
 def _sample_entry(sample: Sample, out_dir: Path, points_suffix: str, image_suffix: str) -> dict:
     """Write one sample's files into `out_dir` and return its sample.yaml mapping."""
     entry = {"name": str(sample.name), "timestamp": float(sample.timestamp), "ego_pose": _rows(sample.ego_pose)}
+    if sample.log:  # only where the source has logs: files of single-log sources stay as they were
+        entry["log"] = str(sample.log)
     for what, names in (("camera", sample.frames.names if sample.frames is not None else []),
                         ("LiDAR sweep", [sw.sensor for sw in sample.sweeps])):
         if len(set(names)) != len(names):

@@ -266,7 +266,7 @@ class KittiRawDataset:
             res = self._icp[i - 1] if i > 0 else None
             meta["icp_fitness"] = None if res is None else res.fitness
             meta["icp_rmse"] = None if res is None else res.rmse
-        return Sample(name=stem, timestamp=t, ego_pose=pose, frames=frames, sweeps=[sweep],
+        return Sample(name=stem, timestamp=t, ego_pose=pose, frames=frames, sweeps=[sweep], log=self.root.name,
                       lidars={LIDAR: LidarSpec(LIDAR, self._lidar_config, np.eye(4))}, metadata=meta)
 
 
@@ -366,7 +366,8 @@ class KittiObjectDataset:
         meta = {"dataset": self.name, "frame": stem, "info": src, "fov_cropped": True,
                 "sample_id": e.get("sample_id", e.get("sample_idx")),
                 "num_lidar_pts": nlp}  # per box, KITTI's point count (for checks against the sweep)
-        return Sample(name=stem, timestamp=0.0, ego_pose=np.eye(4), frames=frames, sweeps=[sweep],
+        # each object frame is its own log: the set's frames are unrelated instants
+        return Sample(name=stem, timestamp=0.0, ego_pose=np.eye(4), frames=frames, sweeps=[sweep], log=stem,
                       lidars={LIDAR: LidarSpec(LIDAR, self._lidar_config, np.eye(4))}, boxes=boxes, metadata=meta)
 
 

@@ -132,6 +132,8 @@ class NuScenesDataset:
             raise DatasetError(f"{src}: 'data_list' must be a non-empty list of samples")
         entries = [self._parse_entry(i, e, src) for i, e in enumerate(data_list)]
         self._entries = sorted(entries, key=lambda e: e.timestamp)  # time order (stable for ties)
+        self._logs = scene_logs(self._entries, [e.get("scene_token") if isinstance(e, dict) else None
+                                                for e in data_list])
 
     # --- reading the info file ----------------------------------------------------------------
     def _find_info(self, info) -> Path:
@@ -240,7 +242,7 @@ class NuScenesDataset:
             "num_lidar_pts": [ins.num_lidar_pts for ins in e.instances],
         }
         return Sample(name=e.token, timestamp=e.timestamp, ego_pose=e.ego2global, frames=frames,
-                      sweeps=[sweep], lidars=lidars, boxes=boxes, metadata=meta)
+                      sweeps=[sweep], lidars=lidars, boxes=boxes, metadata=meta, log=self._logs[index % len(self)])
 
     def _frames(self, e: _Entry, lidar_to_world: np.ndarray) -> Frames:
 
@@ -313,4 +315,29 @@ def _number(value, source: str, key: str) -> float:
     return v
 
 
-__all__ = ["NuScenesDataset", "read_nuscenes_bin", "LABEL_MAP"]
+# Consecutive keyframes (2 Hz) of one scene lie 0.5 s and a few metres apart; an info file that spans
+# scenes and names none jumps between them by more.
+SCENE_GAP_S = 1.0
+SCENE_JUMP_M = 30.0
+
+
+def scene_logs(entries: list, scene_tokens: list) -> list[str]:
+    """The log (scene) of each time-ordered entry: its info's ``scene_token`` where the file has
+    one (looked up by the entry's `index` into the data list), else a new scene wherever
+    consecutive keyframes lie more than SCENE_GAP_S apart in time or SCENE_JUMP_M in space
+    (mmdetection3d v1.x infos drop the scene token); such a scene is named after its first
+    keyframe's token."""
+    out: list[str] = []
+    for i, e in enumerate(entries):
+        token = scene_tokens[e.index] if e.index < len(scene_tokens) else None
+        if token:
+            out.append(f"scene-token:{token}")
+            continue
+        prev = entries[i - 1] if i else None
+        same = (prev is not None and out[-1].startswith("scene@") and e.timestamp - prev.timestamp <= SCENE_GAP_S
+                and float(np.linalg.norm(e.ego2global[:3, 3] - prev.ego2global[:3, 3])) <= SCENE_JUMP_M)
+        out.append(out[-1] if same else f"scene@{e.token}")
+    return out
+
+
+__all__ = ["NuScenesDataset", "read_nuscenes_bin", "LABEL_MAP", "scene_logs"]

@@ -110,6 +110,7 @@ class WaymoFrameDataset:
             sweeps=[],  # the extract holds no range images
             lidars=self._lidars(),
             boxes=self._boxes(ego_pose),
+            log=context,
             metadata={"dataset": self.name, "context_name": context, "timestamp_micros": int(m["timestamp_micros"]),
                       "stats": m.get("stats", {}), "metadata_file": src},
         )

@@ -36,6 +36,7 @@ from pydantic import Field, ValidationError
 from ..camera.frames import Frames
 from ..config import StrictModel
 from ..datasets import open_dataset
+from ..datasets.base import frames_with_context
 from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
 from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
 from ..errors import InputError
@@ -141,9 +142,13 @@ def load_profile(profile: str | Path | ConverterProfile = DEFAULT_PROFILE) -> Co
         raise InputError(f"{path}: {exc}") from None
 
 
-def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0) -> Frames:
+def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0, context: int = 0) -> Frames:
     """The camera frames of one sample: `path` a worlds sample folder (DIR/<split>/NNNNNN) or, with
-    `dataset`, any adapter's folder (`datasets.open_dataset`) and its sample index `sample`."""
+    `dataset`, any adapter's folder (`datasets.open_dataset`) and its sample index `sample`.
+    context: with it, the frames of up to `context` instants before and after the sample in the
+    same log (`datasets.frames_with_context`: the source's instants, never across a scene)."""
+    if isinstance(context, bool) or not isinstance(context, (int, np.integer)) or context < 0:
+        raise InputError(f"context: expected a number of instants >= 0, got {context!r}")
     path = Path(path)
     if dataset is None:
         if (path / WORLDS_SAMPLE_META).is_file() and (path.parent.parent / WORLDS_HEADER).is_file():
@@ -164,9 +169,17 @@ def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0) -
     if s.frames is None or len(s.frames) == 0:
         raise InputError(f"{path}: sample {sample} ({s.name}) of the {ds.name} dataset has no camera images "
                          f"(Argoverse 2 here is LiDAR only); the converter needs posed camera frames")
-    s.frames.metadata.setdefault("sample", s.name)
-    s.frames.metadata.setdefault("dataset", ds.name)
-    return s.frames
+    frames = frames_with_context(ds, sample, int(context)) if context else s.frames
+    frames.metadata.setdefault("sample", s.name)
+    frames.metadata.setdefault("dataset", ds.name)
+    return frames
+
+
+def context_record(frames: Frames) -> list[dict]:
+    """What the converter was given over time, for a scene's metadata: one entry per instant
+    (offset, timestamp, cameras), the reference's offset 0 among them."""
+    return [{"offset": int(f.offset), "timestamp": float(f.timestamp), "cameras": list(f.names)}
+            for f in frames.instants()]
 
 
 def _sha256(path: Path) -> str:
@@ -433,6 +446,9 @@ class Converter:
             "timestamp": float(frames.timestamp),
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},
         })
+        if frames.context:  # recorded only with context: a single instant's output stays as it was
+            scene.metadata["instants"] = context_record(frames)
+            scene.metadata["instants_used"] = "reference only (the profile's stages read one instant)"
         return scene
 
 

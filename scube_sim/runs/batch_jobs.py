@@ -172,6 +172,7 @@ class ConvertSettings(StrictModel):
     confidence: int = Field(default=0, ge=0)  # K geometry samples for per-voxel confidence (0: off)
     sky: bool = True
     max_range: float | None = Field(default=None, gt=0)
+    context: int = Field(default=0, ge=0, le=100)  # instants before and after in the same log (convert --context)
 
 
 class ConvertJob(Job):
@@ -219,14 +220,17 @@ class ConvertJob(Job):
     def manifest(self, task, out):
         s = self.settings
         return RunManifest("convert", {}, {"input": folder_fingerprint(Path(task.params["path"])),
-                                           "sample": task.params["sample"], "settings": s.model_dump(mode="json"),
+                                           "sample": task.params["sample"],
+                                           # context 0 left out: batches run before the option resume
+                                           "settings": s.model_dump(mode="json", exclude={"context"} if not s.context
+                                                                    else None),
                                            **self._weights, "scube_sim": __version__})
 
     def run(self, task, folder, out):
         from ..model.converter import convert, is_loaded, open_frames  # torch: in the worker, when converting
 
         s = self.settings
-        frames = open_frames(task.params["path"], s.dataset, task.params["sample"])
+        frames = open_frames(task.params["path"], s.dataset, task.params["sample"], context=s.context)
         loaded = not is_loaded(s.profile)
         vs = convert(frames, profile=s.profile, steps=s.steps, seed=s.seed, confidence=s.confidence > 1,
                                k=s.confidence or None, sky=s.sky, max_range=s.max_range)

@@ -85,11 +85,15 @@ class FramesSpec(StrictModel):
     profile: str = "cpu-lidar"  # the loop simulates LiDAR: one Gaussian per voxel (docs/converter.md)
     max_range_m: float | None = Field(default=None, gt=0)
     route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
+    # path only: the instants before and after the sample in the same log (`convert --context`)
+    context: int = Field(default=0, ge=0, le=100)
 
     @model_validator(mode="after")
     def _one_source(self):
         if (self.path is None) == (self.world is None):
             raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
+        if self.context and self.world is not None:
+            raise ValueError("context: frames on disk only (path); a rendered world's frames have no log")
         if self.route and self.world is None:
             raise ValueError("route: needs world (the rig is rendered at each chunk along its road)")
         return self
@@ -432,7 +436,8 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
     # the converter's settings, its weights included (a retrained checkpoint at the same path
     # converts again); each entry adds its frames' digest
-    key = {"spec": f.model_dump(mode="json"), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
+    # context 0 left out of the key: caches made before the option existed stay valid
+    key = {"spec": f.model_dump(mode="json", exclude={"context"} if not f.context else None), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
            "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
                            for stage in ("geometry", "appearance")}}
     folder.mkdir(parents=True, exist_ok=True)
@@ -440,7 +445,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
         path = resolve_path(f.path, base)
         if not path.exists():
             raise ConfigError(f"scene.frames.path: {path}: no such folder")
-        frames = open_frames(path, f.dataset, f.sample)
+        frames = open_frames(path, f.dataset, f.sample, context=f.context)
         scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
         part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
         return BuiltScene(SimScene(static=[part]), file_scene=scene)

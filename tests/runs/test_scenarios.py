@@ -194,3 +194,13 @@ def test_an_openscenario_trajectory_into_a_ros_bag_a_viewer_recording_and_las_fi
     idx, s = sweeps[0]
     f0 = laspy.read(next(p for p in las if p.parent.name == s.name and p.name.startswith(f"{idx:06d}_")))
     np.testing.assert_allclose(np.asarray(f0.x), s.points["x"], atol=1e-3)  # LAS stores millimetres
+
+
+def test_a_frames_scene_takes_context_from_disk_only(tmp_path):
+    from scube_sim.runs.scenario import FramesSpec
+
+    assert FramesSpec(path="some/drive", dataset="kitti_raw", context=2).context == 2
+    with pytest.raises(ValueError, match="context: frames on disk only"):
+        FramesSpec(world={"style": "urban", "seed": 1}, context=1)
+    with pytest.raises(ValueError, match="greater than or equal to 0"):
+        FramesSpec(path="x", context=-1)
