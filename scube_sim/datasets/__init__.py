@@ -20,6 +20,7 @@ _ADAPTERS = {
     "nuscenes": "nuscenes:NuScenesDataset",
     "kitti_raw": "kitti:KittiRawDataset",
     "kitti_object": "kitti:KittiObjectDataset",
+    "kitti360": "kitti360:Kitti360Dataset",
     "waymo": "waymo:WaymoFrameDataset",
     "argoverse2": "argoverse2:Argoverse2Dataset",
     "folder": "folder:FolderDataset",
