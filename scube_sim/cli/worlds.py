@@ -24,7 +24,10 @@ def worlds_generate_cmd(
     image_scale: Optional[float] = typer.Option(None, "--image-scale", help="of the rig's resolution (default 0.25)"),
     frame_offsets: Optional[str] = typer.Option(None, "--frame-offsets",
                                                 help="stored instants in frames after T, comma-separated, "
-                                                "starting at 0 (default 0,5,10); only for a new folder"),
+                                                "increasing and including 0 (the input instant T; default "
+                                                "0,5,10); negative ones are instants before T, context for "
+                                                "the converter like any but 0, 5 and 10 (e.g. "
+                                                "-8,-4,-2,-1,0,1,2,4,5,8,10); only for a new folder"),
     fine_voxel: Optional[float] = typer.Option(None, "--fine-voxel", help="fine ground-truth voxel size in metres "
                                                "(default 0.1); only for a new folder"),
     coarse_factor: Optional[int] = typer.Option(None, "--coarse-factor", help="coarse voxel = factor x fine "

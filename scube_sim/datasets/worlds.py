@@ -15,8 +15,12 @@ What a sample holds (see `WorldsSample`):
   depth (H, W) float32 metres along the optical axis (inf: sky), semantic (H, W) int16 label ids,
   sky (H, W) bool, instance (H, W) int32 ids (0: ground and sky; each other object has its own
   id, and a boxed object's is its box's ``instance``); ``boxes``: every box at T (`Box`, world frame);
-- ``timeline``: every stored instant (T, then T+5 and T+10 frames at 10 Hz by default) with its
-  Frames and boxes; only T unless ``eval_frames`` (the default);
+- ``timeline``: every stored instant in time order (T, then T+5 and T+10 frames at 10 Hz by
+  default; instants before T first, since version 3) with its Frames and boxes; only T unless
+  ``eval_frames`` (the default); ``reference`` is T's entry;
+- ``log``: the sample's name (``<split>/<index:06d>``): a worlds sample is a log of its own, and
+  the converter's context instants come from its own stored instants (`WorldsDataset.context_frames`,
+  asked by `scube_sim.datasets.base.frames_with_context`), never from other samples;
 - ``sweeps``: the one ground-truth LiDAR sweep over the first sweep period after T, as the sensor
   measured it (raw: each point in the sensor frame at its own fire time, with a pose per point by
   interpolating the stored start and end poses); ``lidars``: that sensor's model and mount;
@@ -47,7 +51,15 @@ from ..labels import label_id
 from ..lidar.config import load_lidar_config
 from ..run_manifest import read_manifest
 from ..transforms import interpolate_poses
-from ..worlds.dataset import DATASET_FORMAT, DATASET_VERSION, SPLIT_SEED_BASE, DatasetConfig, read_dataset_config
+from ..worlds.dataset import (
+    DATASET_FORMAT,
+    DATASET_VERSION,
+    EVAL_OFFSETS,
+    SPLIT_SEED_BASE,
+    DatasetConfig,
+    frame_tag,
+    read_dataset_config,
+)
 from ..worlds.generator import WorldConfig
 from ..worlds.groundtruth import CHUNK_CORNER
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, index_check, require_file, require_key
@@ -112,10 +124,21 @@ class WorldsGroundTruth:
 @dataclass
 class WorldsSample(Sample):
     """A `Sample` of the worlds dataset: ``frames`` / ``boxes`` are the instant T; ``timeline``
-    holds every loaded instant in time order ([0] is T, the same Frames and boxes)."""
+    holds every loaded instant in time order (`reference` is T, the same Frames and boxes; it is
+    ``timeline[0]`` unless the dataset stores instants before T, version 3)."""
 
     ground_truth: WorldsGroundTruth = field(kw_only=True)
     timeline: list[WorldsFrame] = field(kw_only=True)
+
+    @property
+    def reference(self) -> WorldsFrame:
+        """The timeline's entry at offset 0: the input instant T."""
+        return next(f for f in self.timeline if f.offset == 0)
+
+    def later(self) -> list[WorldsFrame]:
+        """The loaded instants after T (offset > 0), in time order: the evaluation instants and
+        any later context instants."""
+        return [f for f in self.timeline if f.offset > 0]
 
 
 def _read_json(path: Path, what: str) -> dict:
@@ -129,13 +152,21 @@ def _read_json(path: Path, what: str) -> dict:
     return data
 
 
-def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+def _load_npz(path: Path, what: str, tags: set[str] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of an .npz; with `tags`, only the per-image maps ``<kind>_<tag>_<camera>`` of
+    those frame tags (the others are not decompressed)."""
     require_file(path, what)
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {k: z[k] for k in z.files}
+            return {k: z[k] for k in z.files if tags is None or _map_tag(k) in tags}
     except (OSError, ValueError) as exc:  # truncated or not a zip; pickled object arrays
         raise DatasetError(f"{path}: not a readable .npz ({exc})") from None
+
+
+def _map_tag(key: str) -> str | None:
+    """The frame tag of a per-image map's key ``<kind>_<tag>_<camera>`` (None for another key)."""
+    parts = key.split("_", 2)
+    return parts[1] if len(parts) == 3 else None
 
 
 def _array(arrays: dict, key: str, path: Path) -> np.ndarray:
@@ -157,11 +188,22 @@ def _being_written(folder: Path) -> bool:
     return manifest is not None and manifest.status != "complete"
 
 
+def _context(frames_meta: list[dict], k: int) -> list[tuple[int, dict]]:
+    """(index, frame) of the frames of a sample's meta that are context within k instants of T:
+    offset in [-k, k], not 0 (T) and not an evaluation instant (EVAL_OFFSETS), in stored (time) order."""
+    if k < 0:
+        raise DatasetError(f"context: expected a number of instants >= 0, got {k}")
+    return [(f, fm) for f, fm in enumerate(frames_meta)
+            if -k <= int(fm["offset"]) <= k and int(fm["offset"]) != 0 and int(fm["offset"]) not in EVAL_OFFSETS]
+
+
 class WorldsDataset:
     """The samples of one split of a worlds dataset folder (see the module docstring).
 
     root: the folder `worlds generate -o` wrote (it holds dataset.json); split: train, val or test;
-    eval_frames: also load the later instants (T+5, T+10 ...) into each sample's ``timeline``."""
+    eval_frames: also load the other stored instants (T+5, T+10 ..., and those before T) into each
+    sample's ``timeline``. `context_frames` gives a sample's context instants whatever eval_frames.
+    Reads layout versions 2 and 3 (`scube_sim.worlds.dataset.READABLE_VERSIONS`)."""
 
     name = "worlds"
     poses_from_icp = False
@@ -203,7 +245,8 @@ class WorldsDataset:
         for i in range(len(self)):
             yield self[i]
 
-    def __getitem__(self, index: int) -> WorldsSample:
+    def _meta(self, index: int) -> tuple[Path, Path, dict, list]:
+        """The sample folder of `index`, its meta.json path, the parsed meta and its frames list."""
         d = self.sample_dirs[index_check(index, len(self), f"{self.name} {self.root / self.split}")]
         meta_path = d / META_FILE
         meta = _read_json(meta_path, f"sample metadata {META_FILE} (not a complete worlds sample)")
@@ -214,11 +257,29 @@ class WorldsDataset:
         frames_meta = require_key(meta, "frames", str(meta_path))
         if not isinstance(frames_meta, list) or not frames_meta:
             raise DatasetError(f"{meta_path}: frames: expected a non-empty list")
+        offsets = []
+        for f, fm in enumerate(frames_meta):
+            if not isinstance(fm, dict):
+                raise DatasetError(f"{meta_path}: frames[{f}]: expected an object")
+            k = require_key(fm, "offset", f"{meta_path}: frames[{f}]")
+            if not isinstance(k, int) or isinstance(k, bool):
+                raise DatasetError(f"{meta_path}: frames[{f}].offset: expected an integer, got {k!r}")
+            offsets.append(k)
+        if 0 not in offsets or any(b <= a for a, b in zip(offsets, offsets[1:])):
+            raise DatasetError(f"{meta_path}: frames: expected offsets in increasing order that include 0 (the "
+                               f"input instant T), got {offsets}")
+        return d, meta_path, meta, frames_meta
+
+    def _name(self, d: Path) -> str:
+        return f"{self.split}/{d.name}"
+
+    def __getitem__(self, index: int) -> WorldsSample:
+        d, meta_path, meta, frames_meta = self._meta(index)
+        load = [(f, fm) for f, fm in enumerate(frames_meta) if self.eval_frames or int(fm["offset"]) == 0]
         maps_path = d / "frames.npz"
-        maps = _load_npz(maps_path, "per-camera depth and semantic maps")
-        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path)
-                    for f, fm in enumerate(frames_meta if self.eval_frames else frames_meta[:1])]
-        t0 = timeline[0]
+        maps = _load_npz(maps_path, "per-camera depth and semantic maps", {frame_tag(fm["offset"]) for _, fm in load})
+        timeline = [self._frame(d, meta_path, f, fm, maps, maps_path) for f, fm in load]
+        t0 = next(f for f in timeline if f.offset == 0)
         chunk_to_world = as_matrix(require_key(meta, "chunk_to_world", str(meta_path)), (4, 4), str(meta_path),
                                    "chunk_to_world")
         points, sweep = self._sweep(d, meta_path, meta)
@@ -230,18 +291,40 @@ class WorldsDataset:
         gt = WorldsGroundTruth(chunk_to_world, fine, coarse, points, world, str(meta.get("layout", "")),
                                as_matrix(require_key(meta, "sun_dir", str(meta_path)), (3,), str(meta_path), "sun_dir"))
         index = int(meta.get("index", int(d.name)))
-        return WorldsSample(name=f"{self.split}/{d.name}", timestamp=t0.time, ego_pose=t0.frames.ego_pose,
+        return WorldsSample(name=self._name(d), timestamp=t0.time, ego_pose=t0.frames.ego_pose, log=self._name(d),
                             frames=t0.frames, sweeps=[sweep], lidars=dict(self.lidars), boxes=t0.boxes,
                             metadata={"dataset": self.name, "split": self.split, "index": index,
                                       "sample_dir": str(d), "world": meta.get("world"),
                                       "layout": meta.get("layout"), "rig": meta.get("rig")},
                             ground_truth=gt, timeline=timeline)
 
+    def context_offsets(self, index: int, k: int) -> list[int]:
+        """The frame offsets `context_frames(index, k)` gives: the sample's stored offsets in
+        [-k, k], less 0 (T itself) and the evaluation instants (EVAL_OFFSETS), in time order."""
+        _, _, _, frames_meta = self._meta(index)
+        return [int(fm["offset"]) for _, fm in _context(frames_meta, k)]
+
+    def context_frames(self, index: int, k: int) -> list[Frames]:
+        """The converter's context of sample `index`: its own stored instants within k frames (at
+        the dataset's frame rate) of T, before and after, less T and the evaluation instants
+        (EVAL_OFFSETS: never converter inputs), in time order. Each a `Frames` with its `offset`,
+        its own ego pose and time (seconds after T), its cameras' poses and timestamps, the boxes
+        at that instant and the sample's name as its `log`. A worlds sample never takes context
+        from other samples (each is a world of its own)."""
+        d, meta_path, _, frames_meta = self._meta(index)
+        want = _context(frames_meta, k)
+        if not want:
+            return []
+        maps_path = d / "frames.npz"
+        maps = _load_npz(maps_path, "per-camera depth and semantic maps", {frame_tag(fm["offset"]) for _, fm in want})
+        return [self._frame(d, meta_path, f, fm, maps, maps_path).frames for f, fm in want]
+
     def _frame(self, d: Path, meta_path: Path, f: int, fm, maps: dict, maps_path: Path) -> WorldsFrame:
         where = f"{meta_path}: frames[{f}]"
         if not isinstance(fm, dict):
             raise DatasetError(f"{where}: expected an object")
         k = int(require_key(fm, "offset", where))
+        tag = frame_tag(k)
         t_ref = float(require_key(fm, "time", where))
         images = []
         for c, cam in enumerate(require_key(fm, "cameras", where)):
@@ -253,19 +336,19 @@ class WorldsDataset:
                                   intr_d["cy"], intr_d["model"], tuple(intr_d["dist"]))
             except (KeyError, TypeError, ValueError) as exc:
                 raise DatasetError(f"{cwhere}.intrinsics: {exc}") from None
-            rgb_path = d / f"rgb_{k:02d}_{name}.png"
+            rgb_path = d / f"rgb_{tag}_{name}.png"
             require_file(rgb_path, f"image of camera {name!r} at frame offset {k}")
             try:
                 with Image.open(rgb_path) as im:
                     rgb = np.asarray(im.convert("RGB"), np.uint8)
             except (UnidentifiedImageError, OSError) as exc:
                 raise DatasetError(f"{rgb_path}: not a readable image ({exc})") from None
-            depth = _array(maps, f"depth_{k:02d}_{name}", maps_path).astype(np.float32)
-            sem = _array(maps, f"semantic_{k:02d}_{name}", maps_path).astype(np.int16)
-            inst = _array(maps, f"instance_{k:02d}_{name}", maps_path).astype(np.int32)
+            depth = _array(maps, f"depth_{tag}_{name}", maps_path).astype(np.float32)
+            sem = _array(maps, f"semantic_{tag}_{name}", maps_path).astype(np.int16)
+            inst = _array(maps, f"instance_{tag}_{name}", maps_path).astype(np.int32)
             for what, a in (("depth", depth), ("semantic", sem), ("instance", inst)):
                 if a.shape != (intr.height, intr.width):
-                    raise DatasetError(f"{maps_path}: {what}_{k:02d}_{name} has shape {a.shape}, expected "
+                    raise DatasetError(f"{maps_path}: {what}_{tag}_{name} has shape {a.shape}, expected "
                                        f"{(intr.height, intr.width)} (the camera's intrinsics in {meta_path})")
             pose = as_matrix(require_key(cam, "cam_to_world", cwhere), (4, 4), cwhere, "cam_to_world")
             try:
@@ -279,7 +362,8 @@ class WorldsDataset:
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{where}.boxes: not a box ({type(exc).__name__}: {exc})") from None
         meta_f = {"dataset": self.name, "split": self.split, "sample_dir": str(d), "frame_offset": k}
-        return WorldsFrame(k, t_ref, Frames(images, ego, t_ref, meta_f), boxes)
+        return WorldsFrame(k, t_ref, Frames(images, ego, t_ref, meta_f, log=self._name(d), offset=k, boxes=list(boxes)),
+                           boxes)
 
     def _sweep(self, d: Path, meta_path: Path, meta: dict) -> tuple[np.ndarray, LidarSweep]:
         lm = require_key(meta, "lidar", str(meta_path))

@@ -3,7 +3,8 @@
     DIR/dataset.json                       format, version, DatasetConfig, label table, rigs
     DIR/<split>/<index:06d>/meta.json      world config and seed, rig, poses, cameras, timestamps,
                                            boxes
-    DIR/<split>/<index:06d>/rgb_<frame>_<camera>.png     8-bit sRGB images
+    DIR/<split>/<index:06d>/rgb_<frame>_<camera>.png     8-bit sRGB images; <frame> is the frame
+                                           offset's tag (`frame_tag`: 05 for 5, m04 for -4)
     DIR/<split>/<index:06d>/frames.npz     depth_<frame>_<camera> (H, W) float16 metres along the
                                            optical axis (inf: sky), semantic_<frame>_<camera> (H, W)
                                            uint8 label ids, instance_<frame>_<camera> (H, W)
@@ -18,8 +19,10 @@
                                            (POINT_DTYPE, sensor frame, raw motion distortion)
     DIR/<split>/<index:06d>/manifest.json  the sample's run manifest (`scube_sim.run_manifest`)
 
-Frames: index 0 is the input instant T; the others (T+5, T+10 at 10 Hz by default) are for
-evaluation. Each image has its own timestamp (the rig's firing offsets) and camera-to-world pose.
+Frames: offset 0 is the input instant T (it defines the chunk); EVAL_OFFSETS (T+5, T+10 at 10 Hz,
+the default's) are for evaluating novel views and never converter inputs; any other offset, before
+T (negative, since version 3) or after, is a context instant the converter may take with T. Each
+image has its own timestamp (the rig's firing offsets) and camera-to-world pose.
 The chunk frame is the ego frame at T (see `groundtruth`); `meta.json` holds chunk_to_world.
 
 Samples are written by the `worlds` batch job (`WorldsJob`, `scube-sim batch worlds` and `worlds
@@ -65,8 +68,34 @@ from .textures import albedo
 DATASET_FORMAT = "scube_sim.worlds"
 # 2: per-pixel instance ids (instance_<frame>_<camera> in frames.npz); a rig per sample
 # (DatasetConfig.rigs, meta.json `rig`).
-DATASET_VERSION = 2
+# 3: frame offsets before T (negative, files tagged m<k>: `frame_tag`); the stored instants in
+# time order, so T (offset 0) need not be the first. A folder is written with the lowest version
+# that describes it (`dataset_version`): 2 where every offset is >= 0 (the version-2 layout, byte
+# for byte), 3 where one is negative (a version-2 reader would take its first instant for T).
+DATASET_VERSION = 3
+READABLE_VERSIONS = (2, 3)
 SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
+# The evaluation instants, in frames after T: T+5 and T+10 (the paper's novel views at 10 Hz).
+# Never converter inputs (`scube_sim.datasets.worlds.WorldsDataset.context_frames` leaves them
+# out; the appearance stage's loss never uses them either).
+EVAL_OFFSETS = (5, 10)
+
+
+def frame_tag(offset: int) -> str:
+    """The file-name tag of frame offset `offset`: at least two digits, ``m`` before a negative
+    one's magnitude (5 -> ``05``, 10 -> ``10``, -4 -> ``m04``, -12 -> ``m12``). A tag has no
+    ``_`` and reads back one way (`parse_frame_tag`); the tags of one sign sort by magnitude."""
+    k = int(offset)
+    return f"{k:02d}" if k >= 0 else f"m{-k:02d}"
+
+
+def parse_frame_tag(tag: str) -> int:
+    """The frame offset of a file-name tag (`frame_tag`'s inverse); ValueError if it is none."""
+    neg = tag.startswith("m")
+    digits = tag[1:] if neg else tag
+    if len(digits) < 2 or not digits.isdigit() or (len(digits) > 2 and digits[0] == "0") or (neg and int(digits) == 0):
+        raise ValueError(f"not a frame offset tag: {tag!r} (expected 05, 10, m04, ...)")
+    return -int(digits) if neg else int(digits)
 
 
 class DatasetConfig(StrictModel):
@@ -74,7 +103,7 @@ class DatasetConfig(StrictModel):
 
     rigs: list[str] = Field(default_factory=lambda: ["waymo-5"], min_length=1)
     image_scale: float = Field(default=0.25, gt=0, le=1)
-    frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)
+    frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)  # frames after T
     frame_rate_hz: float = 10.0
     fine_voxel_m: float = Field(default=0.1, ge=0.05, le=1.6)
     coarse_factor: int = Field(default=4, ge=1, le=16)
@@ -84,16 +113,25 @@ class DatasetConfig(StrictModel):
 
     @field_validator("frame_offsets")
     @classmethod
-    def _offsets_from_t(cls, v: list[int]) -> list[int]:
-        # frame 0 is the converter's input instant; readers take the first stored frame as T
-        if v[0] != 0 or any(b <= a for a, b in zip(v, v[1:])):
-            raise ValueError(f"expected strictly increasing frame offsets starting at 0, got {v}")
+    def _offsets_with_t(cls, v: list[int]) -> list[int]:
+        # offset 0 is the converter's input instant T (it defines the chunk); negative offsets
+        # are instants before it (a version-3 dataset)
+        if 0 not in v or any(b <= a for a, b in zip(v, v[1:])):
+            raise ValueError(f"expected strictly increasing frame offsets that include 0 (the input instant T), "
+                             f"got {v}")
         return v
 
     @property
     def rig(self) -> str:
         """The first rig: the dataset's reference rig (dataset.json `rig`)."""
         return self.rigs[0]
+
+
+def dataset_version(cfg: DatasetConfig) -> int:
+    """The layout version a dataset of `cfg` is written with: the lowest that describes it, 2 where
+    every frame offset is >= 0 (the version-2 layout: older readers read it too), 3 where one is
+    negative (older readers, which take the first stored instant for T, refuse it)."""
+    return 3 if min(cfg.frame_offsets) < 0 else 2
 
 
 def sample_rig(index: int, cfg: DatasetConfig) -> str:
@@ -109,7 +147,11 @@ def sample_world_config(split: str, index: int, cfg: DatasetConfig) -> WorldConf
     seed = SPLIT_SEED_BASE[split] + index
     style = cfg.styles[index % len(cfg.styles)]
     duration = max(cfg.frame_offsets) / cfg.frame_rate_hz + 0.5
-    return WorldConfig(style=style, seed=seed, duration_s=duration)
+    first = min(cfg.frame_offsets)
+    if first >= 0:  # no history: the world exactly as before version 3
+        return WorldConfig(style=style, seed=seed, duration_s=duration)
+    # the ego path and the actor tracks back to the first instant, and the rig's firing offsets
+    return WorldConfig(style=style, seed=seed, duration_s=duration, history_s=-first / cfg.frame_rate_hz + 0.5)
 
 
 class _SceneAt:
@@ -163,16 +205,17 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     frames_meta, images, maps = [], {}, {}
     for k in cfg.frame_offsets:
         t_ref = k / cfg.frame_rate_hz
+        tag = frame_tag(k)
         cams_meta = []
         for cam in rig.cameras:
             intr = cam.intrinsics().scaled(cfg.image_scale)
             t_cam = t_ref + cam.time_offset_s
             pose = world.ego_pose_at(t_cam) @ cam.cam_to_ego()
             out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
-            images[f"rgb_{k:02d}_{cam.name}.png"] = out["rgb"]
-            maps[f"depth_{k:02d}_{cam.name}"] = out["depth"].astype(np.float16)
-            maps[f"semantic_{k:02d}_{cam.name}"] = out["semantic"].astype(np.uint8)
-            maps[f"instance_{k:02d}_{cam.name}"] = out["instance"].astype(np.int32)
+            images[f"rgb_{tag}_{cam.name}.png"] = out["rgb"]
+            maps[f"depth_{tag}_{cam.name}"] = out["depth"].astype(np.float16)
+            maps[f"semantic_{tag}_{cam.name}"] = out["semantic"].astype(np.uint8)
+            maps[f"instance_{tag}_{cam.name}"] = out["instance"].astype(np.int32)
             cams_meta.append({"name": cam.name, "intrinsics": intr.to_dict(), "cam_to_world": pose.tolist(),
                               "timestamp": t_cam})
         frames_meta.append({"offset": k, "time": t_ref, "ego_pose": world.ego_pose_at(t_ref).tolist(),
@@ -199,7 +242,7 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
                        lidar.sensor_pose(world.ego_pose_at(period)), t_start=0.0, seed=index)
 
     meta = {
-        "format": DATASET_FORMAT, "version": DATASET_VERSION, "split": split, "index": index,
+        "format": DATASET_FORMAT, "version": dataset_version(cfg), "split": split, "index": index,
         "world": wcfg.model_dump(), "world_version": WORLD_VERSION, "layout": world.layout.kind,
         "rig": rig_name, "chunk_to_world": chunk_to_world.tolist(), "sun_dir": world.sun_dir.tolist(), "frames": frames_meta,
         "lidar": {"sensor": cfg.lidar, "pose_start": sweep.pose_start.tolist(), "pose_end": sweep.pose_end.tolist(),
@@ -258,7 +301,7 @@ def write_sample(sample: dict, folder: Path) -> Path:
 
 def dataset_header(cfg: DatasetConfig) -> dict:
     rig = load_rig(cfg.rig)
-    return {"format": DATASET_FORMAT, "version": DATASET_VERSION, "config": cfg.model_dump(),
+    return {"format": DATASET_FORMAT, "version": dataset_version(cfg), "config": cfg.model_dump(),
             "world_version": WORLD_VERSION, "label_table_version": LABEL_TABLE_VERSION,
             "labels": [lab.name for lab in LABELS], "rig": rig.model_dump(mode="json"),
             "rigs": [load_rig(r).model_dump(mode="json") for r in cfg.rigs],
@@ -267,15 +310,21 @@ def dataset_header(cfg: DatasetConfig) -> dict:
 
 def read_dataset_config(out: Path) -> DatasetConfig:
     """The DatasetConfig stored in an existing DIR/dataset.json (InputError naming the file if it
-    is another format or version)."""
+    is another format, a version this scube_sim does not read (READABLE_VERSIONS), or a version
+    that does not match its frame offsets)."""
     head = Path(out) / "dataset.json"
     old = json.loads(head.read_text())
     if old.get("format") != DATASET_FORMAT:
         raise InputError(f"{head}: not a scube_sim worlds dataset (format {old.get('format')!r})")
-    if old.get("version") != DATASET_VERSION:
-        raise InputError(f"{head}: dataset version {old.get('version')} differs from this scube_sim's "
-                         f"{DATASET_VERSION}; write to a new folder")
-    return DatasetConfig.model_validate(old["config"])
+    version = old.get("version")
+    if version not in READABLE_VERSIONS:
+        raise InputError(f"{head}: dataset version {version} is not one this scube_sim reads "
+                         f"({', '.join(map(str, READABLE_VERSIONS))}); write to a new folder")
+    cfg = DatasetConfig.model_validate(old["config"])
+    if version < dataset_version(cfg):
+        raise InputError(f"{head}: dataset version {version} cannot hold frame offsets before T "
+                         f"({cfg.frame_offsets}: version {dataset_version(cfg)} or later)")
+    return cfg
 
 
 def ensure_dataset_config(out: Path, cfg: DatasetConfig | None) -> DatasetConfig:
@@ -379,22 +428,28 @@ def load_sample(folder: Path) -> dict:
     return {"meta": meta, "images": images, "frames": frames, "voxels": voxels, "lidar": lidar}
 
 
-def sample_frames(sample: dict, frame: int = 0) -> Frames:
-    """The `Frames` (the converter's camera input) of frame `frame` (an index into the sample's
-    frame offsets: 0 is the input instant T) of a loaded sample, with depth, semantics and sky."""
+def sample_frames(sample: dict, frame: int | None = None) -> Frames:
+    """The `Frames` (the converter's camera input) of a loaded sample at one stored instant, with
+    depth, semantics and sky: `frame` an index into the sample's frames (in time order), default
+    the input instant T (offset 0; the first frame before version 3). The Frames' `offset` is the
+    instant's frame offset and its `log` the sample (``<split>/<index:06d>``, as the adapter names it)."""
     meta = sample["meta"]
+    if frame is None:
+        frame = next((i for i, f in enumerate(meta["frames"]) if f["offset"] == 0), 0)
     fm = meta["frames"][frame]
     k = fm["offset"]
+    tag = frame_tag(k)
     images = []
     for cam in fm["cameras"]:
         d = cam["intrinsics"]
         intr = Intrinsics(d["width"], d["height"], d["fx"], d["fy"], d["cx"], d["cy"], d["model"], tuple(d["dist"]))
-        sem = sample["frames"][f"semantic_{k:02d}_{cam['name']}"].astype(np.int16)
-        inst = sample["frames"].get(f"instance_{k:02d}_{cam['name']}")  # absent before version 2
-        images.append(CameraImage(cam["name"], sample["images"][f"rgb_{k:02d}_{cam['name']}.png"], intr,
+        sem = sample["frames"][f"semantic_{tag}_{cam['name']}"].astype(np.int16)
+        inst = sample["frames"].get(f"instance_{tag}_{cam['name']}")  # absent before version 2
+        images.append(CameraImage(cam["name"], sample["images"][f"rgb_{tag}_{cam['name']}.png"], intr,
                                   np.asarray(cam["cam_to_world"]), float(cam["timestamp"]),
-                                  depth=sample["frames"][f"depth_{k:02d}_{cam['name']}"].astype(np.float32),
+                                  depth=sample["frames"][f"depth_{tag}_{cam['name']}"].astype(np.float32),
                                   semantic=sem, sky=sem == label_id("sky"),
                                   instance=None if inst is None else inst.astype(np.int32)))
     return Frames(images, np.asarray(fm["ego_pose"]), float(fm["time"]),
-                  {"split": meta["split"], "index": meta["index"], "frame_offset": k})
+                  {"split": meta["split"], "index": meta["index"], "frame_offset": k},
+                  log=f"{meta['split']}/{int(meta['index']):06d}", offset=int(k))

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_serializer
 
 from ..boxes import Box
 from ..config import StrictModel, load_yaml, validate_model
@@ -50,6 +50,16 @@ class WorldConfig(StrictModel):
     duration_s: float = Field(default=2.0, gt=0, le=600, description="ego trajectory and actor tracks")
     moving_vehicles: int | None = Field(default=None, ge=0, le=200)
     pedestrians: int | None = Field(default=None, ge=0, le=500)
+    history_s: float = Field(default=0.0, ge=0, le=60, description="ego trajectory and actor tracks before t = 0")
+
+    @model_serializer(mode="wrap")
+    def _history_only_when_asked(self, handler):
+        # history_s is written only where it is set: every config without one dumps as before
+        # (the dataset samples' meta.json `world` stays byte for byte what it was)
+        out = handler(self)
+        if isinstance(out, dict) and not self.history_s:
+            out.pop("history_s", None)
+        return out
 
     @classmethod
     def from_yaml(cls, path) -> "WorldConfig":
@@ -107,6 +117,9 @@ class World:
     boxes_static: list[Box] = field(default_factory=list)  # parked vehicles etc.
 
     def ego_pose_at(self, t: float) -> np.ndarray:
+        """(4, 4) ego-to-world at time t: between the 10 Hz path samples (linear / SLERP); before the
+        first sample (t < 0 without `history_s`) or after the last, extrapolated from the nearest
+        segment."""
         i = int(np.clip(np.searchsorted(self.ego_times, t, side="right") - 1, 0, len(self.ego_times) - 2))
         s = (t - self.ego_times[i]) / (self.ego_times[i + 1] - self.ego_times[i])
         return interpolate_poses(self.ego_poses[i], self.ego_poses[i + 1], np.array([s]))[0]
@@ -470,8 +483,9 @@ class _Site:
 
 @dataclass
 class _EgoPath:
-    """The ego's drive: times (T,) s at 10 Hz from 0, arc lengths s (T,) m along the main road,
-    the lateral offset of its lane (m, left positive) and poses (T, 4, 4) ego-to-world."""
+    """The ego's drive: times (T,) s at 10 Hz (from 0, or from -history_s rounded up to the 10 Hz
+    grid), arc lengths s (T,) m along the main road, the lateral offset of its lane (m, left
+    positive) and poses (T, 4, 4) ego-to-world."""
 
     times: np.ndarray
     s: np.ndarray
@@ -601,10 +615,22 @@ def _place_parked_vehicles(site: _Site, rng, st: dict) -> list[Box]:
     return boxes
 
 
-def _ego_path(layout: Layout, rng, cfg: WorldConfig, st: dict) -> _EgoPath:
-    """The ego drives the right lane of the main road from x = 0 at constant speed, sampled at 10 Hz."""
-    speed = cfg.ego_speed_mps if cfg.ego_speed_mps is not None else _u(rng, st["speed"])
+def _track_times(cfg: WorldConfig) -> np.ndarray:
+    """The 10 Hz instants of the ego path and the actor tracks: from 0 to duration_s, preceded by
+    the instants back to -history_s (rounded up to the grid) where a history is asked. The
+    instants from 0 are the same numbers with or without a history."""
     times = np.round(np.arange(0.0, cfg.duration_s + 1e-9, 0.1), 6)
+    n_back = int(np.ceil(cfg.history_s / 0.1 - 1e-9)) if cfg.history_s > 0 else 0
+    if n_back:
+        times = np.concatenate([-np.round(np.arange(n_back, 0, -1) * 0.1, 6), times])
+    return times
+
+
+def _ego_path(layout: Layout, rng, cfg: WorldConfig, st: dict) -> _EgoPath:
+    """The ego drives the right lane of the main road at constant speed, at x = 0 at t = 0,
+    sampled at 10 Hz (before t = 0 too where `history_s` asks: the same lane, the same speed)."""
+    speed = cfg.ego_speed_mps if cfg.ego_speed_mps is not None else _u(rng, st["speed"])
+    times = _track_times(cfg)
     main = layout.main
     s0 = 20.0  # the ego starts at x = 0, 20 m after the road's start
     lane = -(main.median / 2 + main.lane_width / 2) if main.lanes >= 1 else 0.0
@@ -614,9 +640,12 @@ def _ego_path(layout: Layout, rng, cfg: WorldConfig, st: dict) -> _EgoPath:
 
 def _moving_vehicles(site: _Site, rng, cfg: WorldConfig, st: dict, ego: _EgoPath) -> list[Actor]:
     """Cars and vans driving a lane of a random road at constant speed; tracks at the ego's times.
-    A vehicle whose track would leave its road or run through the ego is dropped."""
+    A vehicle whose track from t = 0 would leave its road or run through the ego is dropped (only
+    from t = 0: a history must not change which vehicles a world has; before 0 a track may run
+    past its road's end, continuing straight)."""
     layout = site.layout
     times = ego.times
+    ahead = times >= 0
     actors = []
     n_mov = cfg.moving_vehicles if cfg.moving_vehicles is not None else int(rng.integers(st["moving"][0], st["moving"][1] + 1))
     for _ in range(n_mov):
@@ -627,9 +656,9 @@ def _moving_vehicles(site: _Site, rng, cfg: WorldConfig, st: dict, ego: _EgoPath
         v = rng.uniform(4.0, 13.0)
         s_start = rng.uniform(10.0, max(road.length - 10.0, 11.0))
         s_t = s_start + direction * v * times
-        if np.any(s_t < 0) or np.any(s_t > road.length):
+        if np.any(s_t[ahead] < 0) or np.any(s_t[ahead] > road.length):
             continue
-        if road is layout.main and np.any(np.abs(s_t - ego.s) < 10.0) and lateral == ego.lane:
+        if road is layout.main and np.any(np.abs(s_t - ego.s)[ahead] < 10.0) and lateral == ego.lane:
             continue  # not through the ego
         inst = site.ids()
         m, size = vehicle_mesh(rng, "car" if rng.random() < 0.85 else "van", inst, _car_color(rng))

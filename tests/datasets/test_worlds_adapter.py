@@ -16,6 +16,7 @@ from scube_sim.boxes import points_in_boxes
 from scube_sim.camera.frames import Frames
 from scube_sim.camera.rig import load_rig
 from scube_sim.datasets import DatasetError, LidarSweep, Sample, open_dataset
+from scube_sim.datasets.base import frames_with_context
 from scube_sim.datasets.worlds import WorldsDataset, WorldsSample
 from scube_sim.labels import label_id
 from scube_sim.lidar.config import load_lidar_config
@@ -318,3 +319,104 @@ def test_unfinished_sample_folders_are_skipped(copy):
     shutil.copytree(sample_dir(copy), copy / "train" / ".tmp-000002")
     (copy / "train" / "notes").mkdir()
     assert len(open_dataset("worlds", copy)) == 1
+
+
+# --- instants before T (layout version 3) and the converter's context ------------------------------
+
+CTX_CFG = CFG.model_copy(update={"frame_offsets": [-4, -1, 0, 2, 5, 10]})
+
+
+@pytest.fixture(scope="module")
+def ctx_root(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("worlds_ctx")
+    generate_dataset(out, "train", 1, CTX_CFG, start=INDEX, progress=False)
+    return out
+
+
+def test_offsets_before_t_round_trip(ctx_root):
+    assert json.loads((ctx_root / "dataset.json").read_text())["version"] == 3
+    d = sample_dir(ctx_root)
+    rig = load_rig(CTX_CFG.rig)
+    tags = {"m04", "m01", "00", "02", "05", "10"}
+    assert {p.name for p in d.glob("rgb_*.png")} == {f"rgb_{t}_{c.name}.png" for t in tags for c in rig.cameras}
+    s = open_dataset("worlds", ctx_root)[0]
+    assert s.log == s.name == f"train/{INDEX:06d}" and s.frames.log == s.log and s.frames.offset == 0
+    assert [f.offset for f in s.timeline] == CTX_CFG.frame_offsets
+    assert s.reference is s.timeline[2] and s.reference.frames is s.frames and s.timestamp == 0.0
+    assert [f.offset for f in s.later()] == [2, 5, 10]
+    world = generate_world(s.ground_truth.world)
+    np.testing.assert_allclose(s.ground_truth.chunk_to_world, s.ego_pose, atol=1e-12)
+    pos = []
+    for f in s.timeline:
+        t = f.offset / CTX_CFG.frame_rate_hz
+        assert f.time == pytest.approx(t) and f.frames.offset == f.offset and f.frames.log == s.log
+        np.testing.assert_allclose(f.frames.ego_pose, world.ego_pose_at(t), atol=1e-9)
+        for im, cam in zip(f.frames.images, rig.cameras):
+            assert im.timestamp == pytest.approx(t + cam.time_offset_s)
+            np.testing.assert_allclose(im.cam_to_world, world.ego_pose_at(t + cam.time_offset_s) @ cam.cam_to_ego(),
+                                       atol=1e-9)
+        pos.append(f.frames.ego_pose[:3, 3])
+    # the path before T continues the one after it: the same speed, no jump at T
+    speed = np.linalg.norm(np.diff(np.array(pos), axis=0), axis=1) / np.diff([f.time for f in s.timeline])
+    np.testing.assert_allclose(speed, speed[-1], rtol=1e-3)
+    assert speed[-1] > 1.0
+    # the images before T are renders of their own instant, not copies of T's
+    assert not np.array_equal(s.timeline[0].frames["FRONT"].image, s.frames["FRONT"].image)
+
+
+def test_frames_with_context_gives_the_stored_instants_but_t_and_the_evaluation_ones(ctx_root):
+    ds = open_dataset("worlds", ctx_root)
+    world = generate_world(ds[0].ground_truth.world)
+    assert frames_with_context(ds, 0, 0).context == []
+    for k, want in ((1, [-1]), (2, [-1, 2]), (4, [-4, -1, 2]), (10, [-4, -1, 2]), (50, [-4, -1, 2])):
+        assert ds.context_offsets(0, k) == want
+        f = frames_with_context(ds, 0, k)
+        assert f.offset == 0 and f.log == f"train/{INDEX:06d}" and f.timestamp == 0.0
+        assert [c.offset for c in f.context] == want
+        for c in f.context:
+            t = c.offset / CTX_CFG.frame_rate_hz
+            assert c.log == f.log and c.context == [] and c.timestamp == pytest.approx(t)
+            np.testing.assert_allclose(c.ego_pose, world.ego_pose_at(t), atol=1e-9)
+            got = {b.instance: b.center for b in c.boxes}
+            for b in world.boxes_at(t):
+                np.testing.assert_allclose(got[b.instance], b.center, atol=1e-9)
+            assert all(im.depth is not None and im.semantic is not None for im in c.images)
+    # without the later instants loaded, the context is the same
+    lean = WorldsDataset(ctx_root, eval_frames=False)
+    assert [f.offset for f in lean[0].timeline] == [0]
+    assert [c.offset for c in frames_with_context(lean, 0, 4).context] == [-4, -1, 2]
+    with pytest.raises(DatasetError, match="context"):
+        ds.context_frames(0, -1)
+
+
+def test_version_2_dataset_still_reads(root, copy):
+    """The tiny dataset above has offsets 0 and 5 only: written as version 2 (the layout before
+    offsets before T), it reads as before, and it has no context (5 is an evaluation instant)."""
+    assert json.loads((root / "dataset.json").read_text())["version"] == 2
+    assert json.loads((sample_dir(root) / "meta.json").read_text())["version"] == 2
+    ds = open_dataset("worlds", root)
+    s = ds[0]
+    assert s.log == s.name and s.reference is s.timeline[0] and [f.offset for f in s.later()] == [5]
+    assert frames_with_context(ds, 0, 10).context == [] and ds.context_offsets(0, 10) == []
+    # the headers a reader accepts: versions 2 and 3; 1 and a version 2 that claims offsets before T are refused
+    head_path = copy / "dataset.json"
+    head = json.loads(head_path.read_text())
+    head_path.write_text(json.dumps({**head, "version": 3}))
+    assert len(open_dataset("worlds", copy)) == 1
+    head_path.write_text(json.dumps({**head, "version": 1}))
+    with pytest.raises(DatasetError, match=r"dataset\.json: dataset version 1"):
+        open_dataset("worlds", copy)
+    bad = {**head, "config": {**head["config"], "frame_offsets": [-2, 0, 5]}}
+    head_path.write_text(json.dumps(bad))
+    with pytest.raises(DatasetError, match=r"dataset\.json: dataset version 2 cannot hold frame offsets before T"):
+        open_dataset("worlds", copy)
+
+
+def test_torch_items_take_t_from_offset_0(ctx_root):
+    pytest.importorskip("torch")
+    from scube_sim.model.data.worlds import DataConfig, WorldsTorchDataset
+
+    item = WorldsTorchDataset(ctx_root, split="train", config=DataConfig(eval_frames=True))[0]
+    assert float(item["times"].min()) >= 0.0  # the cameras at T fire after it (waymo-5)
+    assert [e["offset"] for e in item["eval_frames"]] == [2, 5, 10]
+    assert [e["time"] for e in item["eval_frames"]] == pytest.approx([0.2, 0.5, 1.0])

@@ -12,6 +12,7 @@ from torch.utils.data import Dataset
 
 from ...config import StrictModel
 from ...errors import InputError
+from ...worlds.dataset import EVAL_OFFSETS
 from ...worlds.groundtruth import CHUNK_CORNER
 from ..data.augment import AugmentConfig, photometric
 from ..data.worlds import DataConfig, WorldsTorchDataset, item_generator
@@ -21,7 +22,6 @@ from .net import first_hit_voxels
 NO_AUGMENT = AugmentConfig(**{k: {"p": 0.0} for k in ("color_jitter", "exposure", "blur", "noise", "jpeg")})
 
 
-EVAL_OFFSETS = (5, 10)  # the paper's novel-view instants T+5, T+10: never in the loss
 
 
 class AppearanceDataConfig(StrictModel):

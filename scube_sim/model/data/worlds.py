@@ -35,8 +35,9 @@ cameras are OpenCV (x right, y down, z forward); pixel (u, v) spans [u, u + 1) x
   ``fine_voxel_size`` float metres; the same for ``coarse_*``;
 - ``chunk_to_world`` (4, 4) float64; ``sample`` str (``<split>/<index:06d>``);
 - ``eval_frames`` (only with ``DataConfig.eval_frames``): one dict per later instant (T+5, T+10
-  frames) with the per-camera keys above (every camera, the same resize, never augmented) plus
-  ``offset`` int (frames after T) and ``time`` float (seconds after T);
+  frames: every stored instant after T, none before it) with the per-camera keys above (every
+  camera, the same resize, never augmented) plus ``offset`` int (frames after T) and ``time``
+  float (seconds after T);
 - ``moving_instances`` (K,) int64: the instance ids of the boxes that move, those whose centre
   shifts more than MOVING_SHIFT_M between the loaded instants (with ``eval_frames``) or whose
   known speed exceeds MOVING_SPEED_MPS (the evaluation masks them out of novel views).
@@ -279,7 +280,7 @@ class WorldsTorchDataset(Dataset):
         cfg = self.config
         gt = s.ground_truth
         to_chunk = invert_pose(gt.chunk_to_world)
-        t0 = float(s.timeline[0].time)
+        t0 = float(s.reference.time)  # T: the first instant unless the dataset stores some before it
         where = str(s.metadata.get("sample_dir", s.name))
         images = s.frames.images
         keep = list(range(len(images)))
@@ -299,7 +300,7 @@ class WorldsTorchDataset(Dataset):
         item["moving_instances"] = moving_instances(s.timeline)
         if cfg.eval_frames:
             item["eval_frames"] = []
-            for f in s.timeline[1:]:
+            for f in s.later():  # after T (instants before T are converter context, not evaluation)
                 ev = _stack([_camera(im, to_chunk, t0, cfg, where) for im in f.frames.images],
                             list(range(len(f.frames.images))))
                 ev["offset"] = int(f.offset)

@@ -184,7 +184,8 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
         raise InputError(f"{sample_dir / 'meta.json'}: not a worlds sample (format scube_sim.worlds with a world key)")
     world = generate_world(WorldConfig(**meta["world"]))
     chunk_to_world = np.asarray(meta["chunk_to_world"], np.float64)
-    t = float(meta["frames"][0].get("time", 0.0)) if meta.get("frames") else 0.0
+    # the input instant T (offset 0; from dataset version 3 on, instants before it come first)
+    t = next((float(f.get("time", 0.0)) for f in meta.get("frames", []) if f.get("offset", 0) == 0), 0.0)
     if not np.allclose(world.ego_pose_at(t), chunk_to_world, atol=1e-6):
         raise InputError(f"{sample_dir}: the regenerated world's ego pose differs from meta.json's chunk_to_world "
                          f"(generator version {meta.get('world_version')}): regenerate the dataset")
