@@ -1,5 +1,5 @@
-"""The converter's model commands: `train` (a stage) and `eval` (a checkpoint, or the whole
-converter end to end with `eval sensor-to-sensor`)."""
+"""The converter's model commands: `train` (a stage) and `eval` (a checkpoint, the whole
+converter end to end with `eval sensor-to-sensor`, or per-pixel depth with `eval depth`)."""
 
 from __future__ import annotations
 
@@ -49,10 +49,17 @@ def train_cmd(
 @handle_errors
 def eval_cmd(
     stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
-                                "appearance), or sensor-to-sensor: the whole converter, end to end"),
+                                "appearance), sensor-to-sensor: the whole converter, end to end, or depth: "
+                                "per-pixel depth of the camera images against ground truth"),
     data: Path = typer.Option(..., "--data", help="dataset folder"),
     checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
-                                             "checkpoint's name (appearance-cpu); a stage's evaluation needs it"),
+                                             "checkpoint's name (appearance-cpu); a stage's evaluation needs it; "
+                                             "depth: the geometry checkpoint of --method mono "
+                                             "(default geometry-coarse-cpu)"),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="depth: the dataset adapter (worlds, nuscenes, "
+                                          "kitti_raw, ...); worlds: --data DIR --split S or --data DIR/<split>"),
+    method: str = typer.Option("mono", "--method", help="depth: the depth method (mono: the geometry "
+                               "checkpoint's monocular depth head)"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
@@ -61,13 +68,16 @@ def eval_cmd(
     progress: bool = typer.Option(True, "--progress/--no-progress"),
     profile: str = typer.Option("cpu", "--profile", help="sensor-to-sensor: converter profile (shipped name or YAML)"),
     sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
-    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="sensor-to-sensor: the split's first N samples"),
+    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="sensor-to-sensor, depth: the split's (the "
+                                        "dataset's) first N samples"),
     gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="sensor-to-sensor: the ground-truth VoxSplat's voxel (m)"),
     seed: int = typer.Option(0, "--seed", min=0, help="sensor-to-sensor: converter and LiDAR seed"),
 ) -> None:
     """Evaluate a checkpoint on one split of a dataset folder; `eval sensor-to-sensor` converts
     each held-out worlds sample's cameras and sweeps a LiDAR through the result against the same
-    LiDAR on the world's mesh (model/eval/sensor_to_sensor.py)."""
+    LiDAR on the world's mesh (model/eval/sensor_to_sensor.py); `eval depth --dataset NAME` scores a
+    depth method on each sample's camera images against the rendered depth maps, else the sample's
+    LiDAR projected into the cameras (model/eval/depth.py)."""
     import json
 
     from ..atomic import atomic_path
@@ -77,6 +87,9 @@ def eval_cmd(
 
     if stage == "sensor-to-sensor":
         _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress)
+        return
+    if stage == "depth":
+        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress)
         return
     if checkpoint is None:
         raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
@@ -113,6 +126,41 @@ def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, li
         with atomic_path(output) as tmp:
             tmp.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")
     for line in format_table(res, split, gt_voxel):
+        typer.echo(line)
+    if output is not None:
+        typer.echo(f"-> {output}")
+
+
+def _eval_depth(data: Path, dataset: str | None, split: str, limit: int | None, method: str,
+                checkpoint: str | None, output: Path | None, progress: bool) -> None:
+    import json
+
+    from rich.progress import track
+
+    from ..atomic import atomic_path
+    from ..datasets import open_dataset
+    from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
+    from ..model.eval.depth import depth_method, evaluate_depth, format_table, json_ready
+
+    if dataset is None:
+        raise CliError("--dataset: required for eval depth (worlds, nuscenes, kitti_raw, ...)")
+    if dataset.lower() == "worlds":  # DIR with --split, or DIR/<split> (as `convert --dataset worlds`)
+        if (data / WORLDS_HEADER).is_file():
+            ds = open_dataset("worlds", data, split=split, eval_frames=False)
+        else:
+            ds = open_dataset("worlds", data.parent, split=data.name, eval_frames=False)
+    else:
+        ds = open_dataset(dataset, data)
+    n = len(ds) if limit is None else min(limit, len(ds))
+    if n == 0:
+        raise CliError(f"{data}: the {dataset} dataset has no samples")
+    m = depth_method(method, checkpoint=checkpoint)
+    bar = (lambda xs: track(xs, description=f"depth ({m.name})")) if progress else None
+    res = evaluate_depth(ds, range(n), m, progress=bar)
+    if output is not None:
+        with atomic_path(output) as tmp:
+            tmp.write_text(json.dumps(json_ready(res), indent=2) + "\n", encoding="utf-8")
+    for line in format_table(res):
         typer.echo(line)
     if output is not None:
         typer.echo(f"-> {output}")

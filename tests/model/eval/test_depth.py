@@ -1,0 +1,169 @@
+"""The depth yardstick (`model.eval.depth`, `scube-sim eval depth`): metrics on synthetic
+predictions against known ground truth, the LiDAR ground truth and its ground rule, and the CLI
+on a tiny worlds split."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from scube_sim.camera import CameraImage, Frames, Intrinsics
+from scube_sim.camera.depth import lidar_depth
+from scube_sim.cli import app
+from scube_sim.datasets import LidarSweep, Sample
+from scube_sim.labels import label_id
+from scube_sim.model.eval.depth import (
+    DepthScore,
+    evaluate_depth,
+    format_table,
+    ground_returns,
+    ground_truth,
+    json_ready,
+)
+from tests.conftest import look_at, one_line_error
+
+
+def _row(res_rows, band="0-80 m", part="all"):
+    return next(r for r in res_rows if r["range"] == band and r["part"] == part)
+
+
+def test_constant_scale_error_and_holes(rng):
+    gt = rng.uniform(1.0, 79.0, (60, 80)).astype(np.float32)
+    ground = np.zeros(gt.shape, bool)
+    ground[40:] = True
+    s = DepthScore()
+    s.add(1.1 * gt, gt, ground)
+    for r in s.rows():
+        if r["gt_pixels"]:
+            assert r["coverage"] == 1.0
+            assert r["abs_rel"] == pytest.approx(0.1, rel=1e-5)
+            assert r["delta_1.25"] == 1.0
+    allrow = _row(s.rows())
+    assert allrow["gt_pixels"] == gt.size
+    assert allrow["median_abs_err_m"] == pytest.approx(0.1 * np.median(gt.astype(np.float64)), rel=3e-3)
+    assert _row(s.rows(), part="ground")["gt_pixels"] == ground.sum()
+    # holes: a third of the pixels without a prediction are misses, not dropped from the base
+    pred = 1.1 * gt
+    holes = np.zeros(gt.shape, bool)
+    holes[:, ::3] = True
+    pred[holes] = np.nan
+    s = DepthScore()
+    s.add(pred, gt, ground)
+    allrow = _row(s.rows())
+    assert allrow["gt_pixels"] == gt.size and allrow["predicted"] == (~holes).sum()
+    assert allrow["coverage"] == pytest.approx((~holes).mean())
+    assert allrow["abs_rel"] == pytest.approx(0.1, rel=1e-5)
+    # a 30 % over-estimate: abs rel 0.3, delta < 1.25 none; pixels beyond 80 m are counted, not scored
+    gt2 = gt.copy()
+    gt2[0, :10] = np.inf
+    gt2[1, :10] = 120.0
+    s = DepthScore()
+    s.add(1.3 * gt2, gt2, ground)
+    assert _row(s.rows())["delta_1.25"] == 0.0 and _row(s.rows())["abs_rel"] == pytest.approx(0.3, rel=1e-5)
+    assert _row(s.rows())["gt_pixels"] == gt.size - 20 and s.gt_beyond == 10
+
+
+def _street_sample(with_depth_map: bool = False):
+    """A camera 1.5 m above flat ground (z = 0) looking along +x, a wall at x = 25 m, and a LiDAR
+    1.8 m up beside the camera whose returns cover both."""
+    intr = Intrinsics(96, 64, 60.0, 60.0, 48.0, 32.0)
+    pose = look_at([0.0, 0.0, 1.5], [10.0, 0.0, 1.5])
+    xs, ys = np.meshgrid(np.arange(3.0, 24.0, 0.1), np.arange(-12.0, 12.0, 0.1))
+    ground = np.column_stack([xs.ravel(), ys.ravel(), np.zeros(xs.size)])
+    ys, zs = np.meshgrid(np.arange(-12.0, 12.0, 0.1), np.arange(0.05, 6.0, 0.1))
+    wall = np.column_stack([np.full(ys.size, 25.0), ys.ravel(), zs.ravel()])
+    pts_world = np.concatenate([ground, wall])
+    sensor = np.eye(4)
+    sensor[:3, 3] = [0.0, 0.3, 1.8]
+    sweep = LidarSweep("top", pts_world - sensor[:3, 3], sensor, 0.0)
+    im = CameraImage("front", np.zeros((64, 96, 3), np.uint8), intr, pose, 0.0)
+    if with_depth_map:  # a rendered map: the LiDAR's own depth, labels road below the horizon
+        im.depth = np.where(np.isfinite(d := lidar_depth(pts_world, im)), d, np.inf).astype(np.float32)
+        im.semantic = np.full((64, 96), label_id("building"), np.int16)
+        im.semantic[33:] = label_id("road")
+    frames = Frames([im], np.eye(4), 0.0)
+    return Sample("street", 0.0, np.eye(4), frames, [sweep]), pts_world, len(ground)
+
+
+class _Scaled:
+    """A method that knows the truth: `factor` times a fixed map."""
+
+    name = "scaled"
+
+    def __init__(self, maps, factor=1.1):
+        self.maps, self.factor = maps, factor
+
+    def __call__(self, frames, index):
+        return self.factor * self.maps[index]
+
+
+class _OneSample(list):
+    name = "street"
+    root = "memory"
+
+
+def test_lidar_ground_truth_and_its_ground_plane():
+    sample, pts, n_ground = _street_sample()
+    flags = ground_returns(pts, np.array([0.0, 0.0, 1.0]))
+    assert flags[:n_ground].all() and flags[n_ground:].mean() < 0.05  # the wall's bottom 0.2 m band only
+    (gt, ground, source), = ground_truth(sample)
+    assert source == "lidar"
+    np.testing.assert_array_equal(np.isfinite(gt), np.isfinite(lidar_depth(pts, sample.frames.images[0])))
+    assert ground.any() and (np.isfinite(gt) & ~ground).any()
+    res = evaluate_depth(_OneSample([sample]), [0], _Scaled([gt]))
+    allrow = _row(res["rows"])
+    assert allrow["coverage"] == 1.0 and allrow["abs_rel"] == pytest.approx(0.1, rel=1e-5)
+    assert allrow["gt_pixels"] == np.isfinite(gt).sum()
+    assert res["coverage_all_pixels"] == pytest.approx(np.isfinite(gt).mean())
+    assert res["ground_truth"] == {"lidar": 1} and res["ground_rule"] == ["LiDAR ground plane"]
+    assert _row(res["rows"], part="ground")["gt_pixels"] == ground.sum()
+    wall_band = _row(res["rows"], "20-40 m", "not ground")
+    assert wall_band["gt_pixels"] > 0 and wall_band["delta_1.25"] == 1.0
+    json.dumps(json_ready(res), allow_nan=False)
+    assert any("| 0-80 m | all |" in line for line in format_table(res))
+
+
+def test_depth_maps_win_over_lidar_and_labels_give_ground():
+    sample, _, _ = _street_sample(with_depth_map=True)
+    (gt, ground, source), = ground_truth(sample)
+    assert source == "depth map"
+    im = sample.frames.images[0]
+    np.testing.assert_array_equal(ground, im.semantic == label_id("road"))
+    even = np.arange(96)[None, :] % 2 == 0
+    holes = _Scaled([np.where(even, gt, np.nan)], 1.0)
+    res = evaluate_depth(_OneSample([sample]), [0], holes)
+    allrow = _row(res["rows"])
+    assert allrow["abs_rel"] == 0.0 and allrow["delta_1.25"] == 1.0
+    has_gt = np.isfinite(gt)
+    assert allrow["gt_pixels"] == has_gt.sum() and allrow["predicted"] == (has_gt & even).sum()
+    assert allrow["coverage"] == pytest.approx((has_gt & even).sum() / has_gt.sum())
+    assert res["ground_rule"] == ["semantic labels"]
+
+
+def test_cli_eval_depth_on_a_tiny_worlds_split(tiny_converter, tmp_path):
+    data = tiny_converter["data"]
+    out = tmp_path / "depth.json"
+    r = CliRunner().invoke(app, ["eval", "depth", "--data", str(data), "--dataset", "worlds", "--split", "test",
+                                 "--limit", "1", "--checkpoint", str(tiny_converter["geo"]), "-o", str(out),
+                                 "--no-progress"])
+    assert r.exit_code == 0, r.output
+    assert "| 0-80 m | all |" in r.output and "depth map" in r.output
+    res = json.loads(out.read_text())
+    assert res["method"] == "mono" and res["samples"] == 1 and res["images"] >= 1
+    assert res["coverage_all_pixels"] == 1.0  # the monocular head gives every pixel a depth
+    allrow = _row(res["rows"])
+    assert allrow["gt_pixels"] > 0 and allrow["coverage"] == 1.0 and 0 <= allrow["abs_rel"]
+    assert res["seconds_per_image"] > 0
+    # the split folder itself, as `convert --dataset worlds` takes it
+    r = CliRunner().invoke(app, ["eval", "depth", "--data", str(data / "test"), "--dataset", "worlds",
+                                 "--checkpoint", str(tiny_converter["geo"]), "--no-progress"])
+    assert r.exit_code == 0, r.output
+    # errors: one line
+    one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(data)]), "--dataset")
+    one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(data), "--dataset", "worlds",
+                                            "--method", "stereo", "--no-progress"]), "stereo", "mono")
+    one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(tmp_path / "none"), "--dataset",
+                                            "nuscenes", "--no-progress"]), "none")
