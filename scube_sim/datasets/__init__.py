@@ -23,6 +23,7 @@ _ADAPTERS = {
     "kitti360": "kitti360:Kitti360Dataset",
     "waymo": "waymo:WaymoFrameDataset",
     "argoverse2": "argoverse2:Argoverse2Dataset",
+    "tri_dgp": "tri_dgp:TriDgpDataset",
     "folder": "folder:FolderDataset",
     "worlds": "worlds:WorldsDataset",
 }
