@@ -16,7 +16,7 @@ from ._common import CliError, app, handle_errors
 def convert_cmd(
     path: Path = typer.Argument(..., help="a worlds sample folder (DIR/test/000000), or with --dataset any adapter's folder"),
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
-    dataset: Optional[str] = typer.Option(None, "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | waymo | folder | worlds (DIR/<split>)"),
+    dataset: Optional[str] = typer.Option(None, "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | waymo | folder | worlds (DIR/<split>)"),
     sample: int = typer.Option(0, "--sample", help="sample index in the dataset"),
     profile: str = typer.Option("cpu", "--profile", help="a shipped converter profile's name or a profile YAML's path"),
     steps: Optional[int] = typer.Option(None, "--steps", help="DDIM steps of the geometry stage (default: the profile's)"),

@@ -16,7 +16,7 @@ from ._common import CliError, app, datasets_app, handle_errors, int_list
 @handle_errors
 def build_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
-    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | argoverse2 | waymo | folder"),
+    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | argoverse2 | waymo | folder"),
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
     samples: str = typer.Option("0", "--samples", help="sample indices to accumulate, e.g. 0 or 0,1,2"),
     sensors: Optional[str] = typer.Option(None, "--sensors", help="comma-separated sensor names (default: all)"),
@@ -99,7 +99,7 @@ def fidelity_cmd(
 @handle_errors
 def datasets_export_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
-    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | argoverse2 | waymo"),
+    dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | argoverse2 | waymo"),
     output: Path = typer.Option(..., "-o", "--output", help="folder to write (docs/dataset-folder-format.md)"),
     points_format: str = typer.Option("npz", "--points", help="npz (exact float64) | pcd | ply | bin"),
     image_format: str = typer.Option("png", "--images", help="png (lossless) | jpg"),
