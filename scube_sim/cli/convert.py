@@ -44,6 +44,9 @@ def convert_cmd(
     if fit_steps is not None and fit_steps < 0:
         raise CliError(f"--fit-steps: expected an integer >= 0, got {fit_steps}")
     frames = open_frames(path, dataset, sample, context=context)
+    if context and not frames.context:
+        typer.echo(f"note: --context {context}: the set holds no other instant of this sample's log (one keyframe, or "
+                   f"a log of one instant); converting from the sample alone", err=True)
     conv = Converter(profile)
     t0 = time.perf_counter()
     n_fit = conv.profile.appearance.fit_steps if fit_steps is None else fit_steps
