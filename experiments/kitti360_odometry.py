@@ -33,7 +33,7 @@ import numpy as np
 
 from scube_sim.datasets import open_dataset
 from scube_sim.datasets.icp import register_sequence
-from scube_sim.datasets.kitti360 import read_velodyne
+from scube_sim.datasets.kitti import read_velodyne
 
 from .common import write_results
 

@@ -124,8 +124,9 @@ def camera_from_projection(p: np.ndarray, width: int, height: int, source: str, 
     return intr, make_pose(None, -t)
 
 
-def _read_velodyne(path: Path) -> np.ndarray:
-    """KITTI Velodyne .bin -> (N, 4) float32 x, y, z (metres, Velodyne frame), reflectance (0-1)."""
+def read_velodyne(path: Path) -> np.ndarray:
+    """A KITTI or KITTI-360 Velodyne .bin -> (N, 4) float32 x, y, z (metres, Velodyne frame),
+    reflectance (0-1)."""
     raw = require_file(path, "Velodyne sweep").read_bytes()
     if len(raw) % 16:
         raise DatasetError(f"{path}: truncated KITTI Velodyne .bin: {len(raw)} bytes is not a multiple of 16 "
@@ -133,8 +134,8 @@ def _read_velodyne(path: Path) -> np.ndarray:
     return np.frombuffer(raw, "<f4").reshape(-1, 4).copy()
 
 
-def _read_image(path: Path) -> np.ndarray:
-
+def read_image(path: Path) -> np.ndarray:
+    """An 8-bit RGB image file -> (H, W, 3) uint8."""
     require_file(path, "camera image")
     try:
         with Image.open(path) as im:
@@ -222,7 +223,7 @@ class KittiRawDataset:
                 self._icp = []
             else:
 
-                clouds = [_read_velodyne(v)[:, :3].astype(np.float64) for _, _, v in self._frames]
+                clouds = [read_velodyne(v)[:, :3].astype(np.float64) for _, _, v in self._frames]
                 try:
                     self._poses, self._icp = register_sequence(clouds)
                 except ValueError as exc:
@@ -247,12 +248,12 @@ class KittiRawDataset:
         stem, img_path, velo_path = self._frames[i]
         pose = self.poses[i]
         t = float(self._times()[i])
-        pts = _read_velodyne(velo_path)
+        pts = read_velodyne(velo_path)
         sweep = LidarSweep(LIDAR, pts[:, :3], pose, t, intensity=pts[:, 3].copy(), intensity_max=1.0,
                            motion_compensated=True)
         if self._lidar_config is None:
             self._lidar_config = load_lidar_config(LIDAR_MODEL)
-        rgb = _read_image(img_path)
+        rgb = read_image(img_path)
         intr, rect_to_cam2 = camera_from_projection(self.calib["P2"], rgb.shape[1], rgb.shape[0],
                                                     str(self.calib_path), "P2")
         cam_to_world = pose @ np.linalg.inv(self.velo_to_rect) @ rect_to_cam2
@@ -338,10 +339,10 @@ class KittiObjectDataset:
                               f"{at}.images.CAM2.lidar2cam")  # = R0_rect @ Tr_velo_to_cam: Velodyne -> rect
         img_name = Path(str(cam.get("img_path", f"{stem}.png"))).name
 
-        pts = _read_velodyne(self.root / f"{stem}.bin")
+        pts = read_velodyne(self.root / f"{stem}.bin")
         sweep = LidarSweep(LIDAR, pts[:, :3], np.eye(4), 0.0, intensity=pts[:, 3].copy(), intensity_max=1.0,
                            motion_compensated=True)
-        rgb = _read_image(self.root / img_name)
+        rgb = read_image(self.root / img_name)
         intr, rect_to_cam2 = camera_from_projection(cam2img[:3], rgb.shape[1], rgb.shape[0], src,
                                                     f"{at}.images.CAM2.cam2img")
         rect_to_velo = np.linalg.inv(lidar2cam)

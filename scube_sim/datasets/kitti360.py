@@ -67,14 +67,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from ..camera.frames import CameraImage, Frames
 from ..errors import InputError
 from ..lidar.config import load_lidar_config
 from .base import DatasetError, LidarSpec, LidarSweep, Sample, index_check, require_file
 from .icp import register_sequence
-from .kitti import camera_from_projection
+from .kitti import camera_from_projection, read_image, read_velodyne
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "hdl64e"
@@ -234,24 +233,6 @@ def read_timestamps(path: Path) -> np.ndarray | None:
 
 
 # --- files -----------------------------------------------------------------------------------
-
-def read_velodyne(path: Path) -> np.ndarray:
-    """KITTI-360 Velodyne .bin -> (N, 4) float32 x, y, z (metres, Velodyne frame), reflectance."""
-    raw = require_file(path, "Velodyne sweep").read_bytes()
-    if len(raw) % 16:
-        raise DatasetError(f"{path}: truncated Velodyne .bin: {len(raw)} bytes is not a multiple of 16 "
-                           f"(4 float32 per point: x y z reflectance)")
-    return np.frombuffer(raw, "<f4").reshape(-1, 4).copy()
-
-
-def _read_image(path: Path) -> np.ndarray:
-    require_file(path, "camera image")
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"), np.uint8)
-    except OSError as exc:
-        raise DatasetError(f"{path}: not a readable image ({exc})") from None
-
 
 @dataclass
 class _Log:
@@ -433,7 +414,7 @@ class Kitti360Dataset:
             t, t_note = number * FRAME_PERIOD_S, "frame number x 0.1 s (10 Hz): timestamps not mappable to frames"
         stem = velo_path.stem
         pts = read_velodyne(velo_path)
-        rgb = _read_image(img_path)
+        rgb = read_image(img_path)
         cal = self.calibration
         persp = str(cal.folder / "perspective.txt")
         if cal.size is not None and cal.size != (rgb.shape[1], rgb.shape[0]):
@@ -458,4 +439,4 @@ class Kitti360Dataset:
 
 
 __all__ = ["VELODYNE_HEIGHT_M", "Kitti360Calibration", "Kitti360Dataset", "read_calibration", "read_poses",
-           "read_timestamps", "read_velodyne"]
+           "read_timestamps"]
