@@ -296,36 +296,21 @@ def index_check(index: int, n: int, name: str) -> int:
     return index % n
 
 
-def context_indices(logs: list[str], index: int, k: int) -> list[int]:
-    """Indices of up to `k` samples before and `k` after `index` that share its log, nearest
-    first on each side, in dataset order (time order within a log): they stop at the log's ends
-    and at the set's."""
-    if k < 0:
-        raise InputError(f"context: expected a number of instants >= 0, got {k}")
-    out = []
-    for step in (-1, 1):
-        j = index + step
-        while 0 <= j < len(logs) and abs(j - index) <= k and logs[j] == logs[index]:
-            out.append(j)
-            j += step
-    return sorted(out)
-
-
 def frames_with_context(ds: Dataset, index: int, k: int) -> Frames:
     """The camera frames of sample `index` with `context`: the frames of up to `k` instants before
     and `k` after it in the same log (`Sample.log`; never across a scene boundary), each with its
     `offset` in the source's instants, its own ego pose, time and boxes. k = 0: the sample's
     frames as they are. An adapter with `context_frames(index, k)` gives its own."""
+    if k < 0:
+        raise InputError(f"context: expected a number of instants >= 0, got {k}")
     sample = ds[index]
     if sample.frames is None:
         raise DatasetError(f"{ds.root}: sample {index} ({sample.name}) has no camera images")
-    frames = sample.frames
     if k == 0:
-        return frames
+        return sample.frames
     if hasattr(ds, "context_frames"):
-        frames.context = list(ds.context_frames(index, k))
+        context = list(ds.context_frames(index, k))
     else:
-        logs = {index: sample.log}
         context = []
         for step in (-1, 1):  # walk out from the reference, loading only the neighbours needed
             j = index + step
@@ -333,11 +318,8 @@ def frames_with_context(ds: Dataset, index: int, k: int) -> Frames:
                 s = ds[j]
                 if s.log != sample.log:
                     break
-                logs[j] = s.log
                 if s.frames is not None and len(s.frames):
-                    s.frames.offset = j - index
-                    context.append(s.frames)
+                    context.append(replace(s.frames, offset=j - index))
                 j += step
-        frames.context = context
-    frames.__post_init__()  # the context's checks: same log, distinct offsets, ordered
-    return frames
+    # replace() checks the context again: same log, distinct offsets, ordered
+    return replace(sample.frames, context=context)

@@ -12,7 +12,7 @@ import pytest
 from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.camera.model import Intrinsics
 from scube_sim.datasets import open_dataset
-from scube_sim.datasets.base import Sample, context_indices, frames_with_context
+from scube_sim.datasets.base import Sample, frames_with_context
 from scube_sim.datasets.folder import write_folder_dataset
 from scube_sim.datasets.nuscenes import scene_logs
 from scube_sim.errors import InputError
@@ -48,17 +48,6 @@ class _Log:
         return Sample(f"s{i}", t, _pose(float(i)), frames=frames, log=self.logs[i])
 
 
-def test_context_indices_stop_at_the_log_boundary_and_the_ends():
-    logs = ["a", "a", "a", "b", "b"]
-    assert context_indices(logs, 2, 2) == [0, 1]  # the next sample is another log
-    assert context_indices(logs, 0, 3) == [1, 2]  # the start of the set
-    assert context_indices(logs, 4, 1) == [3]
-    assert context_indices(logs, 3, 5) == [4]
-    assert context_indices(logs, 1, 0) == []
-    with pytest.raises(InputError, match="context"):
-        context_indices(logs, 1, -1)
-
-
 def test_frames_with_context_carry_offsets_poses_and_the_log():
     ds = _Log()
     f = frames_with_context(ds, 2, 2)
@@ -68,8 +57,11 @@ def test_frames_with_context_carry_offsets_poses_and_the_log():
     assert [i.offset for i in f.instants()] == [-2, -1, 0]
     assert 4 not in ds.loads  # the walk stops at the first sample of another log
     f = frames_with_context(_Log(), 3, 3)
-    assert [c.offset for c in f.context] == [1]
+    assert [c.offset for c in f.context] == [1]  # the end of the set, and log "a" before it
+    assert [c.offset for c in frames_with_context(_Log(), 0, 3).context] == [1, 2]  # the start of the set
     assert frames_with_context(_Log(), 1, 0).context == []
+    with pytest.raises(InputError, match="context"):
+        frames_with_context(_Log(), 1, -1)
 
 
 def test_a_context_frame_from_another_log_is_refused():
