@@ -37,16 +37,30 @@ def sky_color(dirs: np.ndarray, sun_dir: np.ndarray) -> np.ndarray:
     return c + glow[:, None] * np.array([1.0, 0.9, 0.7])
 
 
+def _footprint(t: np.ndarray, d: np.ndarray, nrm: np.ndarray, intr: Intrinsics) -> np.ndarray:
+    """(N,) metres of surface one pixel covers at hits `t` metres along unit rays `d` on faces
+    with normals `nrm`: range times the pixel's angle, stretched by the incidence (the geometric
+    mean of the footprint's two axes, so a road at a grazing angle blurs along the ray only as
+    much as a lens would average it across both)."""
+    cos = np.abs(np.sum(d * nrm, axis=1))
+    return t / intr.fx / np.sqrt(np.maximum(cos, 0.05))
+
+
 def render_camera(tracers: list[Tracer], intr: Intrinsics, cam_to_world: np.ndarray, *,
                   sun_dir=(0.3, 0.2, 0.93), shadows: bool = True, shading: bool = True, albedo_fn=None,
-                  max_depth: float = 1000.0):
+                  max_depth: float = 1000.0, exposure: float = 1.0, vignetting: float = 0.0):
     """Render one camera.
 
     tracers: mesh tracers (e.g. the static world and its actors at this instant).
     cam_to_world: (4, 4) OpenCV camera -> world. shading=False skips colour (rgb is None): depth,
     semantics and sky only. albedo_fn(points (N, 3) world, normals (N, 3), labels (N,), face
-    colours (N, 3), instances (N,)) -> (N, 3) sRGB in [0, 1]: the surface colour to shade, e.g.
-    `scube_sim.worlds.textures.albedo`; required when shading. Returns a dict with
+    colours (N, 3), instances (N,), *, footprint (N,) metres a pixel covers at the hit (for
+    filtering detail finer than a pixel), view (N, 3) unit ray directions, world) -> (N, 3) sRGB
+    in [0, 1]: the surface colour to shade, e.g. `scube_sim.worlds.textures.albedo`; required
+    when shading. exposure: the camera's gain on linear light (auto exposure differs between
+    cameras and drifts in time); vignetting: the lens's fall-off, the share of light lost at the
+    image's corners (1 - vignetting * r^2, r the distance from the principal point over the
+    half-diagonal). Returns a dict with
     rgb (H, W, 3) uint8, depth (H, W) float32 metres along the optical axis (inf on sky),
     semantic (H, W) int16 (sky where nothing is hit), instance (H, W) int32, sky (H, W) bool.
     """
@@ -67,7 +81,8 @@ def render_camera(tracers: list[Tracer], intr: Intrinsics, cam_to_world: np.ndar
     if hit.any() and shading:
         p = h.points[hit]
         nrm = h.normals[hit].astype(np.float64)
-        alb = _to_linear(albedo_fn(p, nrm, h.label[hit], h.color[hit], h.instance[hit]))
+        alb = _to_linear(albedo_fn(p, nrm, h.label[hit], h.color[hit], h.instance[hit],
+                                   footprint=_footprint(h.t[hit], d[hit], nrm, intr), view=d[hit]))
         lambert = np.clip(nrm @ sun, 0.0, None)
         if shadows:
             lit = lambert > 0
@@ -75,6 +90,10 @@ def render_camera(tracers: list[Tracer], intr: Intrinsics, cam_to_world: np.ndar
             lambert[np.nonzero(lit)[0][sh.hit]] = 0.0
         ambient = 0.35 + 0.15 * np.clip(nrm[:, 2], 0, 1)  # more sky light on upward faces
         rgb[hit] = alb * (ambient[:, None] * np.array([0.85, 0.9, 1.0]) + 0.9 * lambert[:, None] * np.array([1.0, 0.97, 0.9]))
+    if shading and (exposure != 1.0 or vignetting != 0.0):
+        uu, vv = np.meshgrid(np.arange(intr.width) + 0.5, np.arange(intr.height) + 0.5)
+        r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2).reshape(-1) / ((intr.width / 2) ** 2 + (intr.height / 2) ** 2)
+        rgb *= (exposure * (1.0 - vignetting * np.minimum(r2, 1.5)))[:, None]
     depth = np.where(hit, h.t * d_cam[:, 2], np.inf).astype(np.float32)
     sem = np.where(hit, h.label, SKY).astype(np.int16)
     inst = np.where(hit, h.instance, 0).astype(np.int32)

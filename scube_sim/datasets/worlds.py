@@ -203,7 +203,7 @@ class WorldsDataset:
     root: the folder `worlds generate -o` wrote (it holds dataset.json); split: train, val or test;
     eval_frames: also load the other stored instants (T+5, T+10 ..., and those before T) into each
     sample's ``timeline``. `context_frames` gives a sample's context instants whatever eval_frames.
-    Reads layout versions 2 and 3 (`scube_sim.worlds.dataset.READABLE_VERSIONS`)."""
+    Reads versions 2, 3 and 4 (`scube_sim.worlds.dataset.READABLE_VERSIONS`)."""
 
     name = "worlds"
     poses_from_icp = False

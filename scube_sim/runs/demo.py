@@ -25,6 +25,7 @@ from ..viz import bev_compare_png, bev_png, fidelity_png, mosaic_png
 from ..worlds.dataset import DatasetConfig, render_frames
 from ..worlds.generator import WorldConfig, generate_world
 from ..worlds.groundtruth import gt_voxsplat
+from ..worlds.textures import world_albedo
 
 # The embedded default scenario (the same as scenarios/urban-block.yaml).
 DEFAULT_WORLD = WorldConfig(style="urban", seed=7, layout="x_junction")
@@ -60,7 +61,7 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     times["render 5 cameras"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    vs = gt_voxsplat(mesh, chunk_to_world, voxel_size, region=REGION)
+    vs = gt_voxsplat(mesh, chunk_to_world, voxel_size, region=REGION, albedo_fn=world_albedo(w, 0.0))
     vs.metadata.update({"scene": "demo", "world": wcfg.model_dump()})
     times["fit VoxSplat"] = time.perf_counter() - t
 

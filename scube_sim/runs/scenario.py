@@ -67,6 +67,7 @@ from ..voxsplat import VoxSplat
 from ..worlds.dataset import render_frames
 from ..worlds.generator import World, WorldConfig, generate_world
 from ..worlds.groundtruth import chunk_frames, gt_voxsplat
+from ..worlds.textures import TEXTURE_VERSION, world_albedo
 
 
 class ChunkEntry(StrictModel):
@@ -594,7 +595,7 @@ def _world_chunks(world: World, spec: SceneSpec, folder: Path, progress=None) ->
     and its checksum holds; a corrupt one (unreadable JSON, checksum off) is rebuilt with a
     warning, not fatal."""
     folder.mkdir(parents=True, exist_ok=True)
-    key = {"world": world.config.model_dump(mode="json"), "voxel_size": spec.voxel_size,
+    key = {"world": world.config.model_dump(mode="json"), "texture_version": TEXTURE_VERSION, "voxel_size": spec.voxel_size,
            "M": spec.gaussians_per_voxel, "spacing": spec.chunk_spacing_m}
     frames = chunk_frames(world, spec.chunk_spacing_m)
     specs = []
@@ -604,7 +605,8 @@ def _world_chunks(world: World, spec: SceneSpec, folder: Path, progress=None) ->
         if not _cache_entry_valid(path, meta_path, key):
             if progress:
                 progress(f"fitting VoxSplat chunk {i + 1}/{len(frames)}")
-            vs = gt_voxsplat(world.static, c2w, spec.voxel_size, gaussians_per_voxel=spec.gaussians_per_voxel)
+            vs = gt_voxsplat(world.static, c2w, spec.voxel_size, gaussians_per_voxel=spec.gaussians_per_voxel,
+                             albedo_fn=world_albedo(world, 0.0))
             vs.save(path)
             with atomic_path(meta_path) as tmp:
                 Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(path)}))

@@ -21,9 +21,9 @@ from .dataset import (
 from .generator import STYLES, Actor, World, WorldConfig, generate_world
 from .groundtruth import CHUNK_CORNER, CHUNK_SIZE, VoxelGrid, gt_voxsplat
 from .preview import preview_world
-from .textures import albedo
+from .textures import TEXTURE_VERSION, ObjectFrames, albedo, world_albedo
 
 __all__ = ["CHUNK_CORNER", "CHUNK_SIZE", "STYLES", "Actor", "DatasetConfig", "VoxelGrid", "World", "WorldConfig",
-           "albedo", "ensure_dataset_config", "generate_dataset", "generate_world", "gt_voxsplat", "load_sample",
+           "ObjectFrames", "TEXTURE_VERSION", "albedo", "ensure_dataset_config", "generate_dataset", "generate_world", "gt_voxsplat", "load_sample",
            "make_sample", "preview_world", "read_dataset_config", "sample_frames", "sample_world_config",
-           "write_sample"]
+           "world_albedo", "write_sample"]

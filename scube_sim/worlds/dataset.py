@@ -63,7 +63,7 @@ from ..run_manifest import RunManifest
 from ..transforms import invert_pose, transform_points
 from .generator import STYLES, WORLD_VERSION, WorldConfig, generate_world
 from .groundtruth import coarsen, depth_to_points, mark_visible, voxelize_mesh
-from .textures import albedo
+from .textures import TEXTURE_VERSION, world_albedo
 
 DATASET_FORMAT = "scube_sim.worlds"
 # 2: per-pixel instance ids (instance_<frame>_<camera> in frames.npz); a rig per sample
@@ -72,8 +72,12 @@ DATASET_FORMAT = "scube_sim.worlds"
 # time order, so T (offset 0) need not be the first. A folder is written with the lowest version
 # that describes it (`dataset_version`): 2 where every offset is >= 0 (the version-2 layout, byte
 # for byte), 3 where one is negative (a version-2 reader would take its first instant for T).
-DATASET_VERSION = 3
-READABLE_VERSIONS = (2, 3)
+# 4: the images show the surface detail of `textures.TEXTURE_VERSION` 2 (brick, framed and
+# reflecting windows, worn asphalt, vehicles with lights and plates; versions 2 and 3 have the
+# flat patterns of texture version 1). The files and their layout are those of version 3.
+# Every new dataset is version 4; older ones still read, but no sample is added to them.
+DATASET_VERSION = 4
+READABLE_VERSIONS = (2, 3, 4)
 SPLIT_SEED_BASE = {"train": 0, "val": 1_000_000, "test": 2_000_000}
 # The evaluation instants, in frames after T: T+5 and T+10 (the paper's novel views at 10 Hz).
 # Never converter inputs (`scube_sim.datasets.worlds.WorldsDataset.context_frames` leaves them
@@ -128,9 +132,13 @@ class DatasetConfig(StrictModel):
 
 
 def dataset_version(cfg: DatasetConfig) -> int:
-    """The layout version a dataset of `cfg` is written with: the lowest that describes it, 2 where
-    every frame offset is >= 0 (the version-2 layout: older readers read it too), 3 where one is
-    negative (older readers, which take the first stored instant for T, refuse it)."""
+    """The version a dataset of `cfg` is written with: 4, the looks of texture version 2, whatever
+    the frame offsets (`cfg` is kept for the rule's history: versions 2 and 3 differed by them)."""
+    return DATASET_VERSION
+
+
+def _min_version(cfg: DatasetConfig) -> int:
+    """The oldest version whose layout can hold `cfg`'s frame offsets (3 for instants before T)."""
     return 3 if min(cfg.frame_offsets) < 0 else 2
 
 
@@ -154,6 +162,22 @@ def sample_world_config(split: str, index: int, cfg: DatasetConfig) -> WorldConf
     return WorldConfig(style=style, seed=seed, duration_s=duration, history_s=-first / cfg.frame_rate_hz + 0.5)
 
 
+# The lens's fall-off at the image corners, every rig camera (typical automotive lenses lose
+# 20-40 % there; vignetting and auto exposure are what census and NCC costs are robust to and
+# plain intensity differences are not).
+VIGNETTING = 0.25
+
+
+def camera_exposure(world_seed: int, camera_index: int, t: float) -> float:
+    """The auto-exposure gain of rig camera `camera_index` at time `t` (seconds) in the world of
+    `world_seed`: a gain of its own per camera (0.88-1.12) drifting slowly in time (+-3 % over
+    a few seconds), deterministic. Applied to linear light, after the texture: it changes no
+    surface's detail, only how bright a camera sees it."""
+    rng = np.random.default_rng([int(world_seed), int(camera_index), 4242])
+    gain, phase, period = rng.uniform(0.88, 1.12), rng.uniform(0, 2 * np.pi), rng.uniform(3.0, 6.0)
+    return float(gain * (1.0 + 0.03 * np.sin(2 * np.pi * t / period + phase)))
+
+
 class _SceneAt:
     """The static tracer (built once) plus the actors' tracer per instant (cached)."""
 
@@ -172,22 +196,27 @@ class _SceneAt:
 
 
 def render_frames(world, rig_name: str = "waymo-5", t_ref: float = 0.0, image_scale: float | None = None,
-                  scene_at: _SceneAt | None = None, ego_pose: np.ndarray | None = None) -> Frames:
+                  scene_at: _SceneAt | None = None, ego_pose: np.ndarray | None = None,
+                  camera_effects: bool = True) -> Frames:
     """The rig's camera images of `world` around `t_ref` as the datasets render them (each camera
     at its own time offset, the ego and actors where they are then; `image_scale` of the rig's
     resolution, default the datasets'), with sky masks: the converter's input. Frames' ego pose
     is the ego's at `t_ref` (the chunk frame). ego_pose: (4, 4) ego-to-world to hold the rig at
-    instead of the ego's path (a route's chunk origin); the actors still move with time."""
+    instead of the ego's path (a route's chunk origin); the actors still move with time.
+    camera_effects: each camera's exposure and vignetting as the datasets have them (False: an
+    ideal camera, to measure what they cost a matcher)."""
     rig = load_rig(rig_name)
     scale = DatasetConfig().image_scale if image_scale is None else float(image_scale)
     scene_at = scene_at or _SceneAt(world)
     images = []
-    for cam in rig.cameras:
+    for i, cam in enumerate(rig.cameras):
         intr = cam.intrinsics().scaled(scale)
         t_cam = t_ref + cam.time_offset_s
         ego = world.ego_pose_at(t_cam) if ego_pose is None else np.asarray(ego_pose, np.float64)
         pose = ego @ cam.cam_to_ego()
-        r = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
+        r = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=world_albedo(world, t_cam),
+                          exposure=camera_exposure(world.config.seed, i, t_cam) if camera_effects else 1.0,
+                          vignetting=VIGNETTING if camera_effects else 0.0)
         images.append(CameraImage(cam.name, r["rgb"], intr, pose, t_cam, sky=r["sky"]))
     return Frames(images, world.ego_pose_at(t_ref) if ego_pose is None else np.asarray(ego_pose, np.float64),
                   float(t_ref),
@@ -207,11 +236,13 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
         t_ref = k / cfg.frame_rate_hz
         tag = frame_tag(k)
         cams_meta = []
-        for cam in rig.cameras:
+        for i, cam in enumerate(rig.cameras):
             intr = cam.intrinsics().scaled(cfg.image_scale)
             t_cam = t_ref + cam.time_offset_s
             pose = world.ego_pose_at(t_cam) @ cam.cam_to_ego()
-            out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
+            out = render_camera(scene_at(t_cam), intr, pose, sun_dir=world.sun_dir,
+                                albedo_fn=world_albedo(world, t_cam),
+                                exposure=camera_exposure(world.config.seed, i, t_cam), vignetting=VIGNETTING)
             images[f"rgb_{tag}_{cam.name}.png"] = out["rgb"]
             maps[f"depth_{tag}_{cam.name}"] = out["depth"].astype(np.float16)
             maps[f"semantic_{tag}_{cam.name}"] = out["semantic"].astype(np.uint8)
@@ -243,7 +274,8 @@ def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
 
     meta = {
         "format": DATASET_FORMAT, "version": dataset_version(cfg), "split": split, "index": index,
-        "world": wcfg.model_dump(), "world_version": WORLD_VERSION, "layout": world.layout.kind,
+        "world": wcfg.model_dump(), "world_version": WORLD_VERSION, "texture_version": TEXTURE_VERSION,
+        "layout": world.layout.kind,
         "rig": rig_name, "chunk_to_world": chunk_to_world.tolist(), "sun_dir": world.sun_dir.tolist(), "frames": frames_meta,
         "lidar": {"sensor": cfg.lidar, "pose_start": sweep.pose_start.tolist(), "pose_end": sweep.pose_end.tolist(),
                   "t_start": sweep.t_start, "t_end": sweep.t_end},
@@ -302,8 +334,8 @@ def write_sample(sample: dict, folder: Path) -> Path:
 def dataset_header(cfg: DatasetConfig) -> dict:
     rig = load_rig(cfg.rig)
     return {"format": DATASET_FORMAT, "version": dataset_version(cfg), "config": cfg.model_dump(),
-            "world_version": WORLD_VERSION, "label_table_version": LABEL_TABLE_VERSION,
-            "labels": [lab.name for lab in LABELS], "rig": rig.model_dump(mode="json"),
+            "world_version": WORLD_VERSION, "texture_version": TEXTURE_VERSION,
+            "label_table_version": LABEL_TABLE_VERSION, "labels": [lab.name for lab in LABELS], "rig": rig.model_dump(mode="json"),
             "rigs": [load_rig(r).model_dump(mode="json") for r in cfg.rigs],
             "split_seed_base": SPLIT_SEED_BASE}
 
@@ -321,9 +353,9 @@ def read_dataset_config(out: Path) -> DatasetConfig:
         raise InputError(f"{head}: dataset version {version} is not one this scube_sim reads "
                          f"({', '.join(map(str, READABLE_VERSIONS))}); write to a new folder")
     cfg = DatasetConfig.model_validate(old["config"])
-    if version < dataset_version(cfg):
+    if version < _min_version(cfg):
         raise InputError(f"{head}: dataset version {version} cannot hold frame offsets before T "
-                         f"({cfg.frame_offsets}: version {dataset_version(cfg)} or later)")
+                         f"({cfg.frame_offsets}: version {_min_version(cfg)} or later)")
     return cfg
 
 
@@ -335,6 +367,11 @@ def ensure_dataset_config(out: Path, cfg: DatasetConfig | None) -> DatasetConfig
     head = out / "dataset.json"
     if head.exists():
         existing = read_dataset_config(out)
+        version = json.loads(head.read_text()).get("version")
+        if version != dataset_version(existing):
+            # new samples would look different from the folder's (another texture version)
+            raise InputError(f"{head}: dataset version {version} was made with older textures; this scube_sim "
+                             f"writes version {dataset_version(existing)}: write to a new folder")
         if cfg is not None and cfg != existing:
             raise InputError(f"{head}: the folder holds a dataset made with other settings; "
                              f"use a new folder or the same settings")

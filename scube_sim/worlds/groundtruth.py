@@ -299,8 +299,10 @@ def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: floa
     match `VoxelGrid`); trace it with sensor poses in the chunk frame, inv(chunk_to_world) @
     T_world_sensor (chunk_to_world is kept in its metadata). Built in slabs of `tile_m` along x
     so that memory stays bounded at fine voxel sizes. region: optional (lo (3,), hi (3,)) box in
-    the chunk frame to fit only part of the chunk. albedo_fn: as `camera.render.render_camera`'s
-    (None: the worlds' procedural `textures.albedo`)."""
+    the chunk frame to fit only part of the chunk. albedo_fn: as `camera.render.render_camera`'s,
+    called with `footprint` (no view); None: the worlds' procedural `textures.albedo` with
+    vehicles textured in world coordinates (pass `textures.world_albedo(world, t)` for the
+    looks of the cameras' images at t)."""
     albedo_fn = albedo_fn or albedo
     to_chunk = invert_pose(chunk_to_world)
     v = transform_points(to_chunk, mesh.vertices + mesh.origin) - CHUNK_CORNER
@@ -330,7 +332,9 @@ def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: floa
         inst = mesh.instances[sel][face]
         world_p = transform_points(chunk_to_world, p[keep] + CHUNK_CORNER)
         world_n = s["normals"][keep] @ chunk_to_world[:3, :3].T
-        colors = albedo_fn(world_p, world_n, s["labels"][keep], s["colors"][keep], inst)
+        # each Gaussian averages the colour over its samples' spacing: detail finer than that is
+        # filtered out as a pixel of that size would (the render's footprint)
+        colors = albedo_fn(world_p, world_n, s["labels"][keep], s["colors"][keep], inst, footprint=spacing)
         parts.append(fit_voxsplat(p[keep], voxel_size, gaussians_per_voxel=gaussians_per_voxel, colors=colors,
                                   labels=s["labels"][keep], weights=s["weights"][keep],
                                   patch_cov=(s["patch_cov"], face), origin=CHUNK_CORNER))

@@ -14,7 +14,7 @@ from ..transforms import invert_pose, transform_points
 from ..viz import mosaic_png, voxel_bev_png
 from .generator import WorldConfig, generate_world
 from .groundtruth import CHUNK_CORNER, coarsen, depth_to_points, mark_visible, voxelize_mesh
-from .textures import albedo
+from .textures import world_albedo
 
 
 def preview_world(cfg: WorldConfig, out: str | Path, *, name: str | None = None, rig: str = "waymo-5",
@@ -32,7 +32,7 @@ def preview_world(cfg: WorldConfig, out: str | Path, *, name: str | None = None,
     for cam in rig_cfg.cameras:
         intr = cam.intrinsics().scaled(image_scale)
         pose = ego @ cam.cam_to_ego()
-        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir, albedo_fn=albedo)
+        r = render_camera(tracers, intr, pose, sun_dir=world.sun_dir, albedo_fn=world_albedo(world, 0.0))
         images[cam.name] = r["rgb"]
         seen.append(transform_points(invert_pose(ego), depth_to_points(r["depth"], intr, pose)))
     fine = voxelize_mesh(world.mesh_at(0.0), ego, voxel_size)

@@ -78,7 +78,7 @@ def o3d_scene(mesh: TriangleMesh) -> o3d.t.geometry.RaycastingScene:
     return scene
 
 
-def flat_albedo(points, normals, labels, base, instances):
+def flat_albedo(points, normals, labels, base, instances, **_):
     """The face colour itself: shading tests compare one albedo under different light."""
     return np.asarray(base, np.float32)
 

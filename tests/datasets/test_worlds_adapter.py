@@ -18,6 +18,7 @@ from scube_sim.camera.rig import load_rig
 from scube_sim.datasets import DatasetError, LidarSweep, Sample, open_dataset
 from scube_sim.datasets.base import frames_with_context
 from scube_sim.datasets.worlds import WorldsDataset, WorldsSample
+from scube_sim.errors import InputError
 from scube_sim.labels import label_id
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
@@ -334,7 +335,7 @@ def ctx_root(tmp_path_factory) -> Path:
 
 
 def test_offsets_before_t_round_trip(ctx_root):
-    assert json.loads((ctx_root / "dataset.json").read_text())["version"] == 3
+    assert json.loads((ctx_root / "dataset.json").read_text())["version"] == 4
     d = sample_dir(ctx_root)
     rig = load_rig(CTX_CFG.rig)
     tags = {"m04", "m01", "00", "02", "05", "10"}
@@ -389,24 +390,34 @@ def test_frames_with_context_gives_the_stored_instants_but_t_and_the_evaluation_
         ds.context_frames(0, -1)
 
 
-def test_version_2_dataset_still_reads(root, copy):
-    """The tiny dataset above has offsets 0 and 5 only: written as version 2 (the layout before
-    offsets before T), it reads as before, and it has no context (5 is an evaluation instant)."""
-    assert json.loads((root / "dataset.json").read_text())["version"] == 2
-    assert json.loads((sample_dir(root) / "meta.json").read_text())["version"] == 2
+def test_older_datasets_still_read_but_take_no_new_sample(root, copy):
+    """The tiny dataset above has offsets 0 and 5 only, written as version 4 (texture version 2).
+    Its files are laid out as versions 2 and 3 lay theirs (those differ in their images' looks
+    only), so the same folder headed as version 2 or 3 reads the same; it has no context (5 is an
+    evaluation instant). A generator run into an older folder is refused: its new samples would
+    look different from the old ones."""
+    assert json.loads((root / "dataset.json").read_text())["version"] == 4
+    assert json.loads((sample_dir(root) / "meta.json").read_text())["version"] == 4
     ds = open_dataset("worlds", root)
     s = ds[0]
     assert s.log == s.name and s.reference is s.timeline[0] and [f.offset for f in s.later()] == [5]
     assert frames_with_context(ds, 0, 10).context == [] and ds.context_offsets(0, 10) == []
-    # the headers a reader accepts: versions 2 and 3; 1 and a version 2 that claims offsets before T are refused
+    # the headers a reader accepts: versions 2, 3 and 4; 1 and a version 2 that claims offsets before T are refused
     head_path = copy / "dataset.json"
     head = json.loads(head_path.read_text())
-    head_path.write_text(json.dumps({**head, "version": 3}))
-    assert len(open_dataset("worlds", copy)) == 1
+    meta_path = sample_dir(copy) / "meta.json"
+    meta = json.loads(meta_path.read_text())
+    for old in (2, 3):
+        head_path.write_text(json.dumps({**head, "version": old}))
+        meta_path.write_text(json.dumps({**meta, "version": old}))
+        assert len(open_dataset("worlds", copy)) == 1
+        with pytest.raises(InputError, match=rf"dataset\.json: dataset version {old} was made with older textures"):
+            generate_dataset(copy, "train", 1, None, start=INDEX + 1, progress=False)
+    meta_path.write_text(json.dumps(meta))
     head_path.write_text(json.dumps({**head, "version": 1}))
     with pytest.raises(DatasetError, match=r"dataset\.json: dataset version 1"):
         open_dataset("worlds", copy)
-    bad = {**head, "config": {**head["config"], "frame_offsets": [-2, 0, 5]}}
+    bad = {**head, "version": 2, "config": {**head["config"], "frame_offsets": [-2, 0, 5]}}
     head_path.write_text(json.dumps(bad))
     with pytest.raises(DatasetError, match=r"dataset\.json: dataset version 2 cannot hold frame offsets before T"):
         open_dataset("worlds", copy)

@@ -43,10 +43,11 @@ def test_frame_tags_read_back_one_way():
     assert sorted(frame_tag(k) for k in (10, 2, 5)) == ["02", "05", "10"]
 
 
-def test_config_takes_offsets_before_t_and_versions_by_need():
-    assert DatasetConfig().frame_offsets == [0, 5, 10] and dataset_version(DatasetConfig()) == 2
+def test_config_takes_offsets_before_t_and_every_new_dataset_is_version_4():
+    # version 4 (texture version 2) whatever the offsets; 2 and 3 only differed by them
+    assert DatasetConfig().frame_offsets == [0, 5, 10] and dataset_version(DatasetConfig()) == 4
     cfg = DatasetConfig(frame_offsets=[-8, -4, -2, -1, 0, 1, 2, 4, 5, 8, 10])
-    assert dataset_version(cfg) == DATASET_VERSION == 3
+    assert dataset_version(cfg) == DATASET_VERSION == 4
     for bad in ([1, 5], [-2, 5], [0, 5, 5], [5, 0], [0, -1]):
         with pytest.raises(ValueError, match="include 0"):
             DatasetConfig(frame_offsets=bad)
@@ -98,21 +99,21 @@ def samples() -> tuple[dict, dict]:
     return make_sample("train", FAST, DEFAULT), make_sample("train", FAST, CONTEXT)
 
 
-def test_default_offsets_write_the_version_2_layout(samples):
+def test_default_offsets_write_the_version_2_file_layout(samples):
     plain, _ = samples
     cams = [c.name for c in load_rig(DEFAULT.rig).cameras]
     assert sorted(plain["images"]) == sorted(f"rgb_{k}_{c}.png" for k in ("00", "05", "10") for c in cams)
     assert sorted(plain["frames"]) == sorted(f"{m}_{k}_{c}" for m in ("depth", "semantic", "instance")
                                              for k in ("00", "05", "10") for c in cams)
     meta = plain["meta"]
-    assert meta["version"] == 2 and "history_s" not in meta["world"]
+    assert meta["version"] == 4 and meta["texture_version"] == 2 and "history_s" not in meta["world"]
     assert [f["offset"] for f in meta["frames"]] == [0, 5, 10]
 
 
 def test_context_sample_names_instants_by_the_rule_and_keeps_t(samples):
     plain, ctx = samples
     meta = ctx["meta"]
-    assert meta["version"] == 3 and meta["world"]["history_s"] == pytest.approx(0.9)
+    assert meta["version"] == 4 and meta["world"]["history_s"] == pytest.approx(0.9)
     assert [f["offset"] for f in meta["frames"]] == [-4, -1, 0, 2, 5]
     assert [f["time"] for f in meta["frames"]] == pytest.approx([-0.4, -0.1, 0.0, 0.2, 0.5])
     tags = sorted({name.split("_")[1] for name in ctx["images"]})

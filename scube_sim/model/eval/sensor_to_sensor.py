@@ -41,6 +41,7 @@ from ...transforms import invert_pose, transform_points
 from ...voxsplat import VoxSplat, voxel_keys
 from ...worlds.generator import WorldConfig, generate_world
 from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, gt_voxsplat
+from ...worlds.textures import world_albedo
 from ..converter import Converter, open_frames
 from ..data.worlds import resize_bilinear
 from ..geometry.metrics import chamfer_voxels, voxel_iou
@@ -192,7 +193,7 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
     mesh = world.mesh_at(t)
     with np.load(sample_dir / "voxels.npz") as z:
         voxels = {k: z[k] for k in z.files}
-    gt = gt_voxsplat(mesh, chunk_to_world, gt_voxel)
+    gt = gt_voxsplat(mesh, chunk_to_world, gt_voxel, albedo_fn=world_albedo(world, t))
     mesh_tracer, gt_tracer = Tracer(mesh), Tracer(gt, mode="entry")
     poses = ahead_poses(lidar, chunk_to_world, ahead)
     refs, rows = [], []

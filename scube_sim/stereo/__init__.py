@@ -1,0 +1,25 @@
+"""Multi-view geometry without learning: plane-sweep depth and its confidence (`sweep`).
+
+Frames: OpenCV cameras (x right, y down, z forward); intrinsics are (3, 3) pinhole K in the
+project's pixel convention (pixel (u, v) spans [u, u + 1), its centre at u + 0.5:
+`camera.Intrinsics.K`); relative poses are (4, 4) rigid transforms; depths are metres along the
+reference camera's optical axis (camera z).
+"""
+
+from .sweep import (
+    COSTS,
+    census_codes,
+    combine_costs,
+    cost_ad,
+    cost_census,
+    cost_hamming,
+    cost_ncc,
+    grey,
+    inverse_depth_hypotheses,
+    sweep_cost,
+    warp_to_reference,
+    winner_take_all,
+)
+
+__all__ = ["COSTS", "census_codes", "combine_costs", "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey",
+           "inverse_depth_hypotheses", "sweep_cost", "warp_to_reference", "winner_take_all"]
