@@ -59,7 +59,11 @@ def eval_cmd(
     dataset: Optional[str] = typer.Option(None, "--dataset", help="depth: the dataset adapter (worlds, nuscenes, "
                                           "kitti_raw, ...); worlds: --data DIR --split S or --data DIR/<split>"),
     method: str = typer.Option("mono", "--method", help="depth: the depth method (mono: the geometry "
-                               "checkpoint's monocular depth head)"),
+                               "checkpoint's monocular depth head; stereo: plane-sweep multi-view stereo over "
+                               "the other cameras and the --context instants, confident pixels only; fused: "
+                               "stereo where confident, the monocular head elsewhere)"),
+    context: int = typer.Option(0, "--context", min=0, help="depth: the method sees up to K instants before and "
+                                "after each sample (stereo needs them; 0: the sample's frames alone)"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
@@ -89,7 +93,7 @@ def eval_cmd(
         _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress)
         return
     if stage == "depth":
-        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress)
+        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context)
         return
     if checkpoint is None:
         raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
@@ -132,7 +136,7 @@ def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, li
 
 
 def _eval_depth(data: Path, dataset: str | None, split: str, limit: int | None, method: str,
-                checkpoint: str | None, output: Path | None, progress: bool) -> None:
+                checkpoint: str | None, output: Path | None, progress: bool, context: int = 0) -> None:
     import json
 
     from rich.progress import track
@@ -156,7 +160,7 @@ def _eval_depth(data: Path, dataset: str | None, split: str, limit: int | None, 
         raise CliError(f"{data}: the {dataset} dataset has no samples")
     m = depth_method(method, checkpoint=checkpoint)
     bar = (lambda xs: track(xs, description=f"depth ({m.name})")) if progress else None
-    res = evaluate_depth(ds, range(n), m, progress=bar)
+    res = evaluate_depth(ds, range(n), m, progress=bar, context=context)
     if output is not None:
         with atomic_path(output) as tmp:
             tmp.write_text(json.dumps(json_ready(res), indent=2) + "\n", encoding="utf-8")

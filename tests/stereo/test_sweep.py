@@ -194,3 +194,50 @@ def test_the_bytes_do_not_depend_on_the_thread_count():
     finally:
         torch.set_num_threads(before)
     assert runs[0] == runs[1]
+
+
+def test_per_pixel_depth_maps_warp_as_planes():
+    # constant depth maps warp exactly as the planes of those depths; a non-finite depth is invalid
+    torch.manual_seed(1)
+    src = torch.rand(3, 24, 32)
+    k = np.array([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
+    pose = np.eye(4)
+    pose[:3, 3] = [0.3, -0.1, 0.05]
+    depths = torch.tensor([2.0, 5.0, 11.0], dtype=torch.float64)
+    planes, valid = warp_to_reference(src, k, k, pose, depths, (24, 32), chunk=2)
+    maps = depths[:, None, None].expand(3, 24, 32).clone()
+    per_pixel, valid_pp = warp_to_reference(src, k, k, pose, maps, (24, 32), chunk=2)
+    assert torch.equal(planes, per_pixel) and torch.equal(valid, valid_pp)
+    maps[1, 3, 4] = float("nan")
+    _, valid_nan = warp_to_reference(src, k, k, pose, maps, (24, 32))
+    assert not valid_nan[1, 3, 4] and torch.equal(valid_nan[0], valid[0])
+
+
+def test_the_census_cost_counts_only_neighbours_on_the_image_and_valid():
+    # the sliced census against a direct count with explicit shifts (NaN off the image)
+    from scube_sim.stereo.sweep import cost_census, grey
+    torch.manual_seed(2)
+    ref, warped = torch.rand(3, 9, 11), torch.rand(2, 3, 9, 11)
+    valid = torch.rand(2, 9, 11) > 0.3
+    r, s = grey(ref), grey(warped)
+    rp = torch.nn.functional.pad(r, (1, 1, 1, 1), value=float("nan"))
+    sp = torch.nn.functional.pad(s, (1, 1, 1, 1), value=float("nan"))
+    vp = torch.nn.functional.pad(valid, (1, 1, 1, 1), value=False)
+    differ = torch.zeros(2, 9, 11)
+    counted = torch.zeros(2, 9, 11)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            if dy == dx == 0:
+                continue
+            ok = vp[:, 1 + dy:10 + dy, 1 + dx:12 + dx]
+            br = rp[1 + dy:10 + dy, 1 + dx:12 + dx] < r
+            bs = sp[:, 1 + dy:10 + dy, 1 + dx:12 + dx] < s
+            differ += ((br[None] != bs) & ok).float()
+            counted += ok.float()
+    per_pixel = differ / counted.clamp_min(1.0)
+    ok = valid & (counted > 0)
+    expect = torch.nn.functional.avg_pool2d(torch.where(ok, per_pixel, 0.0)[:, None], 3, 1, 1)[:, 0] / \
+        torch.nn.functional.avg_pool2d(ok.float()[:, None], 3, 1, 1)[:, 0].clamp_min(1e-12)
+    got = cost_census(ref, warped, valid, 3)
+    assert torch.equal(torch.isnan(got), ~ok)
+    assert torch.allclose(got[ok], expect[ok], atol=1e-6)

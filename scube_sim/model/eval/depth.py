@@ -42,9 +42,11 @@ import torch.nn.functional as F
 
 from ...camera.depth import lidar_depth_index
 from ...camera.frames import CameraImage, Frames
+from ...datasets.base import frames_with_context
 from ...errors import InputError
 from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
 from ...memory import peak_mb, reset_peak
+from ...stereo import StereoConfig, stereo_depth
 from ..checkpoint import load_model
 from ..converter import DEFAULT_PROFILE, StageProfile, frames_item, load_profile
 from ..geometry.net import GeometryNet
@@ -58,13 +60,14 @@ GROUND_MAX_TILT_DEG = 15.0
 RANSAC_ITERATIONS = 200
 RANSAC_INLIER_M = 0.15
 ERR_BINS = np.concatenate([[0.0], np.geomspace(1e-4, 1e4, 16001), [np.inf]])
-METHODS = ("mono",)
+METHODS = ("mono", "stereo", "fused")
+DEFAULT_STEREO_CONFIDENCE = 0.5
 DEFAULT_CHECKPOINT = "geometry-coarse-cpu"
 GROUND_IDS = np.array([LABEL_IDS[n] for n in GROUND_LABEL_NAMES])
 
 __all__ = ["DEFAULT_CHECKPOINT", "GROUND_BAND_M", "MAX_DEPTH_M", "METHODS", "MIN_RANGE_M", "RANGE_BANDS_M",
-           "DepthMethod", "DepthScore", "MonoDepth", "depth_method", "evaluate_depth", "format_table",
-           "ground_returns", "ground_truth", "json_ready"]
+           "DepthMethod", "DepthScore", "FusedDepth", "MonoDepth", "StereoDepth", "depth_method", "evaluate_depth",
+           "format_table", "ground_returns", "ground_truth", "json_ready"]
 
 
 class DepthMethod(Protocol):
@@ -107,6 +110,41 @@ class MonoDepth:
                                   (im.intrinsics.height, im.intrinsics.width))
 
 
+class StereoDepth:
+    """Plane-sweep multi-view stereo (`stereo.stereo_depth`) over the other cameras and the context
+    instants of the frames: its depth where its confidence is at least `min_confidence`, NaN
+    elsewhere (so `eval depth`'s coverage is the confident coverage)."""
+
+    name = "stereo"
+
+    def __init__(self, cfg: StereoConfig | None = None, min_confidence: float = DEFAULT_STEREO_CONFIDENCE):
+        self.cfg = cfg or StereoConfig()
+        self.min_confidence = float(min_confidence)
+
+    def __call__(self, frames: Frames, index: int) -> np.ndarray:
+        res = stereo_depth(frames, index, self.cfg)
+        return np.where(res.confidence >= self.min_confidence, res.depth, np.float32(np.nan))
+
+
+class FusedDepth:
+    """Stereo where it is confident, the monocular head everywhere else: one depth per pixel (the
+    fallback issue 43 asks of the fused map; the head does not yet narrow the stereo's search)."""
+
+    name = "fused"
+
+    def __init__(self, checkpoint: str, focal_px: float | None = None, cfg: StereoConfig | None = None,
+                 min_confidence: float = DEFAULT_STEREO_CONFIDENCE):
+        self.mono = MonoDepth(checkpoint, focal_px)
+        self.checkpoint = checkpoint
+        self.cfg = cfg or StereoConfig()
+        self.min_confidence = float(min_confidence)
+
+    def __call__(self, frames: Frames, index: int) -> np.ndarray:
+        res = stereo_depth(frames, index, self.cfg)
+        sure = (res.confidence >= self.min_confidence) & np.isfinite(res.depth)
+        return np.where(sure, res.depth, self.mono(frames, index)).astype(np.float32)
+
+
 def sample_feature_map(fmap: torch.Tensor, stride: int, resized: tuple[int, int], size: tuple[int, int]) -> np.ndarray:
     """(1, 1, h, w) map of a stride-`stride` feature grid over an image resized to `resized` (rows,
     columns) -> (H, W) float32 at the original image's (`size`) pixel centres, bilinear: original
@@ -121,11 +159,18 @@ def sample_feature_map(fmap: torch.Tensor, stride: int, resized: tuple[int, int]
     return out[0, 0].float().numpy()
 
 
-def depth_method(name: str, *, checkpoint: str | None = None, focal_px: float | None = None) -> DepthMethod:
+def depth_method(name: str, *, checkpoint: str | None = None, focal_px: float | None = None,
+                 stereo: StereoConfig | None = None, min_confidence: float = DEFAULT_STEREO_CONFIDENCE) -> DepthMethod:
     """A method by name (`METHODS`): ``mono`` (`MonoDepth` of `checkpoint`, default the shipped
-    coarse geometry checkpoint)."""
+    coarse geometry checkpoint), ``stereo`` (`StereoDepth` with `stereo` settings, confident pixels
+    only: the frames need context instants or several cameras), ``fused`` (`FusedDepth`: stereo
+    where confident, the head of `checkpoint` elsewhere)."""
     if name == "mono":
         return MonoDepth(checkpoint or DEFAULT_CHECKPOINT, focal_px)
+    if name == "stereo":
+        return StereoDepth(stereo, min_confidence)
+    if name == "fused":
+        return FusedDepth(checkpoint or DEFAULT_CHECKPOINT, focal_px, stereo, min_confidence)
     raise InputError(f"depth method {name!r}: expected one of {', '.join(METHODS)}")
 
 
@@ -288,11 +333,13 @@ def _hist_median(hist: np.ndarray) -> float:
 
 
 def evaluate_depth(ds, indices: Sequence[int], method: DepthMethod | str, *, checkpoint: str | None = None,
-                   focal_px: float | None = None, progress: Callable | None = None) -> dict:
+                   focal_px: float | None = None, progress: Callable | None = None, context: int = 0) -> dict:
     """Score `method` (a `DepthMethod`, or a name for `depth_method` with `checkpoint` and
     `focal_px`) on the camera images of samples `indices` of the dataset adapter `ds` (module
     docstring) -> a dict of plain numbers: ``rows`` (per band and part), ``coverage_all_pixels``,
-    ``coverage_gt_pixels``, ``seconds_per_image``, ``peak_mb`` and provenance."""
+    ``coverage_gt_pixels``, ``seconds_per_image``, ``peak_mb`` and provenance. context: the method
+    sees up to `context` instants before and after each sample (`datasets.frames_with_context`);
+    0: the sample's frames alone."""
     if isinstance(method, str):
         method = depth_method(method, checkpoint=checkpoint, focal_px=focal_px)
     indices = list(indices)
@@ -303,6 +350,8 @@ def evaluate_depth(ds, indices: Sequence[int], method: DepthMethod | str, *, che
     for i in (progress(indices) if progress else indices):
         sample = ds[i]
         frames = sample.frames
+        if context and frames is not None and len(frames):
+            frames = frames_with_context(ds, i, context)
         if frames is None or len(frames) == 0:
             raise InputError(f"{getattr(ds, 'root', 'dataset')}: sample {i} ({sample.name}) has no camera images")
         truth = ground_truth(sample)
@@ -321,6 +370,7 @@ def evaluate_depth(ds, indices: Sequence[int], method: DepthMethod | str, *, che
                         else "LiDAR ground plane")
             images += 1
     rows = score.rows()
+    extra = {"context": int(context)} if context else {}  # context 0: the result as before, key for key
     total = next(r for r in rows if r["range"] == f"0-{MAX_DEPTH_M:g} m" and r["part"] == "all")
     return {"method": method.name, "checkpoint": getattr(method, "checkpoint", None),
             "dataset": getattr(ds, "name", type(ds).__name__), "root": str(getattr(ds, "root", "")),
@@ -329,7 +379,7 @@ def evaluate_depth(ds, indices: Sequence[int], method: DepthMethod | str, *, che
             "coverage_gt_pixels": total["coverage"], "gt_pixels": total["gt_pixels"],
             "gt_beyond_max": score.gt_beyond,
             "seconds_per_image": float(np.mean(seconds)), "seconds_per_image_max": float(np.max(seconds)),
-            "peak_mb": float(np.nanmax(peaks)) if np.isfinite(peaks).any() else float("nan"), "rows": rows}
+            "peak_mb": float(np.nanmax(peaks)) if np.isfinite(peaks).any() else float("nan"), **extra, "rows": rows}
 
 
 def json_ready(res):
@@ -347,7 +397,8 @@ def format_table(res: dict) -> list[str]:
     """The result of `evaluate_depth` as lines for a terminal (and a Markdown table)."""
     gt = ", ".join(f"{v} from {k}" for k, v in res["ground_truth"].items())
     ck = f" ({res['checkpoint']})" if res.get("checkpoint") else ""
-    lines = [(f"method {res['method']}{ck} on {res['dataset']}: {res['samples']} samples, {res['images']} images "
+    ctx = f" with ±{res['context']} context instants" if res.get("context") else ""
+    lines = [(f"method {res['method']}{ck} on {res['dataset']}{ctx}: {res['samples']} samples, {res['images']} images "
               f"({gt}); ground: {', '.join(res['ground_rule'])}"),
              (f"coverage: {100 * res['coverage_all_pixels']:.1f} % of all pixels, "
               f"{100 * res['coverage_gt_pixels']:.1f} % of the {res['gt_pixels']} ground-truth pixels under "

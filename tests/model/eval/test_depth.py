@@ -17,6 +17,7 @@ from scube_sim.datasets import LidarSweep, Sample
 from scube_sim.labels import label_id
 from scube_sim.model.eval.depth import (
     DepthScore,
+    depth_method,
     evaluate_depth,
     format_table,
     ground_returns,
@@ -164,6 +165,31 @@ def test_cli_eval_depth_on_a_tiny_worlds_split(tiny_converter, tmp_path):
     # errors: one line
     one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(data)]), "--dataset")
     one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(data), "--dataset", "worlds",
-                                            "--method", "stereo", "--no-progress"]), "stereo", "mono")
+                                            "--method", "magic", "--no-progress"]), "magic", "mono", "stereo")
     one_line_error(CliRunner().invoke(app, ["eval", "depth", "--data", str(tmp_path / "none"), "--dataset",
                                             "nuscenes", "--no-progress"]), "none")
+
+
+def test_fused_takes_stereo_where_confident_and_the_head_elsewhere(monkeypatch):
+    """The fused map is a per-pixel choice: stereo's depth where its confidence reaches the
+    threshold (and it has one), the monocular head's everywhere else."""
+    import scube_sim.model.eval.depth as depth_mod
+    from scube_sim.stereo import StereoResult
+
+    h, w = 4, 5
+    stereo = np.full((h, w), 7.0, np.float32)
+    stereo[0, 0] = np.nan  # no depth, though "confident": the head fills it
+    conf = np.zeros((h, w), np.float32)
+    conf[:2] = 0.9  # the top two rows are confident
+    conf[1, 4] = 0.49  # just under the threshold (0.5)
+    monkeypatch.setattr(depth_mod, "stereo_depth",
+                        lambda frames, index, cfg: StereoResult(stereo, conf, conf, conf, []))
+    monkeypatch.setattr(depth_mod.MonoDepth, "__init__", lambda self, ck, focal=None: None)
+    monkeypatch.setattr(depth_mod.MonoDepth, "__call__", lambda self, frames, index: np.full((h, w), 30.0, np.float32))
+    fused = depth_method("fused", checkpoint="any")
+    out = fused(None, 0)
+    want = np.full((h, w), 30.0, np.float32)
+    want[:2] = 7.0
+    want[0, 0] = want[1, 4] = 30.0
+    np.testing.assert_array_equal(out, want)
+    assert fused.name == "fused" and "fused" in depth_mod.METHODS
