@@ -311,3 +311,25 @@ def test_shadow_of_a_box_on_the_ground():
     # without shadows the same ground is uniformly lit
     flat = render_camera([Tracer(scene)], intr, c2w, sun_dir=sun, albedo_fn=flat_albedo, shadows=False)
     assert np.ptp(_luma(flat["rgb"])[on_ground]) <= 1
+
+
+def test_exposure_scales_linear_light_and_vignetting_darkens_the_corners():
+    """A wall filling the view, flat albedo, no shadows: exposure multiplies every pixel's linear
+    light; vignetting v leaves the principal point and scales a pixel at r (over the half-diagonal)
+    by 1 - v r^2."""
+    intr = Intrinsics.from_fov(96, 64, 60.0)
+    c2w = look_at((0.0, 0.0, 1.0), (10.0, 0.0, 1.0))
+    wall = pr.quad([(8, -50, -50), (8, 50, -50), (8, 50, 50), (8, -50, 50)], color=(0.5, 0.5, 0.5))
+
+    def linear(**kw):
+        out = render_camera([Tracer(wall)], intr, c2w, albedo_fn=flat_albedo, shadows=False, **kw)
+        return (out["rgb"].astype(np.float64) / 255.0) ** 2.2
+
+    base, bright = linear(), linear(exposure=1.3)
+    # 8-bit rounding: half a level near 100/255 moves linear light by 2.2 x 0.5 / 100 = 1.1 %, twice
+    np.testing.assert_allclose(bright / base, 1.3, rtol=0.03)
+    vig = linear(vignetting=0.25)
+    uu, vv = np.meshgrid(np.arange(intr.width) + 0.5, np.arange(intr.height) + 0.5)
+    r2 = ((uu - intr.cx) ** 2 + (vv - intr.cy) ** 2) / ((intr.width / 2) ** 2 + (intr.height / 2) ** 2)
+    np.testing.assert_allclose(vig[..., 0] / base[..., 0], 1.0 - 0.25 * r2, atol=0.03)
+    assert vig[0, 0, 0] < 0.8 * base[0, 0, 0]  # a corner loses about a quarter

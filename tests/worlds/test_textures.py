@@ -115,3 +115,13 @@ def test_object_frames_put_the_box_bottom_centre_at_the_origin():
     assert f.ids.tolist() == [9]  # boxes without an instance id carry nothing
     np.testing.assert_allclose(f.to_object[0] @ np.array([3.0, 4.0, 0.5, 1.0]), [0, 0, 0, 1], atol=1e-12)
     assert f.lookup(np.array([9, 8, 0])).tolist() == [0, -1, -1]
+
+
+def test_camera_exposure_is_a_gain_per_camera_that_drifts_slowly():
+    from scube_sim.worlds.dataset import camera_exposure
+
+    gains = np.array([[camera_exposure(7, c, t) for t in np.arange(0.0, 6.0, 0.1)] for c in range(5)])
+    assert np.all((gains >= 0.88 * 0.97 - 1e-12) & (gains <= 1.12 * 1.03 + 1e-12))
+    assert np.ptp(gains[:, 0]) > 0.02  # cameras differ
+    assert np.abs(np.diff(gains, axis=1)).max() < 0.01  # within 0.1 s: at most ~1 %
+    assert camera_exposure(7, 2, 0.35) == camera_exposure(7, 2, 0.35) != camera_exposure(8, 2, 0.35)
