@@ -411,10 +411,14 @@ def _facade(u, v, wall, base, inst, x, y, n, view, fw):
 
     lit = _hash(np.floor(u / pitch) + 1000 * inst, floor_no, 16)
     tint = np.stack([0.5 + 0.5 * lit, 0.6 + 0.5 * lit, 0.7 + 0.6 * lit], 1)
-    glass = _glass(view, n, tint, dark=0.25)
-    glass = np.where((shop > 0)[:, None], glass * 0.8 + 0.1 * tint * fbm(u, v, 0.4, 2, 67, fw)[:, None], glass)
+    opening = wall * np.maximum(in_win, shop)
+    o = opening > 0  # glass and its reflection only where a window covers part of the pixel
+    glass = np.zeros_like(base)
+    glass[o] = _glass(None if view is None else view[o], n[o], tint[o], dark=0.25)
+    s = o & (shop > 0)
+    glass[s] = glass[s] * 0.8 + 0.1 * tint[s] * fbm(u[s], v[s], 0.4, 2, 67, fw[s])[:, None]
     frame_col = np.where((_hash(inst, 5, 68) > 0.5), 0.85, 0.25)[:, None] * np.array([1.0, 1.0, 0.98])
-    res = _mix(wallc, _mix(glass, frame_col, frame), wall * np.maximum(in_win, shop))
+    res = _mix(wallc, _mix(glass, frame_col, frame), opening)
     roof = ~wall
     if roof.any():
         xr, yr, fr = x[roof], y[roof], fw[roof]
@@ -491,7 +495,9 @@ def _vehicle(q, n, size, base, lab, view, fw):
     # the cabin: glass between pillars on the sides, windscreen front and back, dark roof
     pillar = side * np.maximum(_box(np.abs(q[:, 0] + 0.15 * length), 0.0, 0.05, fw),
                                lines(q[:, 0] + 0.15 * length + 0.25 * length, 0.25 * length + 1e-6, 0.08, fw))
-    glass = _glass(view, n, np.tile([0.5, 0.6, 0.7], (len(q), 1)), dark=0.15)
+    glass = np.zeros_like(base)  # reflections only on the cabin
+    glass[cabin] = _glass(None if view is None else view[cabin], n[cabin],
+                          np.tile([0.5, 0.6, 0.7], (int(cabin.sum()), 1)), dark=0.15)
     roof = n[:, 2] > 0.7
     cab = np.where(roof[:, None], out * (0.8 + 0.3 * noise(q[:, 0], q[:, 1], 0.02, 83, fw))[:, None],
                    _mix(glass, out * 0.6, pillar))
