@@ -244,3 +244,24 @@ def test_the_penalty_aggregation_keeps_the_plane():
     assert confident[_plane_interior(8)].mean() > 0.8
     rel = np.abs(res.depth[confident] - gt[confident]) / gt[confident]
     assert np.median(rel) < 0.0025
+
+
+@pytest.mark.parametrize("paths", [4, 8])
+def test_semi_global_aggregation_keeps_the_plane(paths):
+    ref, gt = _shot("ref", _pose(), 0.0)
+    left, _ = _shot("cam", _pose((-1.0, 0.2, 0.0)), -0.1)
+    right, _ = _shot("cam", _pose((1.0, -0.1, 0.0)), 0.1)
+    res = stereo_depth(_frames(ref, {-1: [left], 1: [right]}), 0, CFG.model_copy(update={"sgm_paths": paths}))
+    confident = res.confidence >= 0.5
+    assert confident[_plane_interior(8)].mean() > 0.8
+    rel = np.abs(res.depth[confident] - gt[confident]) / gt[confident]
+    assert np.median(rel) < 0.0025 and np.quantile(rel, 0.95) < 0.005 and rel.max() < 0.02
+
+
+@pytest.mark.parametrize("update, key", [({"near_m": 50.0}, "near_m"), ({"window": 6}, "window"),
+                                         ({"sgm_paths": 4, "sgm_p1": 0.5, "sgm_p2": 0.1}, "sgm_p1")])
+def test_inconsistent_settings_are_refused_by_name(update, key):
+    ref, _ = _shot("ref", _pose(), 0.0)
+    src, _ = _shot("cam", _pose((1.0, 0.2, 0.0)), 0.1)
+    with pytest.raises(InputError, match=key):
+        stereo_depth(_frames(ref, {1: [src]}), 0, CFG.model_copy(update=update))
