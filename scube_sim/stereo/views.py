@@ -78,9 +78,11 @@ def _project(k: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def score_view(ref: CameraImage, src: CameraImage, inv_depth_step: float, *, min_baseline_m: float = MIN_BASELINE_M,
-               max_axis_angle_deg: float = MAX_AXIS_ANGLE_DEG) -> tuple[float, float, float, np.ndarray]:
+               max_axis_angle_deg: float = MAX_AXIS_ANGLE_DEG,
+               good_step_px: float = GOOD_STEP_PX) -> tuple[float, float, float, np.ndarray]:
     """(score, overlap, baseline_m, ref_to_src) of `src` as a source for `ref` (module docstring);
-    `inv_depth_step` (1/m) is the sweep's step between neighbouring hypotheses. Score 0 where refused."""
+    `inv_depth_step` (1/m) is the sweep's step between neighbouring hypotheses, `good_step_px` the
+    motion per step preferred, in the source image's pixels. Score 0 where refused."""
     ref_to_src = invert_pose(src.cam_to_world) @ ref.cam_to_world
     baseline = float(np.linalg.norm(ref_to_src[:3, 3]))
     axis_cos = float(ref.cam_to_world[:3, 2] @ src.cam_to_world[:3, 2])
@@ -97,7 +99,7 @@ def score_view(ref: CameraImage, src: CameraImage, inv_depth_step: float, *, min
         d2 = 1.0 / (1.0 / d + inv_depth_step)  # the next hypothesis nearer the far end
         uv2, z2 = _project(k, (d2 * rays) @ rot.T + t)
         inside = (z > 1e-6) & (z2 > 1e-6) & (uv[:, 0] >= 0) & (uv[:, 0] <= w) & (uv[:, 1] >= 0) & (uv[:, 1] <= h)
-        s = np.linalg.norm(uv2 - uv, axis=1) / GOOD_STEP_PX
+        s = np.linalg.norm(uv2 - uv, axis=1) / good_step_px
         weights.append(np.where(inside, np.minimum(s, 1.0 / np.maximum(s, 1e-12)), 0.0))
         inside_all.append(inside)
     overlap = float(np.mean(inside_all))
@@ -108,14 +110,15 @@ def score_view(ref: CameraImage, src: CameraImage, inv_depth_step: float, *, min
 
 def select_sources(ref: CameraImage, cands: list[tuple[int, CameraImage]], count: int, inv_depth_step: float, *,
                    min_baseline_m: float = MIN_BASELINE_M,
-                   max_axis_angle_deg: float = MAX_AXIS_ANGLE_DEG) -> list[SourceView]:
+                   max_axis_angle_deg: float = MAX_AXIS_ANGLE_DEG, good_step_px: float = GOOD_STEP_PX) -> list[SourceView]:
     """The best `count` of `cands` ((offset, image) pairs, `candidates`) for `ref`, best first; only
     those with a positive score. Ties: the smaller |offset|, then the offset, then the camera name
     (deterministic). Scores are rounded to 1e-9 so float noise does not reorder equal views."""
     scored = []
     for offset, im in cands:
         score, overlap, baseline, ref_to_src = score_view(ref, im, inv_depth_step, min_baseline_m=min_baseline_m,
-                                                          max_axis_angle_deg=max_axis_angle_deg)
+                                                          max_axis_angle_deg=max_axis_angle_deg,
+                                                          good_step_px=good_step_px)
         if score > 0:
             scored.append(SourceView(im, int(offset), ref_to_src, round(score, 9), overlap, baseline))
     scored.sort(key=lambda s: (-s.score, abs(s.offset), s.offset, s.image.name))

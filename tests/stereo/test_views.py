@@ -44,6 +44,14 @@ def test_refusals_and_the_preferred_baseline():
     assert v.baseline_m == 1.0 and 0 < v.score <= 1 and v.overlap > 0.5
 
 
+def test_the_preferred_step_picks_the_baseline():
+    # pixels per hypothesis step scale with the baseline: 1 m gives 1 px, 2 m 2 px, 0.5 m 0.5 px
+    ref = _im("ref")
+    cands = [(1, _im("half", (0.5, 0, 0))), (2, _im("one", (1.0, 0, 0))), (3, _im("two", (2.0, 0, 0)))]
+    for step_px, best in ((0.5, "half"), (1.0, "one"), (2.0, "two")):
+        assert select_sources(ref, cands, 1, STEP, good_step_px=step_px)[0].image.name == best
+
+
 def test_ties_are_broken_by_offset_then_name():
     ref = _im("ref")
     cands = [(2, _im("b", (1.0, 0, 0))), (-2, _im("b", (1.0, 0, 0))), (2, _im("a", (1.0, 0, 0))),
