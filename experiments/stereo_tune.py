@@ -1,7 +1,10 @@
 """Tuning plane-sweep stereo (`stereo.stereo_depth`) on held-in data: confident coverage and error
 of "object" pixels per range band, and seconds per image, for one `StereoConfig`.
 
-Data (held in: never the acceptance sets):
+Data (held in: never the acceptance sets; the worlds folder with every instant within ±4, as the
+defaults since semi-global aggregation were chosen on, is made by
+`scube-sim worlds generate --split val --count 3 -j 1 --rig waymo-5 --frame-offsets=-4,-3,-2,-1,0,1,2,3,4
+--image-scale 0.25 --fine-voxel 0.1 --coarse-factor 4 -o /work/data/ctx_val9`, 34 s per sample):
 - worlds: samples `--worlds-samples` of `--worlds DIR` split `--split` (default val), cameras
   `--cameras` (indices into the rig, default all), with ±`--context` instants. Ground truth: the
   rendered depth map; objects: not ground (semantic labels) and not sky (no finite depth).
