@@ -45,6 +45,7 @@ def test_constant_scale_error_and_holes(rng):
     allrow = _row(s.rows())
     assert allrow["gt_pixels"] == gt.size
     assert allrow["median_abs_err_m"] == pytest.approx(0.1 * np.median(gt.astype(np.float64)), rel=3e-3)
+    assert allrow["median_rel"] == pytest.approx(0.1, rel=1e-6)  # float32 gt times 1.1
     assert _row(s.rows(), part="ground")["gt_pixels"] == ground.sum()
     # holes: a third of the pixels without a prediction are misses, not dropped from the base
     pred = 1.1 * gt
@@ -65,6 +66,48 @@ def test_constant_scale_error_and_holes(rng):
     s.add(1.3 * gt2, gt2, ground)
     assert _row(s.rows())["delta_1.25"] == 0.0 and _row(s.rows())["abs_rel"] == pytest.approx(0.3, rel=1e-5)
     assert _row(s.rows())["gt_pixels"] == gt.size - 20 and s.gt_beyond == 10
+
+
+def test_median_relative_error_is_exact_per_band_and_part(rng):
+    """Ground pixels off by r = 0.001 k (k = 1..100), the others by r = 0.1 + 0.002 k, half of
+    each under, half over the truth, shuffled over two images: the medians are the analytic
+    middles (even counts: the mean of the two middle values), not a histogram bin's."""
+    n = 100
+    r = np.concatenate([0.001 * np.arange(1, n + 1), 0.1 + 0.002 * np.arange(1, n + 1)])
+    ground = np.arange(2 * n) < n
+    sign = np.where(np.arange(2 * n) % 2 == 0, 1.0, -1.0)
+    gt = np.where(ground, rng.uniform(10.0, 20.0, 2 * n), rng.uniform(20.0, 40.0, 2 * n))
+    pred = gt * (1.0 + sign * r)
+    order = rng.permutation(2 * n)
+    gt, pred, ground = gt[order], pred[order], ground[order]
+    s = DepthScore()
+    for half in (slice(0, n), slice(n, 2 * n)):  # two images of 10 x 10
+        s.add(pred[half].reshape(10, 10), gt[half].reshape(10, 10), ground[half].reshape(10, 10))
+    rows = s.rows()
+    want_ground = (0.050 + 0.051) / 2  # ranks 50 and 51 of 0.001 k
+    want_other = 0.1 + 0.002 * (50 + 51) / 2
+    want_all = (0.100 + 0.102) / 2  # rank 100: the largest ground error, rank 101: the smallest other
+    assert _row(rows, part="ground")["median_rel"] == pytest.approx(want_ground, rel=1e-12)
+    assert _row(rows, part="not ground")["median_rel"] == pytest.approx(want_other, rel=1e-12)
+    assert _row(rows)["median_rel"] == pytest.approx(want_all, rel=1e-12)
+    # the bands: ground truth 10-20 m is the ground here, 20-40 m the rest; 0-10 m has no pixel
+    assert _row(rows, "10-20 m")["median_rel"] == pytest.approx(want_ground, rel=1e-12)
+    assert _row(rows, "20-40 m", "all")["median_rel"] == pytest.approx(want_other, rel=1e-12)
+    assert np.isnan(_row(rows, "0-10 m")["median_rel"]) and np.isnan(_row(rows, "20-40 m", "ground")["median_rel"])
+    # the mean relative error and the other columns as before
+    assert _row(rows)["abs_rel"] == pytest.approx(r.mean(), rel=1e-9)
+    # pixels without a prediction or beyond 80 m do not enter it
+    s.add(np.array([[np.nan, 500.0]]), np.array([[15.0, 100.0]]), np.zeros((1, 2), bool))
+    assert _row(s.rows())["median_rel"] == pytest.approx(want_all, rel=1e-12)
+    assert _row(s.rows())["gt_pixels"] == 2 * n + 1 and _row(s.rows())["predicted"] == 2 * n
+    res = {"method": "m", "dataset": "d", "samples": 1, "images": 2, "ground_truth": {"lidar": 2},
+           "ground_rule": ["LiDAR ground plane"], "coverage_all_pixels": 1.0, "coverage_gt_pixels": 1.0,
+           "gt_pixels": 2 * n, "gt_beyond_max": 0, "seconds_per_image": 1.0, "seconds_per_image_max": 1.0,
+           "peak_mb": 1.0, "rows": s.rows()}
+    lines = format_table(res)
+    assert lines[2].endswith("| median abs err (m) | median rel err |")
+    assert any(line.startswith("| 0-80 m | all |") and line.endswith(f"| {want_all:.4f} |") for line in lines)
+    assert any(line.startswith("| 0-10 m | all |") and line.endswith("| – |") for line in lines)
 
 
 def _street_sample(with_depth_map: bool = False):
