@@ -130,6 +130,26 @@ def test_a_camera_looking_away_is_not_used():
     assert [v.image.name for v in res.sources] == ["cam"]
 
 
+def test_a_fully_occluded_source_gives_no_confident_wrong_depth():
+    # a box 2 m in front of the source fills its whole view: it never sees the plane
+    ref, gt = _shot("ref", _pose(), 0.0)
+    blocked, blocked_depth = _shot("cam", _pose((1.0, 0.2, 0.0)), 0.1, box_centre=(1.0, 0.2, 2.0))
+    assert (blocked_depth < 2.0).all()
+    alone = stereo_depth(_frames(ref, {1: [blocked]}), 0, CFG)
+    assert [v.offset for v in alone.sources] == [1]
+    # measured: 248 of 12288 pixels confidently wrong when a lone source needed the same peak as a
+    # cross-checked one (the aggregation makes its chance matches look peaked), 0 now
+    assert _confident_wrong(alone, gt, np.ones_like(gt, bool)) == 0
+    # beside three sources that see the plane, it is outvoted: the plane keeps its depth
+    good = [_shot("cam", _pose((dx, dy, 0.0)), 0.1 * o)[0] for o, dx, dy in ((-1, -1.0, 0.2), (2, 1.2, -0.3), (-2, -1.4, -0.2))]
+    res = stereo_depth(_frames(ref, {1: [blocked], -1: [good[0]], 2: [good[1]], -2: [good[2]]}), 0, CFG)
+    assert len(res.sources) == 4
+    inner = _plane_interior(16)
+    assert (res.confidence[inner] >= 0.5).mean() > 0.8, (res.confidence[inner] >= 0.5).mean()
+    # away from the border: measured, 2 corner pixels whose window the image truncates are 6 % off
+    assert _confident_wrong(res, gt, _plane_interior(CFG.window // 2)) == 0
+
+
 def _moving_scene(offsets_and_boxes: dict[int, tuple], with_boxes: bool):
     """The reference (box at BOX_Z, centred in view) and one source per context offset, the cameras
     1 m apart per instant sideways, the box where `offsets_and_boxes` puts it."""
