@@ -150,6 +150,46 @@ def test_a_fully_occluded_source_gives_no_confident_wrong_depth():
     assert _confident_wrong(res, gt, _plane_interior(CFG.window // 2)) == 0
 
 
+def test_the_parallax_per_step_matches_the_pinhole_geometry():
+    from scube_sim.stereo.mvs import _parallax
+    from scube_sim.stereo.views import SourceView
+    k = np.array([[F, 0, W / 2], [0, F, H / 2], [0, 0, 1]])
+    depth = torch.full((H, W), 10.0, dtype=torch.float32)
+    depth[: H // 2] = 25.0
+    inv_step = 0.01
+    sideways = np.eye(4)
+    sideways[0, 3] = -0.8  # the source 0.8 m to the right: a point moves f b di left per step
+    ahead = np.eye(4)
+    ahead[2, 3] = -2.0  # the source 2 m ahead along the optical axis
+    views = [SourceView(None, 1, m, 1.0, 1.0, 1.0) for m in (sideways, ahead)]
+    srcs = [(None, k, None, None)] * 2
+    every = torch.ones((H, W), dtype=torch.bool)
+    got = _parallax(depth, k, srcs, views[:1], [every], inv_step).numpy()
+    np.testing.assert_allclose(got, F * 0.8 * inv_step, rtol=1e-5)  # whatever the depth
+    got = _parallax(depth, k, srcs[1:], views[1:], [every], inv_step).numpy()
+    v, u = np.mgrid[0:H, 0:W] + 0.5
+    i = 1.0 / depth.numpy().astype(np.float64)
+    zoom = 1.0 / (1.0 - 2.0 * (i + inv_step)) - 1.0 / (1.0 - 2.0 * i)  # u' - cx = (u - cx) / (1 - t i)
+    np.testing.assert_allclose(got, np.hypot(u - W / 2, v - H / 2) * zoom, rtol=1e-4, atol=1e-6)
+    assert got[H // 2, W // 2] < 0.02 * got[0, 0]  # next to the focus of expansion: almost none
+    half = every.clone()
+    half[:, : W // 2] = False  # the ahead source does not agree on the left half
+    both = _parallax(depth, k, srcs, views, [every, half], inv_step).numpy()
+    np.testing.assert_allclose(both[:, : W // 2], F * 0.8 * inv_step, rtol=1e-5)
+    np.testing.assert_allclose(both[:, W // 2:], np.hypot(F * 0.8 * inv_step, got[:, W // 2:]), rtol=1e-4)
+
+
+def test_driving_forward_recovers_the_plane_and_the_focus_of_expansion_is_not_confidently_wrong():
+    # sources 1.5 and 3 m behind and ahead along the optical axis, as a forward-driving camera
+    ref, gt = _shot("ref", _pose(), 0.0)
+    ims = {o: [_shot("cam", _pose((0.05 * o, 0.0, 1.5 * o)), 0.1 * o)[0]] for o in (-2, -1, 1, 2)}
+    res = stereo_depth(_frames(ref, ims), 0, CFG)
+    assert len(res.sources) == 4
+    confident = res.confidence >= 0.5
+    assert confident[_plane_interior(16)].mean() > 0.8
+    assert _confident_wrong(res, gt, np.ones_like(gt, bool)) == 0
+
+
 def _moving_scene(offsets_and_boxes: dict[int, tuple], with_boxes: bool):
     """The reference (box at BOX_Z, centred in view) and one source per context offset, the cameras
     1 m apart per instant sideways, the box where `offsets_and_boxes` puts it."""
