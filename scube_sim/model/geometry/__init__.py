@@ -2,7 +2,8 @@
 voxel grid, through a structure VAE and an image-conditioned latent diffusion (XCube).
 `data` (the level's grid and dataset), `net` (the conditional model), `dense_nets` and
 `sparse_nets` (the coarse and fine levels' VAEs and denoisers), `metrics` (IoU, Chamfer),
-`stage` (both stages: losses, evaluation, the frozen VAE's loading)."""
+`stage` (both stages: losses, evaluation, the frozen VAE's loading); `fusion` (no learning:
+measured depth fused into a sparse occupancy grid, surfels on what the cameras saw)."""
 
 from ..._moved import moved_name_getattr
 
