@@ -11,8 +11,8 @@ Ground / not ground: the image's semantic labels where it has them (`labels.GROU
 road, lane marker, curb, other ground, walkable, sidewalk, terrain), else the LiDAR returns within
 `GROUND_BAND_M` of one plane fitted to the sample's returns (`ground_returns`: RANSAC over the
 lower half of the returns by height along the ego's up axis, planes tilted more than
-`GROUND_MAX_TILT_DEG` from it refused, `RANSAC_ITERATIONS` deterministic draws, inliers within
-`RANSAC_INLIER_M`, then a least-squares refit on the inliers). One plane: a road that bends up or
+`GROUND_MAX_TILT_DEG` from it refused, deterministic draws, inliers within `RANSAC_INLIER_M`,
+then a least-squares refit on the inliers: `model.geometry.ground.fit_ground_plane`). One plane: a road that bends up or
 down far ahead leaves the plane and counts as not ground there.
 
 Metrics per range band (`RANGE_BANDS_M`, of the ground-truth depth) and part (ground, not ground,
@@ -52,6 +52,7 @@ from ...memory import peak_mb, reset_peak
 from ...stereo import StereoConfig, stereo_depth
 from ..checkpoint import load_model
 from ..converter import DEFAULT_PROFILE, StageProfile, frames_item, load_profile
+from ..geometry.ground import RANSAC_INLIER_M, fit_ground_plane
 from ..geometry.net import GeometryNet
 
 RANGE_BANDS_M = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0))
@@ -60,8 +61,6 @@ PARTS = ("ground", "not ground", "all")
 MIN_RANGE_M = 2.5
 GROUND_BAND_M = 0.2
 GROUND_MAX_TILT_DEG = 15.0
-RANSAC_ITERATIONS = 200
-RANSAC_INLIER_M = 0.15
 ERR_BINS = np.concatenate([[0.0], np.geomspace(1e-4, 1e4, 16001), [np.inf]])
 METHODS = ("mono", "stereo", "fused")
 DEFAULT_STEREO_CONFIDENCE = 0.5
@@ -181,41 +180,15 @@ def depth_method(name: str, *, checkpoint: str | None = None, focal_px: float | 
 
 
 def ground_returns(points_world: np.ndarray, up: np.ndarray, *, seed: int = 0) -> np.ndarray:
-    """(N,) bool: the returns within GROUND_BAND_M of the ground plane (module docstring: RANSAC on
-    the lower half of the returns by height along `up`, tilt at most GROUND_MAX_TILT_DEG, then a
-    least-squares refit). All False when fewer than 3 returns or no plane is found."""
+    """(N,) bool: the returns within GROUND_BAND_M of the ground plane (`model.geometry.ground.
+    fit_ground_plane`: RANSAC on the lower half of the returns by height along `up`, tilt at most
+    GROUND_MAX_TILT_DEG, then a least-squares refit). All False when fewer than 3 returns or no
+    plane is found."""
     p = np.asarray(points_world, np.float64)
-    up = np.asarray(up, np.float64) / np.linalg.norm(up)
-    out = np.zeros(len(p), bool)
-    if len(p) < 3:
-        return out
-    origin = p.mean(0)
-    q = p - origin  # local coordinates: world frames may sit 10^6 m from their origin
-    height = q @ up
-    cand = q[height <= np.median(height)]
-    if len(cand) < 3:
-        return out
-    rng = np.random.default_rng(seed)
-    picks = rng.integers(0, len(cand), size=(RANSAC_ITERATIONS, 3))
-    a, b, c = cand[picks[:, 0]], cand[picks[:, 1]], cand[picks[:, 2]]
-    n = np.cross(b - a, c - a)
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-9
-    n[ok] /= norm[ok, None]
-    n *= np.where(n @ up < 0, -1.0, 1.0)[:, None]
-    ok &= n @ up >= math.cos(math.radians(GROUND_MAX_TILT_DEG))
-    if not ok.any():
-        return out
-    n, a = n[ok], a[ok]
-    counts = [(np.abs((cand - a0) @ n0) < RANSAC_INLIER_M).sum() for n0, a0 in zip(n, a)]
-    k = int(np.argmax(counts))
-    inl = cand[np.abs((cand - a[k]) @ n[k]) < RANSAC_INLIER_M]
-    centre = inl.mean(0)
-    normal = np.linalg.svd(inl - centre, full_matrices=False)[2][-1]  # least squares: smallest singular vector
-    if abs(normal @ up) < math.cos(math.radians(GROUND_MAX_TILT_DEG)):
-        normal = n[k]  # the refit tilted too far (a wall among the inliers): keep the RANSAC plane
-        centre = a[k]
-    return np.abs((q - centre) @ normal) < GROUND_BAND_M
+    plane = fit_ground_plane(p, up, seed=seed, max_tilt_deg=GROUND_MAX_TILT_DEG, inlier_m=RANSAC_INLIER_M)
+    if plane is None:
+        return np.zeros(len(p), bool)
+    return np.abs(plane.distance(p)) < GROUND_BAND_M
 
 
 def _lidar_points(sample) -> tuple[np.ndarray, str]:
