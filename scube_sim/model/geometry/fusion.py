@@ -38,7 +38,7 @@ from ...errors import InputError
 from ...fit import fit_voxsplat
 from ...voxsplat import VoxSplat, voxel_keys
 
-__all__ = ["DepthObservation", "FusedGrid", "FusionConfig", "evidence_voxsplat", "fuse_depth"]
+__all__ = ["DepthObservation", "FusedGrid", "FusionConfig", "SurfaceSamples", "evidence_voxsplat", "fuse_depth"]
 
 
 class FusionConfig(BaseModel):
@@ -57,6 +57,7 @@ class FusionConfig(BaseModel):
     carve_stride: int = Field(default=1, ge=1)  # carve along every n-th pixel's ray in each direction
     chunk_rays: int = Field(default=4096, ge=1)  # rays per carving batch (memory)
     patch_max_rel: float = Field(default=0.1, gt=0)  # a pixel's step to its neighbour's point longer than this x depth is an edge
+    edge_margin_px: int = Field(default=3, ge=0)  # pixels this close to a depth edge give no evidence (half the census window)
 
 
 @dataclass
@@ -76,8 +77,8 @@ class FusedGrid:
     float64, hits (V,) int32 (images that saw a point there), misses (V,) int32 (images whose rays
     passed through). Points on them (the pixels' points in occupied voxels): points (N, 3) float64
     world metres, weights (N,) float32 (the pixels' confidence), colors (N, 3) float32 in [0, 1],
-    patch (N, 6) float32 m^2 (each pixel's footprint covariance, xx xy xz yy yz zz), voxel (N,)
-    int64 index into ijk. `carved` (C, 3) int64: candidates the misses outweighed."""
+    patch (N, 6) float32 m^2 (each pixel's footprint covariance, xx xy xz yy yz zz), normals (N, 3)
+    float32 (unit, sign arbitrary; zero at a depth edge), voxel (N,) int64 index into ijk. `carved` (C, 3) int64: candidates the misses outweighed."""
 
     voxel_size: float
     origin: np.ndarray
@@ -89,6 +90,7 @@ class FusedGrid:
     weights: np.ndarray
     colors: np.ndarray
     patch: np.ndarray
+    normals: np.ndarray
     voxel: np.ndarray
     carved: np.ndarray
 
@@ -132,11 +134,33 @@ def _pixel_steps(world: np.ndarray, depth: np.ndarray, max_rel: float) -> tuple[
     return out[0], out[1]
 
 
+def _near_edges(depth: np.ndarray, max_rel: float, margin: int) -> np.ndarray:
+    """(H, W) bool: within `margin` pixels (a square) of a depth edge, a pair of neighbouring
+    pixels with depth whose depths differ by more than `max_rel` x the nearer one. Stereo's windows
+    straddle such edges and give the background beside a near object the object's depth."""
+    edge = np.zeros(depth.shape, bool)
+    for axis in (0, 1):
+        a = np.moveaxis(depth, axis, 0)
+        with np.errstate(invalid="ignore"):
+            jump = np.abs(a[1:] - a[:-1]) > max_rel * np.fmin(a[1:], a[:-1])
+        e = np.moveaxis(edge, axis, 0)  # a view: marks land in `edge`
+        e[1:] |= jump
+        e[:-1] |= jump
+    h, w = depth.shape
+    padded = np.pad(edge, margin)
+    out = np.zeros_like(edge)
+    for dy in range(2 * margin + 1):
+        for dx in range(2 * margin + 1):
+            out |= padded[dy:dy + h, dx:dx + w]
+    return out
+
+
 def _points(obs: DepthObservation, cfg: FusionConfig):
     """The confident pixels' world points (N, 3), their depths (N,), confidences (N,), colours
-    (N, 3), pixel (row, col) (N, 2) and patch covariances (N, 6) (xx, xy, xz, yy, yz, zz: the
+    (N, 3), pixel (row, col) (N, 2), patch covariances (N, 6) (xx, xy, xz, yy, yz, zz: the
     pixel's footprint, the parallelogram of its steps to the neighbouring pixels' points, uniform:
-    (a a^T + b b^T) / 12, so that neighbouring surfels close the surface)."""
+    (a a^T + b b^T) / 12, so that neighbouring surfels close the surface) and unit normals (N, 3)
+    (a x b, sign arbitrary; zero where a step is missing)."""
     d = np.asarray(obs.depth, np.float64)
     c = np.asarray(obs.confidence, np.float32)
     keep = np.isfinite(d) & (d > 0) & (d <= cfg.max_depth_m) & (c >= cfg.min_confidence) & (c > 0)
@@ -146,12 +170,17 @@ def _points(obs: DepthObservation, cfg: FusionConfig):
     pose = obs.image.cam_to_world
     world = (rays / rays[..., 2:3] * np.where(keep, d, np.nan)[..., None]) @ pose[:3, :3].T + pose[:3, 3]
     a, b = _pixel_steps(world, d, cfg.patch_max_rel)
+    if cfg.edge_margin_px:
+        keep &= ~_near_edges(np.where(keep, d, np.nan), cfg.patch_max_rel, cfg.edge_margin_px)
     rows, cols = np.nonzero(keep)
     a, b = a[rows, cols], b[rows, cols]
     cov6 = np.stack([(a[:, i] * a[:, j] + b[:, i] * b[:, j]) / 12.0
                      for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))], 1)
+    normal = np.cross(a, b)
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
     rgb = np.asarray(obs.image.image, np.float32)[rows, cols] / 255.0
-    return world[rows, cols], d[rows, cols], c[rows, cols], rgb, np.stack([rows, cols], 1), cov6
+    return world[rows, cols], d[rows, cols], c[rows, cols], rgb, np.stack([rows, cols], 1), cov6, normal
 
 
 def _voxel_of(points: np.ndarray, origin: np.ndarray, vs: float) -> np.ndarray:
@@ -222,7 +251,8 @@ def fuse_depth(observations: list[DepthObservation], cfg: FusionConfig | None = 
         empty3 = np.zeros((0, 3), np.int64)
         return FusedGrid(vs, origin, empty3, np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.int32),
                          np.zeros((0, 3)), np.zeros(0, np.float32), np.zeros((0, 3), np.float32),
-                         np.zeros((0, 6), np.float32), np.zeros(0, np.int64), empty3.copy())
+                         np.zeros((0, 6), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64),
+                         empty3.copy())
     all_keys = np.concatenate([voxel_keys(_voxel_of(p[0], origin, vs)) for p in per])
     candidates = np.unique(all_keys)
     n = len(candidates)
@@ -230,7 +260,7 @@ def fuse_depth(observations: list[DepthObservation], cfg: FusionConfig | None = 
     hits = np.zeros(n, np.int32)
     misses = np.zeros(n, np.int32)
     point_slot = []
-    for obs, (world, depth, conf, _, rc, _) in zip(observations, per):
+    for obs, (world, depth, conf, _, rc, _, _) in zip(observations, per):
         slot = np.searchsorted(candidates, voxel_keys(_voxel_of(world, origin, vs)))
         point_slot.append(slot)
         hit, hit_conf = _per_voxel_mean(slot, conf, n)
@@ -257,25 +287,55 @@ def fuse_depth(observations: list[DepthObservation], cfg: FusionConfig | None = 
     weights = np.concatenate([p[2] for p in per]).astype(np.float32)[keep]
     colors = np.concatenate([p[3] for p in per]).astype(np.float32)[keep]
     patch = np.concatenate([p[5] for p in per]).astype(np.float32)[keep]
+    normals = np.concatenate([p[6] for p in per]).astype(np.float32)[keep]
     return FusedGrid(vs, origin, ijk_all[occupied], logodds[occupied], hits[occupied], misses[occupied],
-                     points, weights, colors, patch, new_index[slot[keep]], ijk_all[~occupied])
+                     points, weights, colors, patch, normals, new_index[slot[keep]], ijk_all[~occupied])
+
+
+@dataclass
+class SurfaceSamples:
+    """Points on a surface no camera saw (e.g. the ground's height field), to be fitted with the
+    observed ones: points (N, 3) float64 in the grid's frame (world), patch (N, 6) footprint
+    covariances, colors (N, 3) in [0, 1], labels (N,) label ids, and the `confidence` of the voxels
+    they alone make."""
+
+    points: np.ndarray
+    patch: np.ndarray
+    colors: np.ndarray
+    labels: np.ndarray
+    confidence: float
 
 
 def evidence_voxsplat(grid: FusedGrid, *, gaussians_per_voxel: int = 4, max_normal_scale: float | None = None,
-                      labels: np.ndarray | None = None) -> VoxSplat:
+                      labels: np.ndarray | None = None, unobserved: SurfaceSamples | None = None) -> VoxSplat:
     """Surfels on the observed surfaces: `fit.fit_voxsplat` (the fit `scube-sim build` applies to
-    LiDAR points) on the grid's points, weighted by their confidence, coloured by their pixels; the
-    voxels are the grid's occupied ones, in its frame (local = world - origin). Channels `observed`
-    (all true) and `confidence` (the occupancy probability). labels: optional per-point label ids
-    (N,) (the voxel takes the weighted majority)."""
-    if len(grid.points) == 0:
-        raise InputError("evidence_voxsplat: the fused grid has no occupied voxel (no confident depth)")
-    out = fit_voxsplat(grid.points - grid.origin, grid.voxel_size, gaussians_per_voxel=gaussians_per_voxel,
-                       colors=grid.colors, labels=labels, weights=grid.weights, origin=grid.origin,
-                       max_normal_scale=max_normal_scale,
-                       patch_cov=(grid.patch.astype(np.float64), np.arange(len(grid.points))))
-    if not np.array_equal(out.ijk, grid.ijk):  # both sorted by voxel key: one voxel each
-        raise AssertionError("evidence_voxsplat: the fit's voxels differ from the grid's")
-    out.set_channel("observed", np.ones(out.num_voxels, bool))
-    out.set_channel("confidence", grid.probability.astype(np.float32))
+    LiDAR points) on the grid's points, weighted by their confidence, each standing for its pixel's
+    footprint, coloured by its pixel; in the grid's frame (local = world - origin). labels: per
+    point label ids (N,) (a voxel takes the weighted majority; default none). unobserved: surface
+    samples fitted with them (weight 1). Channels `observed` (a voxel holding an observed point)
+    and `confidence` (the occupancy probability; `unobserved.confidence` where only samples)."""
+    if len(grid.points) == 0 and (unobserved is None or len(unobserved.points) == 0):
+        raise InputError("evidence_voxsplat: nothing to fit (no confident depth and no surface samples)")
+    pts, patch, cols, w = grid.points, grid.patch.astype(np.float64), grid.colors, grid.weights.astype(np.float64)
+    lab = labels
+    seen = np.ones(len(pts), bool)
+    if unobserved is not None and len(unobserved.points):
+        n = len(unobserved.points)
+        pts = np.concatenate([pts, unobserved.points])
+        patch = np.concatenate([patch, np.asarray(unobserved.patch, np.float64)])
+        cols = np.concatenate([cols, np.asarray(unobserved.colors, np.float32)])
+        w = np.concatenate([w, np.ones(n)])
+        lab = None if labels is None else np.concatenate([labels, unobserved.labels])
+        seen = np.concatenate([seen, np.zeros(n, bool)])
+    out = fit_voxsplat(pts - grid.origin, grid.voxel_size, gaussians_per_voxel=gaussians_per_voxel, colors=cols,
+                       labels=lab, weights=w, origin=grid.origin, max_normal_scale=max_normal_scale,
+                       patch_cov=(patch, np.arange(len(pts))))
+    keys = voxel_keys(out.ijk)
+    observed = np.zeros(out.num_voxels, bool)
+    conf = np.full(out.num_voxels, np.nan if unobserved is None else unobserved.confidence, np.float32)
+    pos = np.searchsorted(keys, voxel_keys(grid.ijk))  # every occupied voxel holds a point: it is there
+    observed[pos] = True
+    conf[pos] = grid.probability
+    out.set_channel("observed", observed)
+    out.set_channel("confidence", conf)
     return out
