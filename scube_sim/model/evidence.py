@@ -112,7 +112,9 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
         moved = dataclasses.replace(im, cam_to_world=to_chunk @ im.cam_to_world)
         observations.append(DepthObservation(moved, res.depth, res.confidence))
     t1 = time.perf_counter()
-    grid = fuse_depth(observations, cfg.fusion, origin=CHUNK_CORNER)
+    # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
+    fusion = cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
+    grid = fuse_depth(observations, fusion, origin=CHUNK_CORNER)
     lo, hi = _chunk_bounds(cfg.fusion.voxel_size)
     inside = np.all((grid.ijk >= lo) & (grid.ijk < hi), 1)
     if not inside.all():  # evidence beyond the chunk: dropped with its points
@@ -151,4 +153,5 @@ def _select(grid, keep: np.ndarray):
     pk = keep[grid.voxel]
     return dataclasses.replace(grid, ijk=grid.ijk[keep], logodds=grid.logodds[keep], hits=grid.hits[keep],
                                misses=grid.misses[keep], points=grid.points[pk], weights=grid.weights[pk],
-                               colors=grid.colors[pk], patch=grid.patch[pk], voxel=new_index[grid.voxel[pk]])
+                               colors=grid.colors[pk], patch=grid.patch[pk], normals=grid.normals[pk],
+                               voxel=new_index[grid.voxel[pk]])

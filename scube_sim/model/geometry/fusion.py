@@ -54,7 +54,12 @@ class FusionConfig(BaseModel):
     occupied_logodds: float = Field(default=0.0)  # occupied at or above (a single hit suffices)
     band_voxels: float = Field(default=1.5, ge=0)  # no carving this close before a point (voxels) ...
     band_rel: float = Field(default=0.05, ge=0)  # ... or this share of its depth, the larger
-    carve_stride: int = Field(default=1, ge=1)  # carve along every n-th pixel's ray in each direction
+    # every n-th pixel in each direction: depth measured at 1/n of the image's resolution and
+    # handed back upsampled (stereo at `StereoConfig.scale` 0.5: n = 2) repeats each measurement
+    # over n x n pixels: they add cost and no evidence, and neighbours that share one measurement
+    # give no footprint or normal between them
+    pixel_stride: int = Field(default=1, ge=1)
+    carve_stride: int = Field(default=1, ge=1)  # carve along every n-th of those pixels' rays in each direction
     chunk_rays: int = Field(default=4096, ge=1)  # rays per carving batch (memory)
     patch_max_rel: float = Field(default=0.1, gt=0)  # a pixel's step to its neighbour's point longer than this x depth is an edge
     edge_margin_px: int = Field(default=3, ge=0)  # pixels this close to a depth edge give no evidence (half the census window)
@@ -157,16 +162,17 @@ def _near_edges(depth: np.ndarray, max_rel: float, margin: int) -> np.ndarray:
 
 def _points(obs: DepthObservation, cfg: FusionConfig):
     """The confident pixels' world points (N, 3), their depths (N,), confidences (N,), colours
-    (N, 3), pixel (row, col) (N, 2), patch covariances (N, 6) (xx, xy, xz, yy, yz, zz: the
+    (N, 3), pixel (row, col) (N, 2) of the image, patch covariances (N, 6) (xx, xy, xz, yy, yz, zz: the
     pixel's footprint, the parallelogram of its steps to the neighbouring pixels' points, uniform:
     (a a^T + b b^T) / 12, so that neighbouring surfels close the surface) and unit normals (N, 3)
     (a x b, sign arbitrary; zero where a step is missing)."""
-    d = np.asarray(obs.depth, np.float64)
-    c = np.asarray(obs.confidence, np.float32)
+    s = cfg.pixel_stride
+    d = np.asarray(obs.depth, np.float64)[::s, ::s]
+    c = np.asarray(obs.confidence, np.float32)[::s, ::s]
     keep = np.isfinite(d) & (d > 0) & (d <= cfg.max_depth_m) & (c >= cfg.min_confidence) & (c > 0)
     if obs.image.sky is not None:
-        keep &= ~np.asarray(obs.image.sky, bool)
-    rays = obs.image.intrinsics.pixel_rays()
+        keep &= ~np.asarray(obs.image.sky, bool)[::s, ::s]
+    rays = obs.image.intrinsics.pixel_rays()[::s, ::s]
     pose = obs.image.cam_to_world
     world = (rays / rays[..., 2:3] * np.where(keep, d, np.nan)[..., None]) @ pose[:3, :3].T + pose[:3, 3]
     a, b = _pixel_steps(world, d, cfg.patch_max_rel)
@@ -179,8 +185,8 @@ def _points(obs: DepthObservation, cfg: FusionConfig):
     normal = np.cross(a, b)
     length = np.linalg.norm(normal, axis=1, keepdims=True)
     normal = np.where(length > 0, normal / np.where(length > 0, length, 1.0), 0.0)
-    rgb = np.asarray(obs.image.image, np.float32)[rows, cols] / 255.0
-    return world[rows, cols], d[rows, cols], c[rows, cols], rgb, np.stack([rows, cols], 1), cov6, normal
+    rgb = np.asarray(obs.image.image, np.float32)[rows * s, cols * s] / 255.0
+    return world[rows, cols], d[rows, cols], c[rows, cols], rgb, np.stack([rows, cols], 1) * s, cov6, normal
 
 
 def _voxel_of(points: np.ndarray, origin: np.ndarray, vs: float) -> np.ndarray:
@@ -264,8 +270,8 @@ def fuse_depth(observations: list[DepthObservation], cfg: FusionConfig | None = 
         slot = np.searchsorted(candidates, voxel_keys(_voxel_of(world, origin, vs)))
         point_slot.append(slot)
         hit, hit_conf = _per_voxel_mean(slot, conf, n)
-        s = cfg.carve_stride
-        sub = (rc[:, 0] % s == 0) & (rc[:, 1] % s == 0) if s > 1 else slice(None)
+        s = cfg.carve_stride * cfg.pixel_stride
+        sub = (rc[:, 0] % s == 0) & (rc[:, 1] % s == 0) if cfg.carve_stride > 1 else slice(None)
         miss_idx, miss_conf = _misses(world[sub], depth[sub], conf[sub], obs.image.cam_to_world[:3, 3],
                                       candidates, origin, cfg)
         miss = np.zeros(n, bool)
