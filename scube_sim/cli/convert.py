@@ -24,12 +24,12 @@ def convert_cmd(
     confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),
     sky: bool = typer.Option(True, "--sky/--no-sky", help="decode the sky panorama (--no-sky for LiDAR-only use)"),
     max_range: Optional[float] = typer.Option(None, "--max-range", help="keep voxels within this many metres of the ego (a LiDAR's range)"),
-    context: int = typer.Option(0, "--context", min=0, max=100, help="also give the converter the K instants before "
-                                "and the K after the sample in the same log or scene (never across a scene boundary), "
-                                "counted in the source's instants: nuScenes keyframes are 2 Hz, KITTI and KITTI-360 "
-                                "10 Hz, a worlds sample its own stored instants minus the evaluation ones (T+5, T+10). "
-                                "The shipped profiles read the reference instant only: the output is the same VoxSplat, "
-                                "its metadata records the instants given (multi-view depth will use them)"),
+    context: Optional[int] = typer.Option(None, "--context", min=0, max=100, help="also give the converter the K "
+                                "instants before and the K after the sample in the same log or scene (never across a "
+                                "scene boundary), counted in the source's instants: nuScenes keyframes are 2 Hz, KITTI "
+                                "and KITTI-360 10 Hz, a worlds sample its own stored instants minus the evaluation ones "
+                                "(T+5, T+10). Default: the profile's (evidence: 4; the scube profiles: 0, they read "
+                                "the reference instant only and record the instants given)"),
     fit_steps: Optional[int] = typer.Option(None, "--fit-steps", help="a test-time fit of the Gaussians to the input views, Adam steps (default: the profile's, 0 in the shipped ones; ~3 s each)"),
 ) -> None:
     """Convert posed camera frames into a VoxSplat (the SCube converter: geometry, then appearance)."""
@@ -43,13 +43,14 @@ def convert_cmd(
         raise CliError(f"--confidence: expected 0 (off) or K >= 2 samples, got {confidence}")
     if fit_steps is not None and fit_steps < 0:
         raise CliError(f"--fit-steps: expected an integer >= 0, got {fit_steps}")
+    conv = Converter(profile)
+    context = conv.profile.context if context is None else context
     frames = open_frames(path, dataset, sample, context=context)
     if context and not frames.context:
         typer.echo(f"note: --context {context}: the set holds no other instant of this sample's log (one keyframe, or "
                    f"a log of one instant); converting from the sample alone", err=True)
-    conv = Converter(profile)
     t0 = time.perf_counter()
-    n_fit = conv.profile.appearance.fit_steps if fit_steps is None else fit_steps
+    n_fit = 0 if conv.profile.appearance is None else (conv.profile.appearance.fit_steps if fit_steps is None else fit_steps)
     with Progress(TextColumn("fitting the Gaussians to the input views"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), transient=True, disable=not n_fit) as bar:
         task = bar.add_task("", total=n_fit)

@@ -31,7 +31,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 import yaml
-from pydantic import Field, ValidationError
+from typing import Literal
+
+from pydantic import Field, ValidationError, model_validator
 
 from ..camera.frames import Frames
 from ..config import StrictModel
@@ -48,6 +50,7 @@ from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance.fit import fit_input_views
 from .appearance.net import AppearanceNet, first_hit_voxels
 from .checkpoint import load_model, resolve_checkpoint
+from .evidence import EvidenceConfig, evidence_scene
 from .data.worlds import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
 from .geometry.data import GeometryDataConfig
 from .geometry.net import GeometryNet, flat_keys, observed_voxels
@@ -104,15 +107,37 @@ class AppearanceProfile(StageProfile):
 
 
 class ConverterProfile(StrictModel):
-    """Both stages' checkpoints and settings (module docstring). confidence_samples: K, the
-    geometry samples per-voxel confidence is counted over when a caller asks for confidence."""
+    """A route and its settings. route `scube` (the paper's): both stages' checkpoints and
+    settings (module docstring); confidence_samples: K, the geometry samples per-voxel confidence
+    is counted over when a caller asks for confidence. route `evidence` (`model.evidence`: stereo
+    depth fused into a grid, no learning): its `evidence` settings (default `EvidenceConfig()`),
+    no checkpoints; per-voxel confidence is the fused occupancy probability whatever K. context:
+    the instants before and after the sample the route reads when the caller names none."""
 
     name: str
     description: str = ""
-    geometry: GeometryProfile
+    route: Literal["scube", "evidence"] = "scube"
+    geometry: GeometryProfile | None = None
     fine: FineProfile | None = None
-    appearance: AppearanceProfile
+    appearance: AppearanceProfile | None = None
+    evidence: EvidenceConfig | None = None
+    context: int = Field(default=0, ge=0, le=100)
     confidence_samples: int = Field(default=4, ge=2)
+
+    @model_validator(mode="after")
+    def _route_keys(self):
+        if self.route == "scube":
+            missing = [k for k in ("geometry", "appearance") if getattr(self, k) is None]
+            if missing or self.evidence is not None:
+                raise ValueError(f"route scube needs geometry and appearance (missing: {', '.join(missing) or 'none'}) "
+                                 f"and takes no evidence key")
+        else:
+            given = [k for k in ("geometry", "fine", "appearance") if getattr(self, k) is not None]
+            if given:
+                raise ValueError(f"route evidence uses no checkpoints: remove {', '.join(given)}")
+            if self.evidence is None:
+                self.evidence = EvidenceConfig()
+        return self
 
 
 def shipped_profiles() -> list[str]:
@@ -266,6 +291,11 @@ class Converter:
     def __init__(self, profile: str | Path | ConverterProfile = DEFAULT_PROFILE):
         self.profile = load_profile(profile)
         p = self.profile
+        self._hashes: dict[str, str] = {}
+        self.timings: dict[str, float] = {}
+        if p.route == "evidence":  # no weights to load
+            self._paths, self.geometry, self.fine, self.appearance = {}, None, None, None
+            return
         self._paths = {"geometry": resolve_checkpoint(p.geometry.checkpoint),
                        "appearance": resolve_checkpoint(p.appearance.checkpoint)}
         self.geometry, run = load_model("geometry", self._paths["geometry"])
@@ -287,8 +317,6 @@ class Converter:
         self.appearance, _ = load_model("appearance", self._paths["appearance"])
         if not isinstance(self.appearance, AppearanceNet):
             raise InputError(f"{self._paths['appearance']}: not an appearance checkpoint")
-        self._hashes: dict[str, str] = {}
-        self.timings: dict[str, float] = {}
 
     def _output_voxel_size(self, size: float | None) -> float:
         fine, coarse = self.fine_data.voxel_size, self.data.voxel_size
@@ -404,9 +432,11 @@ class Converter:
         if fit_steps is not None and (isinstance(fit_steps, bool) or not isinstance(fit_steps, (int, np.integer))
                                          or fit_steps < 0):
             raise InputError(f"fit_steps: expected an integer >= 0, got {fit_steps!r}")
-        fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
         if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
             raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
+        if self.profile.route == "evidence":
+            return self._convert_evidence(frames, max_range)
+        fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
         if k is not None and k < 1:
             raise InputError(f"k: expected at least one geometry sample, got {k}")
         k = (k or self.profile.confidence_samples) if confidence else 1
@@ -449,6 +479,30 @@ class Converter:
         if frames.context:  # recorded only with context: a single instant's output stays as it was
             scene.metadata["instants"] = context_record(frames)
             scene.metadata["instants_used"] = "reference only (the profile's stages read one instant)"
+        return scene
+
+
+    def _convert_evidence(self, frames: Frames, max_range: float | None) -> VoxSplat:
+        """The evidence route (`model.evidence`): steps, seed, K, sky and fit steps do not apply."""
+        reset_peak()
+        t0 = time.perf_counter()
+        scene = evidence_scene(frames, invert_pose(chunk_to_world(frames)), self.profile.evidence)
+        if max_range is not None:
+            centres = CHUNK_CORNER[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
+            scene = scene.select_voxels(np.linalg.norm(centres, axis=1) <= max_range)
+        self.timings = {"geometry_s": time.perf_counter() - t0, "appearance_s": 0.0, "peak_mb": peak_mb(),
+                        **{k: v for k, v in scene.metadata["timings"].items() if k != "peak_mb"}}
+        scene.metadata.update({
+            "source": "scube_sim.convert",
+            "profile": self.profile.name,
+            "route": "evidence",
+            "max_range_m": None if max_range is None else float(max_range),
+            "frames": {str(key): str(v) for key, v in frames.metadata.items()},
+            "evidence": self.profile.evidence.model_dump(mode="json"),
+        })
+        if frames.context:
+            scene.metadata["instants"] = context_record(frames)
+            scene.metadata["instants_used"] = "all: stereo over every camera of every instant given"
         return scene
 
 

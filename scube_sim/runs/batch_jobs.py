@@ -194,7 +194,7 @@ class ConvertJob(Job):
         profile = load_profile(self.settings.profile)
         self._weights = {"profile": profile.model_dump(mode="json"),
                          "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
-                                         for stage in ("geometry", "appearance")}}
+                                         for stage in ("geometry", "appearance") if getattr(profile, stage) is not None}}
 
     def tasks(self, inputs, out):
         paths = [Path(p) for p in inputs]

@@ -440,7 +440,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     # context 0 left out of the key: caches made before the option existed stay valid
     key = {"spec": f.model_dump(mode="json", exclude={"context"} if not f.context else None), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
            "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
-                           for stage in ("geometry", "appearance")}}
+                           for stage in ("geometry", "appearance") if getattr(profile, stage) is not None}}
     folder.mkdir(parents=True, exist_ok=True)
     if f.world is None:
         path = resolve_path(f.path, base)

@@ -86,7 +86,11 @@ def _to_chunk() -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def scene():
-    return evidence_scene(_frames(), _to_chunk(), CFG)
+    # through the converter, as `scube-sim convert --profile` runs it (a 30 m range: the voxels kept)
+    from scube_sim.model.converter import Converter, ConverterProfile
+
+    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames(),
+                                                                                                max_range=30.0)
 
 
 def test_the_corridor_converts_to_surfaces_within_one_voxel(scene):
@@ -116,7 +120,7 @@ def test_labels_and_the_ground_nobody_saw(scene):
     walls = observed & ((np.abs(centres[:, 1] - 3.0) < 0.2) | (np.abs(centres[:, 1] + 3.0) < 0.2)) & (centres[:, 2] > 1.0)
     assert walls.sum() > 50 and not road[walls].any()
     # behind the camera nobody looked: the filled ground is there, unobserved, at z ~ 0
-    behind = ~observed & (centres[:, 0] < -3.0) & (np.abs(centres[:, 1]) < 2.0)
+    behind = ~observed & (centres[:, 0] < -3.0) & (np.abs(centres[:, 1]) < 2.0)  # (the chunk starts 10 m back)
     assert behind.sum() > 100 and np.all(road[behind]) and np.all(layer[behind])
     # and so it is beyond the walls, 50 m out, where the corridor's plane is extrapolated (its roll,
     # fitted over a 6 m wide road, puts it up to 5 cm low there: the layer below)
@@ -145,9 +149,32 @@ def test_the_converted_corridor_traces_in_entry_mode_at_the_walls(scene):
 
 def test_the_same_frames_give_the_same_bytes(scene):
     again = evidence_scene(_frames(), _to_chunk(), CFG)
+    centres = CHUNK_CORNER[:2] + (again.ijk[:, :2] + 0.5) * again.voxel_size
+    again = again.select_voxels(np.linalg.norm(centres, axis=1) <= 30.0)
     assert again.params.tobytes() == scene.params.tobytes() and np.array_equal(again.ijk, scene.ijk)
 
 
 def test_a_bad_chunk_pose_is_refused():
     with pytest.raises(InputError, match="to_chunk"):
         evidence_scene(_frames(), np.eye(3), CFG)
+
+
+def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
+    from scube_sim.model.converter import Converter, ConverterProfile, load_profile
+
+    shipped = load_profile("evidence")
+    assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
+    assert shipped.evidence == EvidenceConfig()
+    conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
+    assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
+    assert scene.metadata["instants_used"].startswith("all")
+    centres = CHUNK_CORNER[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
+    assert np.linalg.norm(centres, axis=1).max() <= 30.0 and scene.channels["observed"].data.any()
+    assert conv.checkpoint_hashes() == {}
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("route: evidence\ngeometry: {checkpoint: geometry-coarse-cpu, focal_px: 300}\n")
+    with pytest.raises(InputError, match="(?s)bad.yaml.*no checkpoints"):
+        load_profile(bad)
+    bad.write_text("route: scube\n")
+    with pytest.raises(InputError, match="(?s)bad.yaml.*needs geometry and appearance"):
+        load_profile(bad)
