@@ -474,7 +474,9 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
         cut = folder / f"converted_{i:03d}_without_actors.npz"  # derived each run from the cached one
         scene.save(cut)
         specs.append(ChunkSpec(cut, np.asarray(scene.metadata["chunk_to_world"], np.float64)))
-    chunks = ChunkSet(specs, reach, {"mode": sc.scene.depth or TRACE_MODE, **_soft_kw(sc.scene)})
+    # the converted chunks' own trace mode (one profile made them all: the scube route soft, evidence entry)
+    mode = sc.scene.depth or (scene.metadata.get("trace_mode", TRACE_MODE) if specs else TRACE_MODE)
+    chunks = ChunkSet(specs, reach, {"mode": mode, **_soft_kw(sc.scene)})
     return BuiltScene(SimScene(actors=actors, chunks=chunks, static_boxes=world.boxes_static), world=world)
 
 
