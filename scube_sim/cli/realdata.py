@@ -72,13 +72,17 @@ def fidelity_cmd(
     sample: int = typer.Option(0, "--sample", help="index of the real sweep to compare with"),
     sensor: Optional[str] = typer.Option(None, "--sensor", help="sensor name (default: the sample's first sweep)"),
     output: Path = typer.Option(Path("out/fidelity"), "-o", "--output", help="folder for report.md/.json/.png"),
-    mode: str = typer.Option("max_response", "--mode", help="tracer depth: max_response | entry"),
+    mode: Optional[str] = typer.Option(None, "--mode", help="tracer depth: max_response | entry (default: the scene's "
+                                       "metadata trace_mode, else max_response)"),
     baselines: bool = typer.Option(True, "--baselines/--no-baselines", help="voxel cubes and Poisson next to the VoxSplat"),
     noise: bool = typer.Option(False, "--noise/--no-noise", help="add the sensor model's range noise"),
     raw: bool = typer.Option(False, "--raw", help="compare with the sweep as measured (undo motion compensation): tests the motion model"),
     static_from: str = typer.Option("", "--static-from", help="sample indices whose sweeps find returns on moving objects; adds [static rays] rows"),
     assume_single_origin: bool = typer.Option(False, "--assume-single-origin", help="trace a sweep that looks merged from several LiDARs from its stated origin anyway"),
     ground_plane: bool = typer.Option(False, "--ground-plane", help="add a flat road plane under the ego as a floor row"),
+    regions: bool = typer.Option(False, "--regions", help="also score the returns within 40 m inside the sample's cameras, "
+                                 "ground and above ground apart, beside a plane fitted to the sweep, and the surface "
+                                 "distances both ways (converted scenes)"),
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
     from ..datasets import open_dataset
@@ -87,9 +91,10 @@ def fidelity_cmd(
 
     ds = open_dataset(dataset, path)
     vs = VoxSplat.load(scene)
+    mode = mode or (vs.metadata.get("trace_mode") if isinstance(vs.metadata, dict) else None) or "max_response"
     res = run_fidelity(ds, vs, sample=sample, sensor=sensor, mode=mode, baselines=baselines, noise=noise,
                        static_from=int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."),
-                       assume_single_origin=assume_single_origin, ground_plane=ground_plane)
+                       assume_single_origin=assume_single_origin, ground_plane=ground_plane, regions=regions)
     paths = write_report(res, output)
     typer.echo(res.markdown())
     typer.echo(f"-> {paths['markdown']}, {paths['png']}")

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_path
+from ..camera.depth import project_to_pixels
 from ..datasets.base import LidarSweep
 from ..datasets.origins import require_single_origin
 from ..errors import InputError
@@ -45,6 +46,7 @@ from ..raytrace.tracer import Tracer
 from ..transforms import invert_pose
 from ..viz import fidelity_png, intensity_png
 from ..voxsplat import unique_voxels
+from .ground import GroundPlane, fit_ground_plane
 from .build import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
 
 
@@ -373,11 +375,20 @@ METRIC_COLUMNS = (("median_abs_m", "median |dr| [cm]", 100), ("p90_abs_m", "p90 
                   ("intensity_rmse", "intensity RMSE", 1))
 
 
+REGION_MAX_M = 40.0  # `regions`: real returns within this range ...
+REGION_GROUND_M = 0.25  # ... ground within this height of the plane fitted to the sweep, above ground over it
+FITTED_PLANE_ROW = "baseline: plane fitted to the sweep"
+SURFACE_COLUMNS = (("to_scene_median_m", "real -> surface median [cm]", 100),
+                   ("to_scene_p90_m", "real -> surface p90 [cm]", 100),
+                   ("from_scene_median_m", "surface -> real median [cm]", 100), ("real", "real returns", 1),
+                   ("scene_points", "surface points", 1))
+
+
 @dataclass
 class FidelityResult:
     """rows: model name -> metrics (see `compare`); images: name -> range image (metres);
     intensity_images: 'real' and row name -> intensity range image (0-1 scale); notes: how rays
-    were chosen and what was left out."""
+    were chosen and what was left out; surface: region -> the surface distances of `regions`."""
 
     rows: dict[str, dict]
     images: dict[str, np.ndarray]
@@ -385,6 +396,7 @@ class FidelityResult:
     context: dict
     mismatch: np.ndarray | None = None
     intensity_images: dict[str, np.ndarray] = field(default_factory=dict)
+    surface: dict[str, dict] = field(default_factory=dict)
 
     def markdown(self) -> str:
         head = "| scene | " + " | ".join(c[1] for c in METRIC_COLUMNS) + " | rays | both return |"
@@ -392,8 +404,100 @@ class FidelityResult:
         for name, m in self.rows.items():
             cells = [f"{m[k] * s:.2f}" if s != 1 else f"{m[k]:.3f}" for k, _, s in METRIC_COLUMNS]
             lines.append(f"| {name} | " + " | ".join(cells) + f" | {m['rays']} | {m['both_return']} |")
+        if self.surface:
+            lines += ["", "| surface distances | " + " | ".join(c[1] for c in SURFACE_COLUMNS) + " |",
+                      "|" + "---|" * (len(SURFACE_COLUMNS) + 1)]
+            for name, m in self.surface.items():
+                cells = [("–" if m[k] is None else f"{m[k] * sc:.1f}") if sc != 1 else f"{m[k]}"
+                         for k, _, sc in SURFACE_COLUMNS]
+                lines.append(f"| {name} | " + " | ".join(cells) + " |")
         ctx = ", ".join(f"{k}: {v}" for k, v in self.context.items())
         return "\n".join([f"# LiDAR fidelity ({ctx})", "", *lines, "", *[f"- {n}" for n in self.notes], ""])
+
+
+def plane_mesh(plane: GroundPlane, centre: np.ndarray, half_size: float = 250.0) -> TriangleMesh:
+    """A square of `plane`, 2 * half_size metres wide, around the foot of `centre` (3,) on it."""
+    n = plane.normal
+    foot = np.asarray(centre, np.float64) - plane.distance(np.asarray(centre)[None])[0] * n
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    h = float(half_size)
+    corners = np.array([-h * u - h * v, h * u - h * v, h * u + h * v, -h * u + h * v])
+    return TriangleMesh(corners, [[0, 1, 2], [0, 2, 3]], labels=np.full(2, label_id("road")), origin=foot)
+
+
+def region_masks(rays: RealRays, sweep: LidarSweep, frames) -> tuple[dict[str, np.ndarray], GroundPlane | None,
+                                                                     np.ndarray]:
+    """The real returns within REGION_MAX_M and inside any camera of `frames`, split into ground
+    (within REGION_GROUND_M of a plane fitted to the sweep's returns) and above ground: name ->
+    (N,) bool over the rays; the plane (None: none found); the returns' world points (M, 3)."""
+    hit = rays.hit
+    world = rays.cloud(rays.range, hit) @ sweep.sensor_to_world[:3, :3].T + sweep.sensor_to_world[:3, 3]
+    plane = fit_ground_plane(world, sweep.sensor_to_world[:3, 2])
+    view = np.zeros(len(world), bool)
+    for im in (frames.images if frames is not None else []):
+        kept, _, _ = project_to_pixels(world, im)
+        view[kept] = True
+    base = view & (rays.range[hit] <= REGION_MAX_M)
+    h = plane.distance(world) if plane is not None else np.full(len(world), np.nan)
+    out = {}
+    for name, m in (("ground", base & (np.abs(h) < REGION_GROUND_M)), ("above ground", base & (h >= REGION_GROUND_M))):
+        full = np.zeros(len(rays), bool)
+        full[np.flatnonzero(hit)] = m
+        out[name] = full
+    return out, plane, world
+
+
+def _scene_points_world(scene) -> np.ndarray:
+    """The scene's Gaussian means (N, 3), world frame (a chunk-frame scene placed by its metadata)."""
+    local = scene.gaussians().means + scene.origin
+    meta = scene.metadata if isinstance(scene.metadata, dict) else {}
+    if meta.get("frame") == "chunk" and meta.get("chunk_to_world") is not None:
+        c = np.asarray(meta["chunk_to_world"], np.float64)
+        return local @ c[:3, :3].T + c[:3, 3]
+    return local
+
+
+def surface_distances(rays: RealRays, sweep: LidarSweep, frames, scene, masks: dict[str, np.ndarray],
+                      world: np.ndarray, plane: GroundPlane | None) -> dict[str, dict]:
+    """Per region: the real returns' distance to the scene's nearest Gaussian mean (median, p90)
+    and to the fitted plane; the scene's means (within REGION_MAX_M of the sensor, inside a camera,
+    within the sweep's elevation span) to the nearest real return of any region."""
+    hit_idx = np.flatnonzero(rays.hit)
+    pts = _scene_points_world(scene)
+    sensor = sweep.sensor_to_world
+    rel = (pts - sensor[:3, 3]) @ sensor[:3, :3]
+    dist = np.linalg.norm(rel, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        elev = np.arcsin(np.clip(rel[:, 2] / dist, -1, 1))
+    dirs = rays.directions[rays.hit]
+    real_elev = np.arcsin(np.clip(dirs[:, 2], -1, 1))
+    view = np.zeros(len(pts), bool)
+    for im in (frames.images if frames is not None else []):
+        kept, _, _ = project_to_pixels(pts, im)
+        view[kept] = True
+    mine = view & (dist <= REGION_MAX_M) & (elev >= real_elev.min()) & (elev <= real_elev.max())
+    any_region = np.zeros(len(hit_idx), bool)
+    for m in masks.values():
+        any_region |= m[hit_idx]
+    from_scene = _nn(pts[mine], world[any_region])
+    out = {}
+    for name, m in masks.items():
+        sel = m[hit_idx]
+        d = _nn(world[sel], pts)
+        row = {"real": int(sel.sum()), "scene_points": int(mine.sum()),
+               "to_scene_median_m": float(np.median(d)) if d.size else None,
+               "to_scene_p90_m": float(np.percentile(d, 90)) if d.size else None,
+               "from_scene_median_m": float(np.median(from_scene)) if from_scene.size else None}
+        out[f"voxsplat, {name}"] = row
+        if plane is not None:
+            dp = np.abs(plane.distance(world[sel]))
+            out[f"{FITTED_PLANE_ROW}, {name}"] = {
+                "real": int(sel.sum()), "scene_points": 0,
+                "to_scene_median_m": float(np.median(dp)) if dp.size else None,
+                "to_scene_p90_m": float(np.percentile(dp, 90)) if dp.size else None, "from_scene_median_m": None}
+    return out
 
 
 def moving_rays(ds, sweep: LidarSweep, rays: RealRays, others: list[int], sensors=None) -> np.ndarray:
@@ -427,7 +531,8 @@ def ground_plane_mesh(ego_pose: np.ndarray, ego_height: float = 0.0, half_size: 
 def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str = "max_response",
                  baselines: bool = True, noise: bool = False, min_range: float = 1.0, seed: int = 0,
                  static_from: list[int] | None = None, raw: bool = False, progress=None,
-                 assume_single_origin: bool = False, ground_plane: bool = False) -> FidelityResult:
+                 assume_single_origin: bool = False, ground_plane: bool = False,
+                 regions: bool = False) -> FidelityResult:
     """Compare a VoxSplat `scene` with the real sweep of `sensor` in `ds[sample]`, next to the
     two baselines (0.1 m voxel cubes and an open3d Poisson surface of the points the scene was
     built from: rebuilt here from the build options stored in the scene), all traced on the
@@ -442,7 +547,10 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     the merged sweep's). A sweep without origins whose geometry shows several is refused
     (`datasets.origins`), unless `assume_single_origin`. ground_plane: add the row of a flat
     road plane under the ego (`ground_plane_mesh`, the frames' ``ego_height_m`` below it). A scene in a chunk frame (the
-    converter's: metadata ``frame: chunk`` and ``chunk_to_world``) is placed in the world by it."""
+    converter's: metadata ``frame: chunk`` and ``chunk_to_world``) is placed in the world by it.
+    regions: every row also on the real returns within REGION_MAX_M inside the sample's cameras,
+    ground and above ground apart (`region_masks`), beside a plane fitted to the sweep (its own
+    row), and the surface distances both ways (`surface_distances`) in `FidelityResult.surface`."""
     step = progress or (lambda msg: None)
     smp = ds[sample]
     sweep = smp.sweep(sensor)
@@ -512,8 +620,23 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         notes.append(f"baselines rebuilt from the scene's input: {len(acc)} points of sample(s) {opts.samples}")
     elif baselines:
         notes.append("baselines skipped: the scene was not built from this dataset by `scube-sim build`")
+    masks, plane, world = ({}, None, None)
+    if regions:
+        if smp.frames is None or not smp.frames.images:
+            raise InputError(f"{ds.name}: sample {sample} has no camera images: --regions scores the cameras' view")
+        masks, plane, world = region_masks(rays, sweep, smp.frames)
+        if plane is not None:
+            step("tracing the plane fitted to the sweep")
+            sims[FITTED_PLANE_ROW] = simulate(Tracer(plane_mesh(plane, sweep.sensor_to_world[:3, 3])))
+        notes.append(f"regions: real returns within {REGION_MAX_M:g} m inside the sample's cameras ("
+                     + ", ".join(f"{k}: {int(m.sum())}" for k, m in masks.items()) + f"), ground within "
+                     f"{REGION_GROUND_M:g} m of a plane fitted to the sweep, above ground over it; surface "
+                     f"distances to and from the scene's Gaussian means (the scene's within {REGION_MAX_M:g} m "
+                     f"of the sensor, inside a camera and the sweep's elevation span)")
     for name, sr in sims.items():
         rows[name] = compare(rays, sr)
+        for region, m in masks.items():
+            rows[f"{name} [camera view, {region}]"] = compare(rays, sr, mask=m)
     if static_from:
         step("finding returns on moving objects")
         moving = np.concatenate([moving_rays(ds, p, r, static_from, [sweep.sensor])
@@ -533,7 +656,8 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     context = {"dataset": ds.name, "sample": sample, "sensor": sweep.sensor}
     if scene.metadata.get("build"):
         context["built from"] = scene.metadata["build"].get("samples")
-    return FidelityResult(rows, images, notes, context, mismatch, intensity_images)
+    surface = surface_distances(rays, sweep, smp.frames, scene, masks, world, plane) if masks else {}
+    return FidelityResult(rows, images, notes, context, mismatch, intensity_images, surface)
 
 
 def write_report(result: FidelityResult, out_dir) -> dict:
@@ -546,7 +670,8 @@ def write_report(result: FidelityResult, out_dir) -> dict:
     with atomic_path(paths["markdown"]) as tmp:
         Path(tmp).write_text(result.markdown())
     with atomic_path(paths["json"]) as tmp:
-        Path(tmp).write_text(json.dumps({"context": result.context, "rows": result.rows, "notes": result.notes},
+        Path(tmp).write_text(json.dumps({"context": result.context, "rows": result.rows, "notes": result.notes,
+                                         "surface": result.surface},
                                         indent=2, default=str))
     title = ", ".join(f"{k}: {v}" for k, v in result.context.items())
     fidelity_png(paths["png"], result.images, mismatch=result.mismatch, title=title)

@@ -42,9 +42,20 @@ def nus_scene(shared_data, tmp_path_factory):
 
 def test_nuscenes_same_pose_beats_both_baselines(nus_scene, tmp_path):
     root, scene = nus_scene
-    res = run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "-o", tmp_path, "--ground-plane")
+    res = run("fidelity", root, "--dataset", "nuscenes", "--scene", scene, "-o", tmp_path, "--ground-plane", "--regions")
     assert res.exit_code == 0, res.output
-    rows = json.loads((tmp_path / "report.json").read_text())["rows"]
+    report = json.loads((tmp_path / "report.json").read_text())
+    rows = report["rows"]
+    # --regions: the returns within 40 m inside the six cameras, ground and above ground apart; a
+    # scene built from this very sweep lies on its returns, a plane fitted to it only on the ground
+    surface = report["surface"]
+    above, plane_above = surface["voxsplat, above ground"], surface["baseline: plane fitted to the sweep, above ground"]
+    assert above["real"] > 1000 and surface["voxsplat, ground"]["real"] > 1000
+    assert above["to_scene_median_m"] < 0.05 and plane_above["to_scene_median_m"] > 0.5
+    assert surface["baseline: plane fitted to the sweep, ground"]["to_scene_median_m"] < 0.1
+    assert rows["voxsplat [camera view, above ground]"]["median_abs_m"] < 0.05
+    assert rows["voxsplat [camera view, above ground]"]["median_abs_m"] < \
+        rows["baseline: plane fitted to the sweep [camera view, above ground]"]["median_abs_m"]
     vs, cubes, poisson = rows["voxsplat"], rows[CUBES], rows[POISSON]
     # the floor: a flat road at the ego's z = 0 returns the ground rings and nothing standing
     ground = rows["baseline: flat ground plane (the road under the ego)"]

@@ -12,7 +12,7 @@ road, lane marker, curb, other ground, walkable, sidewalk, terrain), else the Li
 `GROUND_BAND_M` of one plane fitted to the sample's returns (`ground_returns`: RANSAC over the
 lower half of the returns by height along the ego's up axis, planes tilted more than
 `GROUND_MAX_TILT_DEG` from it refused, deterministic draws, inliers within `RANSAC_INLIER_M`,
-then a least-squares refit on the inliers: `model.geometry.ground.fit_ground_plane`). One plane: a road that bends up or
+then a least-squares refit on the inliers: `realdata.ground.fit_ground_plane`). One plane: a road that bends up or
 down far ahead leaves the plane and counts as not ground there.
 
 Metrics per range band (`RANGE_BANDS_M`, of the ground-truth depth) and part (ground, not ground,
@@ -49,10 +49,10 @@ from ...datasets.base import frames_with_context
 from ...errors import InputError
 from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
 from ...memory import peak_mb, reset_peak
+from ...realdata.ground import RANSAC_INLIER_M, fit_ground_plane
 from ...stereo import StereoConfig, stereo_depth
 from ..checkpoint import load_model
 from ..converter import DEFAULT_PROFILE, StageProfile, frames_item, load_profile
-from ..geometry.ground import RANSAC_INLIER_M, fit_ground_plane
 from ..geometry.net import GeometryNet
 
 RANGE_BANDS_M = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0))
@@ -180,7 +180,7 @@ def depth_method(name: str, *, checkpoint: str | None = None, focal_px: float | 
 
 
 def ground_returns(points_world: np.ndarray, up: np.ndarray, *, seed: int = 0) -> np.ndarray:
-    """(N,) bool: the returns within GROUND_BAND_M of the ground plane (`model.geometry.ground.
+    """(N,) bool: the returns within GROUND_BAND_M of the ground plane (`realdata.ground.
     fit_ground_plane`: RANSAC on the lower half of the returns by height along `up`, tilt at most
     GROUND_MAX_TILT_DEG, then a least-squares refit). All False when fewer than 3 returns or no
     plane is found."""

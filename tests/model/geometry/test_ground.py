@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from scube_sim.errors import InputError
-from scube_sim.model.geometry.ground import fit_ground_plane, fit_height_field
+from scube_sim.model.geometry.ground import fit_height_field
+from scube_sim.realdata.ground import fit_ground_plane
 
 SLOPE, KERB_Y, KERB_M = 0.02, 4.0, 0.15
 EXTENT = (0.0, 40.0, -10.0, 10.0)
