@@ -62,8 +62,10 @@ def eval_cmd(
                                "checkpoint's monocular depth head; stereo: plane-sweep multi-view stereo over "
                                "the other cameras and the --context instants, confident pixels only; fused: "
                                "stereo where confident, the monocular head elsewhere)"),
-    context: int = typer.Option(0, "--context", min=0, help="depth: the method sees up to K instants before and "
-                                "after each sample (stereo needs them; 0: the sample's frames alone)"),
+    context: Optional[int] = typer.Option(None, "--context", min=0, help="depth: the method sees up to K instants "
+                                          "before and after each sample (stereo needs them; default 0: the sample's "
+                                          "frames alone); sensor-to-sensor: the converter does (default: the "
+                                          "profile's, evidence 4)"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
@@ -90,10 +92,10 @@ def eval_cmd(
     from ..model.stages import get_stage
 
     if stage == "sensor-to-sensor":
-        _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress)
+        _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress, context)
         return
     if stage == "depth":
-        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context)
+        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context or 0)
         return
     if checkpoint is None:
         raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
@@ -113,7 +115,7 @@ def eval_cmd(
 
 
 def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, limit: int | None, gt_voxel: float,
-                           seed: int, output: Path | None, progress: bool) -> None:
+                           seed: int, output: Path | None, progress: bool, context: int | None = None) -> None:
     import json
 
     from rich.progress import track
@@ -125,7 +127,7 @@ def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, li
         raise CliError(f"--gt-voxel: expected a positive voxel size in metres, got {gt_voxel}")
     bar = (lambda xs: track(xs, description="sensor to sensor")) if progress else None
     res = evaluate_split(data, split=split, profile=profile, sensor=sensor, limit=limit, gt_voxel=gt_voxel,
-                         seed=seed, progress=bar)
+                         seed=seed, progress=bar, context=context)
     if output is not None:
         with atomic_path(output) as tmp:
             tmp.write_text(json.dumps(res, indent=2) + "\n", encoding="utf-8")

@@ -136,14 +136,15 @@ def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
 def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel: float = 0.4, seed: int = 0,
                     ahead: Sequence[float] = AHEAD_M, convert_options: dict | None = None,
                     with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
-                    trace_options: dict | None = None) -> dict:
+                    trace_options: dict | None = None, context: int | None = None) -> dict:
     """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
     voxels, PSNR at the input cameras, seconds, peak MB}, "rows": [{scene, ahead, split, rays,
     median_m, p90_m, hit_agreement, chamfer_m}]}. gt_cache: a dict kept across calls that holds
     each sample's regenerated world, mesh sweeps and ground-truth rows (a trade sweep over
     converter settings then regenerates nothing). trace_mode: how the converted scene is traced
     (default its metadata ``trace_mode``); trace_options: more `Tracer` settings for it (for
-    example ``soft_alpha_min``)."""
+    example ``soft_alpha_min``). context: the instants before and after the sample the converter
+    sees (`open_frames`; default the profile's)."""
     sample_dir = Path(sample_dir)
     meta = json.loads((sample_dir / "meta.json").read_text())
     key = str(sample_dir.resolve())
@@ -152,7 +153,7 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
         cached = _reference(sample_dir, meta, lidar, gt_voxel=gt_voxel, seed=seed, ahead=ahead)
         if gt_cache is not None:
             gt_cache[key] = cached
-    frames = open_frames(sample_dir)
+    frames = open_frames(sample_dir, context=conv.profile.context if context is None else context)
     reset_peak()
     t0 = time.perf_counter()
     scene = conv.convert(frames, seed=seed, **(convert_options or {}))
@@ -256,9 +257,9 @@ def summarise_rows(samples: list[dict]) -> list[dict]:
 def evaluate_split(data: Path, *, split: str = "test", profile="cpu", sensor: str = "hdl64e", limit: int | None = None,
                    gt_voxel: float = 0.4, seed: int = 0, ahead: Sequence[float] = AHEAD_M,
                    convert_options: dict | None = None, with_psnr: bool = True,
-                   progress: Callable | None = None) -> dict:
+                   progress: Callable | None = None, context: int | None = None) -> dict:
     """`evaluate_sample` over a worlds split (the first `limit` samples) -> {"rows": summarised,
-    "stages": means, "samples": per sample}."""
+    "stages": means, "samples": per sample}. context: as `evaluate_sample`."""
     root = Path(data) / split
     if not root.is_dir():
         raise InputError(f"{root}: no such split folder (a worlds dataset: DIR/<split>/NNNNNN)")
@@ -273,7 +274,7 @@ def evaluate_split(data: Path, *, split: str = "test", profile="cpu", sensor: st
     it = progress(dirs) if progress else dirs
     for d in it:
         samples.append(evaluate_sample(conv, d, lidar, gt_voxel=gt_voxel, seed=seed, ahead=ahead,
-                                       convert_options=convert_options, with_psnr=with_psnr))
+                                       convert_options=convert_options, with_psnr=with_psnr, context=context))
     stage_keys = dict.fromkeys(k for s in samples for k in s["stages"])
     stages = {k: float(np.nanmean([s["stages"].get(k, np.nan) for s in samples])) for k in stage_keys}
     stages["peak_mb"] = float(max(s["stages"]["peak_mb"] for s in samples))
