@@ -15,7 +15,8 @@ no ego-body box, so the figures are the scenes', not the sensor's.
 Rays compared: those whose mesh return lies inside the converted chunk (0.5 m in from its faces).
 Seen / unseen: whether the mesh return's fine ground-truth voxel was seen by an input camera
 (the dataset's ``fine_visible``, from the input cameras' depth maps), independent of the
-prediction. Chamfer: the mean of the two directed mean nearest-neighbour distances between the
+prediction; seen-obj / seen-gnd: the seen rays whose voxel's label is not / is a ground class
+(`GROUND_LABEL_NAMES`). Chamfer: the mean of the two directed mean nearest-neighbour distances between the
 two sweeps' points inside the chunk (metres).
 """
 
@@ -32,6 +33,7 @@ import torch
 
 from ...camera.rig import load_rig
 from ...errors import InputError
+from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
 from ...lidar.compare import fidelity_config, sweep_agreement
 from ...lidar.config import Drop, load_lidar_config
 from ...lidar.model import Lidar
@@ -51,9 +53,11 @@ from ..nn.views import render_rig
 AHEAD_M = (0.0, 20.0, 60.0)
 CHUNK_MARGIN_M = 0.5
 SCENES = ("ground-truth VoxSplat", "converted")
+SPLITS = ("all", "seen", "unseen", "seen-obj", "seen-gnd")
+_GROUND_IDS = np.array([LABEL_IDS[n] for n in GROUND_LABEL_NAMES])
 
 __all__ = ["AHEAD_M", "SCENES", "SweepPoses", "ahead_poses", "evaluate_sample", "evaluate_split",
-           "format_table", "geometric_lidar", "seen_points", "summarise_rows",
+           "SPLITS", "format_table", "geometric_lidar", "seen_labels", "seen_points", "summarise_rows",
            "sweep_metrics"]
 
 
@@ -105,13 +109,27 @@ def _inside_chunk(p_chunk: np.ndarray) -> np.ndarray:
     return np.all((p_chunk >= lo) & (p_chunk < hi), axis=1)
 
 
+def seen_labels(p_chunk: np.ndarray, voxels: dict) -> np.ndarray:
+    """(N,) int16: the label of each chunk-frame point's fine ground-truth voxel where an input
+    camera saw that voxel, else -1."""
+    size = float(voxels["fine_voxel_size"])
+    vis = np.asarray(voxels["fine_visible"], bool)
+    seen_keys = voxel_keys(voxels["fine_ijk"][vis])
+    labels = np.asarray(voxels["fine_labels"])[vis] if "fine_labels" in voxels else np.zeros(len(seen_keys), np.uint8)
+    order = np.argsort(seen_keys)
+    seen_keys, labels = seen_keys[order], labels[order]
+    keys = voxel_keys(np.floor((p_chunk - CHUNK_CORNER) / size).astype(np.int64))
+    out = np.full(len(keys), -1, np.int16)
+    if len(seen_keys):
+        pos = np.minimum(np.searchsorted(seen_keys, keys), len(seen_keys) - 1)
+        hit = seen_keys[pos] == keys
+        out[hit] = labels[pos[hit]]
+    return out
+
+
 def seen_points(p_chunk: np.ndarray, voxels: dict) -> np.ndarray:
     """Whether each chunk-frame point's fine ground-truth voxel was seen by an input camera."""
-    size = float(voxels["fine_voxel_size"])
-    seen_keys = np.sort(voxel_keys(voxels["fine_ijk"][voxels["fine_visible"]]))
-    keys = voxel_keys(np.floor((p_chunk - CHUNK_CORNER) / size).astype(np.int64))
-    pos = np.searchsorted(seen_keys, keys)
-    return seen_keys[np.minimum(pos, len(seen_keys) - 1)] == keys if len(seen_keys) else np.zeros(len(keys), bool)
+    return seen_labels(p_chunk, voxels) >= 0
 
 
 def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
@@ -153,7 +171,8 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
         cached = _reference(sample_dir, meta, lidar, gt_voxel=gt_voxel, seed=seed, ahead=ahead)
         if gt_cache is not None:
             gt_cache[key] = cached
-    frames = open_frames(sample_dir, context=conv.profile.context if context is None else context)
+    context = conv.profile.context if context is None else context
+    frames = open_frames(sample_dir, context=context)
     reset_peak()
     t0 = time.perf_counter()
     scene = conv.convert(frames, seed=seed, **(convert_options or {}))
@@ -175,7 +194,9 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
         sweep = lidar.scan(tracer, p.chunk, seed=seed)
         rows += _rows("converted", p.ahead, ref, sweep, p.chunk)
     stages["trace_s_per_sweep"] = (time.perf_counter() - t1) / max(len(cached["poses"]), 1)
-    return {"sample": f"{sample_dir.parent.name}/{sample_dir.name}", "stages": stages, "rows": rows,
+    # the context asked for and the instants the converter was given (fewer where the log has fewer)
+    return {"sample": f"{sample_dir.parent.name}/{sample_dir.name}", "context": context,
+            "offsets": [0] + [c.offset for c in frames.context], "stages": stages, "rows": rows,
             "voxels": len(ijk), "observed_fraction": float(np.mean(scene.channel("observed")))}
 
 
@@ -204,16 +225,17 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
         pts = transform_points(to_chunk @ p.world, m.xyz().astype(np.float64))
         rr, cc = m.pixels()
         inside = _inside_chunk(pts)
-        seen = seen_points(pts, voxels)
+        lab = seen_labels(pts, voxels)
+        seen, ground = lab >= 0, np.isin(lab, _GROUND_IDS)
         img_shape = (m.channels, m.columns)
+        sels = {"all": inside, "seen": inside & seen, "unseen": inside & ~seen,
+                "seen-obj": inside & seen & ~ground, "seen-gnd": inside & ground}
         masks = {}
-        for name, sel in (("all", inside), ("seen", inside & seen), ("unseen", inside & ~seen)):
+        for name, sel in sels.items():
             mk = np.zeros(img_shape, bool)
             mk[rr[sel], cc[sel]] = True
             masks[name] = mk
-        ref = {"img": m.range_image(), "masks": masks, "xyz": {k: pts[s] for k, s in
-                                                                 (("all", inside), ("seen", inside & seen),
-                                                                  ("unseen", inside & ~seen))}}
+        ref = {"img": m.range_image(), "masks": masks, "xyz": {k: pts[sel] for k, sel in sels.items()}}
         refs.append(ref)
         rows += _rows(SCENES[0], p.ahead, ref, lidar.scan(gt_tracer, p.chunk, seed=seed), p.chunk)
     return {"voxels": voxels, "poses": poses, "refs": refs, "rows": rows, "gt_gaussians": gt.num_gaussians}
@@ -250,7 +272,7 @@ def summarise_rows(samples: list[dict]) -> list[dict]:
             row[k] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
         out.append(row)
     order = {s: i for i, s in enumerate(SCENES)}
-    return sorted(out, key=lambda r: (r["ahead_m"], ["all", "seen", "unseen"].index(r["split"]),
+    return sorted(out, key=lambda r: (r["ahead_m"], SPLITS.index(r["split"]),
                                       order.get(r["scene"], 99)))
 
 
@@ -287,10 +309,10 @@ def format_table(res: dict, split: str, gt_voxel: float) -> list[str]:
     row per scene and distance ahead, and the stages' means per sample."""
     lines = [f"{res['samples_n']} {split} samples, profile {res['profile']}, {res['sensor']}, against the mesh; "
              f"ground-truth VoxSplat at {gt_voxel:g} m",
-             f"{'ahead':>6s} {'rays':>7s} {'scene':<22s} {'split':<7s} {'median |dr|':>11s} {'p90 |dr|':>9s} "
+             f"{'ahead':>6s} {'rays':>7s} {'scene':<22s} {'split':<8s} {'median |dr|':>11s} {'p90 |dr|':>9s} "
              f"{'hits':>7s} {'Chamfer':>8s}"]
     for r in res["rows"]:
-        lines.append(f"{r['ahead_m']:5.0f}m {r['rays']:7d} {r['scene']:<22s} {r['split']:<7s} {r['median_m']:9.3f} m "
+        lines.append(f"{r['ahead_m']:5.0f}m {r['rays']:7d} {r['scene']:<22s} {r['split']:<8s} {r['median_m']:9.3f} m "
                      f"{r['p90_m']:7.3f} m {100 * r['hit_agreement']:6.1f}% {r['chamfer_m']:6.3f} m")
     lines.append("stages (mean per sample): " + ", ".join(f"{k} {v:.4g}" for k, v in res["stages"].items()))
     return lines

@@ -12,10 +12,12 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.errors import InputError
+from scube_sim.labels import label_id
 from scube_sim.model.eval.sensor_to_sensor import (
     ahead_poses,
     evaluate_split,
     geometric_lidar,
+    seen_labels,
     seen_points,
     sweep_metrics,
 )
@@ -61,6 +63,14 @@ def test_seen_points_look_up_the_fine_voxel_of_each_point():
     assert voxel_keys(ijk).dtype == np.int64
 
 
+def test_seen_labels_split_seen_voxels_into_ground_and_objects():
+    ijk = np.array([[0, 0, 0], [5, 6, 7], [5, 6, 8]])
+    voxels = {"fine_ijk": ijk, "fine_visible": np.array([True, True, False]), "fine_voxel_size": np.float64(0.2),
+              "fine_labels": np.array([label_id("road"), label_id("car"), label_id("building")], np.uint8)}
+    pts = CHUNK_CORNER + np.array([[1.05, 1.25, 1.45], [0.1, 0.1, 0.1], [1.05, 1.25, 1.65], [3.0, 3.0, 3.0]])
+    np.testing.assert_array_equal(seen_labels(pts, voxels), [label_id("car"), label_id("road"), -1, -1])
+
+
 def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_path):
     out = tmp_path / "s2s.json"
     r = CliRunner().invoke(app, ["eval", "sensor-to-sensor", "--data", str(tiny_converter["data"]), "--profile",
@@ -73,14 +83,34 @@ def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_pa
     assert {k[1] for k in rows} == {0.0, 20.0, 60.0}
     for ahead in (0.0, 20.0, 60.0):
         for scene in ("ground-truth VoxSplat", "converted"):
-            a, s, u = (rows[(scene, ahead, k)] for k in ("all", "seen", "unseen"))
+            a, s, u, so, sg = (rows[(scene, ahead, k)] for k in ("all", "seen", "unseen", "seen-obj", "seen-gnd"))
             assert a["rays"] == s["rays"] + u["rays"] > 1000
+            assert s["rays"] == so["rays"] + sg["rays"]
         gt = rows[("ground-truth VoxSplat", ahead, "all")]
         # the ground truth's surfels lie on the mesh: range error well inside a voxel, every ray returns
         assert gt["median_m"] < 0.8 / 4 and gt["hit_agreement"] > 0.99 and gt["chamfer_m"] < 0.8 / 2
     st = res["stages"]
     assert st["seconds"] > 0 and st["peak_mb"] > 0 and np.isfinite(st["input_psnr_db"])
     assert "median |dr|" in r.output and "converted" in r.output
+    # the paper-route profile sees no context by default; the tiny data holds only its own instant
+    assert res["samples"][0]["context"] == 0 and res["samples"][0]["offsets"] == [0]
+
+
+def test_eval_sensor_to_sensor_gives_the_converter_the_context_instants(tiny_converter, tmp_path):
+    """--context K: the converter is given the sample's instants within K of it (fewer where the
+    log holds fewer), and the result records which."""
+    from scube_sim.worlds.dataset import generate_dataset
+
+    from ..tiny_converter import TINY
+
+    generate_dataset(tmp_path / "w", "test", 1, TINY.model_copy(update={"frame_offsets": [-2, -1, 0, 1]}), progress=False)
+    out = tmp_path / "s2s.json"
+    r = CliRunner().invoke(app, ["eval", "sensor-to-sensor", "--data", str(tmp_path / "w"), "--profile",
+                                 str(tiny_converter["profile"]), "--sensor", "vlp16", "--gt-voxel", "0.8",
+                                 "--context", "1", "--no-progress", "-o", str(out)])
+    assert r.exit_code == 0, r.output
+    sample = json.loads(out.read_text())["samples"][0]
+    assert (sample["context"], sample["offsets"]) == (1, [0, -1, 1])
 
 
 def test_eval_sensor_to_sensor_names_a_missing_split(tiny_converter, tmp_path):
