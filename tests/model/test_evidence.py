@@ -5,6 +5,12 @@ ground nobody saw, and gives the same bytes twice."""
 
 from __future__ import annotations
 
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -87,10 +93,17 @@ def _to_chunk() -> np.ndarray:
 @pytest.fixture(scope="module")
 def scene():
     # through the converter, as `scube-sim convert --profile` runs it (a 30 m range: the voxels kept)
+    import torch
+
     from scube_sim.model.converter import Converter, ConverterProfile
 
-    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames(),
-                                                                                                max_range=30.0)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(max(2, threads))  # several threads here, one in the determinism test's process
+    try:
+        return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames(),
+                                                                                                    max_range=30.0)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_the_corridor_converts_to_surfaces_within_one_voxel(scene):
@@ -147,11 +160,25 @@ def test_the_converted_corridor_traces_in_entry_mode_at_the_walls(scene):
     assert np.all(across < 0.2), across
 
 
-def test_the_same_frames_give_the_same_bytes(scene):
+def _digest(scene) -> str:
+    return hashlib.sha256(scene.params.tobytes() + np.ascontiguousarray(scene.ijk, np.int64).tobytes()).hexdigest()
+
+
+def converted_digest() -> str:
+    """The corridor converted as the `scene` fixture does, hashed (run in another process below)."""
     again = evidence_scene(_frames(), _to_chunk(), CFG)
     centres = CHUNK_CORNER[:2] + (again.ijk[:, :2] + 0.5) * again.voxel_size
-    again = again.select_voxels(np.linalg.norm(centres, axis=1) <= 30.0)
-    assert again.params.tobytes() == scene.params.tobytes() and np.array_equal(again.ijk, scene.ijk)
+    return _digest(again.select_voxels(np.linalg.norm(centres, axis=1) <= 30.0))
+
+
+def test_the_same_frames_give_the_same_bytes_in_another_process_with_one_thread(scene):
+    # the fixture converted with at least two threads; the other process uses one
+    code = ("import torch; torch.set_num_threads(1); "
+            "from tests.model.test_evidence import converted_digest; print(converted_digest())")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
+                         cwd=Path(__file__).resolve().parents[2], check=True)
+    assert out.stdout.strip().splitlines()[-1] == _digest(scene)
 
 
 def test_a_bad_chunk_pose_is_refused():
