@@ -18,13 +18,13 @@ def demo_cmd(
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
     voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
     seed: int = typer.Option(0, "--seed"),
-    profile: str = typer.Option("cpu-lidar", "--profile", help="converter profile for the camera-to-LiDAR part "
-                                "(cpu-lidar: one Gaussian per voxel; cpu-lidar-fine: with the fine geometry level, "
-                                "half its range error at about twice the conversion time)"),
+    profile: str = typer.Option("evidence", "--profile", help="converter profile for the camera-to-LiDAR part "
+                                "(evidence: stereo depth over the cameras at T and 4 instants either side, fused; "
+                                "cpu-lidar: the paper's route, one Gaussian per voxel, no context instants)"),
     convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),
 ) -> None:
     """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/; convert the
-    scene's camera images with the SCube converter and sweep that too."""
+    scene's camera images (and the instants around them the profile asks for) and sweep that too."""
     from ..runs.demo import run_demo
 
     run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo,

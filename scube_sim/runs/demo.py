@@ -22,7 +22,7 @@ from ..lidar.model import Lidar
 from ..raytrace.tracer import Tracer
 from ..transforms import invert_pose, transform_points
 from ..viz import bev_compare_png, bev_png, fidelity_png, mosaic_png
-from ..worlds.dataset import DatasetConfig, render_frames
+from ..worlds.dataset import DatasetConfig, render_frames_with_context
 from ..worlds.generator import WorldConfig, generate_world
 from ..worlds.groundtruth import gt_voxsplat
 from ..worlds.textures import world_albedo
@@ -39,11 +39,13 @@ FRAMES_SCALE = DatasetConfig().image_scale
 
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
              world: WorldConfig | None = None, echo: Callable[[str], None] = print,
-             profile: str | None = "cpu-lidar") -> dict:
+             profile: str | None = "evidence") -> dict:
     """Write views.png, scene.npz, scene_3dgs.ply, sweep.pcd, scene.usdc, sweep.usda and bev.png
     into `out`; with a converter `profile` (None: skip) also converted.npz (the VoxSplat the
     converter makes from the camera images), converted_sweep.pcd, mesh_sweep.pcd,
-    converted_bev.png and converted_range.png. Returns the timings and counts it printed."""
+    converted_bev.png and converted_range.png. The converter sees the five cameras at T and, where
+    the profile has a context (evidence: 4), the instants around T at 10 Hz. Returns the timings
+    and counts it printed."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     times = {}
@@ -55,10 +57,16 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     times["generate world"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    frames = render_frames(w, "waymo-5", 0.0, FRAMES_SCALE)
+    # the instants around T the converter's profile looks at (the evidence route's stereo and fusion)
+    context = 0
+    if profile is not None:
+        from ..model.converter import load_profile  # torch: only when the converter runs
+
+        context = load_profile(profile).context
+    frames = render_frames_with_context(w, "waymo-5", context, FRAMES_SCALE, log="demo")
     mosaic_png(out / "views.png", {im.name: im.image for im in frames.images},
                title=f"{wcfg.style} world, seed {wcfg.seed}: the Waymo-like rig at T")
-    times["render 5 cameras"] = time.perf_counter() - t
+    times[f"render 5 cameras at {2 * context + 1} instants"] = time.perf_counter() - t
 
     t = time.perf_counter()
     vs = gt_voxsplat(mesh, chunk_to_world, voxel_size, region=REGION, albedo_fn=world_albedo(w, 0.0))
@@ -126,7 +134,7 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
     t = time.perf_counter()
     conv = Converter(profile)
     scene = conv.convert(frames, seed=seed)
-    times["convert 5 cameras"] = time.perf_counter() - t
+    times[f"convert 5 cameras ({conv.profile.name})"] = time.perf_counter() - t
     # the converter's own trace mode (soft: its Gaussians are camera-trained blobs; at hard opacity
     # the sensor sits inside the ground's 3-sigma shells); the ground truth's are thin surfels
     # fitted for hard opacity (`entry`)

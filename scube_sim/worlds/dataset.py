@@ -223,6 +223,21 @@ def render_frames(world, rig_name: str = "waymo-5", t_ref: float = 0.0, image_sc
                   {"rig": rig_name, "world": json.dumps(world.config.model_dump(mode="json"), sort_keys=True)})
 
 
+def render_frames_with_context(world, rig_name: str = "waymo-5", context: int = 0,
+                               image_scale: float | None = None, log: str = "") -> Frames:
+    """`render_frames` at T = 0 with the instants up to `context` before and after it (at the
+    datasets' `frame_rate_hz`) as its `Frames.context`, as a dataset with those frame offsets
+    gives them to the converter."""
+    rate = DatasetConfig().frame_rate_hz
+    scene_at = _SceneAt(world)
+    ctx = []
+    for k in [k for k in range(-int(context), int(context) + 1) if k != 0]:
+        f = render_frames(world, rig_name, k / rate, image_scale, scene_at=scene_at)
+        ctx.append(Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=k))
+    f = render_frames(world, rig_name, 0.0, image_scale, scene_at=scene_at)
+    return Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=0, context=ctx)
+
+
 def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:
     """Generate one sample in memory: {'meta', 'images', 'frames', 'voxels', 'lidar'}."""
     wcfg = sample_world_config(split, index, cfg)

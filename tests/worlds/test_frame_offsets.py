@@ -143,3 +143,23 @@ def test_context_sample_names_instants_by_the_rule_and_keeps_t(samples):
                                                                          for c in rig.cameras])
     front_m4 = ctx["images"]["rgb_m04_FRONT.png"]
     assert not np.array_equal(front_m4, ctx["images"]["rgb_00_FRONT.png"])
+
+
+def test_rendered_context_instants_are_the_datasets_instants():
+    """The demo's frames with context (`render_frames_with_context`) hold the images and poses a
+    dataset with those frame offsets stores, instant for instant."""
+    from scube_sim.worlds.dataset import render_frames_with_context, sample_frames, sample_rig
+
+    cfg = DatasetConfig(**TINY, frame_offsets=[-1, 0, 1])
+    sample = make_sample("train", FAST, cfg)
+    world = generate_world(sample_world_config("train", FAST, cfg))
+    frames = render_frames_with_context(world, sample_rig(FAST, cfg), 1, cfg.image_scale, log="x")
+    assert [c.offset for c in frames.context] == [-1, 1] and {c.log for c in frames.context} == {"x"}
+    for i, f in enumerate([frames.context[0], frames, frames.context[1]]):
+        stored = sample_frames(sample, i)
+        assert stored.offset == f.offset
+        np.testing.assert_allclose(f.ego_pose, stored.ego_pose, atol=1e-9)
+        for a, b in zip(f.images, stored.images):
+            assert a.name == b.name and a.timestamp == b.timestamp
+            np.testing.assert_allclose(a.cam_to_world, b.cam_to_world, atol=1e-9)
+            assert np.array_equal(a.image, b.image)
