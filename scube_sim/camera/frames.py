@@ -100,6 +100,23 @@ class Frames:
         ref = Frames(self.images, self.ego_pose, self.timestamp, self.metadata, self.log, self.offset, self.boxes)
         return sorted([ref, *self.context], key=lambda f: f.offset)
 
+    def around(self, offset: int) -> "Frames":
+        """The same instants with the one at `offset` (relative to this reference) as the
+        reference: offsets counted from it, the others its context. NotFoundError names the
+        offsets there are."""
+        if offset == 0:
+            return self
+        instants = self.instants()
+        have = [f.offset - self.offset for f in instants]
+        if offset not in have:
+            raise NotFoundError(f"no instant at offset {offset}; have {have}")
+        base = self.offset + offset
+        moved = [Frames(f.images, f.ego_pose, f.timestamp, f.metadata, f.log, f.offset - base, f.boxes)
+                 for f in instants]
+        ref = next(f for f in moved if f.offset == 0)
+        return Frames(ref.images, ref.ego_pose, ref.timestamp, ref.metadata, ref.log, 0, ref.boxes,
+                      [f for f in moved if f.offset != 0])
+
     def __getitem__(self, name: str) -> CameraImage:
         for im in self.images:
             if im.name == name:

@@ -7,7 +7,7 @@ project's pixel convention (pixel (u, v) spans [u, u + 1), its centre at u + 0.5
 reference camera's optical axis (camera z).
 """
 
-from .mvs import StereoConfig, StereoResult, stereo_depth
+from .mvs import StereoConfig, StereoResult, moved_pixels, stereo_depth
 from .sweep import (
     COSTS,
     census_codes,
@@ -26,4 +26,4 @@ from .views import SourceView, candidates, select_sources
 
 __all__ = ["COSTS", "SourceView", "StereoConfig", "StereoResult", "candidates", "census_codes", "combine_costs",
            "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "select_sources",
-           "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]
+           "moved_pixels", "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]

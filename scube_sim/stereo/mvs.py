@@ -110,7 +110,7 @@ _COST_FNS = {"ad": cost_ad, "ncc": cost_ncc, "census": cost_census}
 # the cost of an uncorrelated match (census: half the bits differ; ncc: 1 - 0), `StereoConfig.unseen`
 UNSEEN_COST = {"ad": 0.25, "ncc": 1.0, "census": 0.5}
 
-__all__ = ["FLAT_COST", "StereoConfig", "StereoResult", "stereo_depth"]
+__all__ = ["FLAT_COST", "StereoConfig", "StereoResult", "moved_pixels", "stereo_depth"]
 
 
 class StereoConfig(StrictModel):
@@ -264,6 +264,18 @@ def _box_mask(boxes: list[Box], cam_to_world: np.ndarray, k: np.ndarray, hw: tup
     if dilate_px > 0:
         out = F.max_pool2d(out[None, None].to(torch.float32), 2 * dilate_px + 1, stride=1, padding=dilate_px)[0, 0] > 0
     return out if bool(out.any()) else None
+
+
+def moved_pixels(im: CameraImage, here: list[Box], there: list[Box], cfg: StereoConfig | None = None) -> np.ndarray:
+    """(H, W) bool: the pixels of `im` (at the instant of boxes `here`) that see an object whose box
+    moved by another instant (boxes `there`; `_moved`'s rule, grown by `box_margin_m`): a depth
+    measured there belongs to that instant only. Distortion is ignored (the box margin covers it)."""
+    cfg = cfg or StereoConfig()
+    intr = im.intrinsics
+    moved, _ = _moved(here, there, cfg.moved_m)
+    mask = _box_mask(moved, np.asarray(im.cam_to_world, np.float64), intr.K, (intr.height, intr.width),
+                     cfg.box_margin_m, 0)
+    return np.zeros((intr.height, intr.width), bool) if mask is None else mask.numpy()
 
 
 # --- aggregation ------------------------------------------------------------------------------------

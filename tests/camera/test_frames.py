@@ -93,3 +93,28 @@ def test_frames_ego_pose_is_validated():
 def test_frames_non_finite_timestamp_is_rejected(t):
     with pytest.raises(ValueError, match="timestamp"):
         Frames([image()], pose(), t)
+
+
+def test_around_makes_another_instant_the_reference():
+    intr = Intrinsics(4, 3, 2.0, 2.0, 2.0, 1.5)
+
+    def instant(k):
+        pose = np.eye(4)
+        pose[0, 3] = float(k)
+        im = CameraImage("cam", np.full((3, 4, 3), k + 10, np.uint8), intr, pose, 0.1 * k)
+        return Frames([im], pose, 0.1 * k, log="log", offset=k)
+
+    ctx = [instant(k) for k in (-2, -1, 1)]
+    frames = Frames(instant(0).images, np.eye(4), 0.0, log="log", context=ctx)
+    at = frames.around(-2)
+    # the instant 2 back is the reference, offsets counted from it; nothing else changes
+    assert at.offset == 0 and at.timestamp == pytest.approx(-0.2) and at.ego_pose[0, 3] == -2.0
+    assert [c.offset for c in at.context] == [1, 2, 3]
+    assert [float(c.ego_pose[0, 3]) for c in at.context] == [-1.0, 0.0, 1.0]
+    assert at.images[0].image[0, 0, 0] == 8 and at.log == "log"
+    assert frames.around(0) is frames
+    # and back: the same instants as before
+    back = at.around(2)
+    assert [c.offset for c in back.context] == [-2, -1, 1] and back.timestamp == 0.0
+    with pytest.raises(KeyError, match=r"offset 2; have \[-2, -1, 0, 1\]"):
+        frames.around(2)

@@ -164,9 +164,10 @@ def _digest(scene) -> str:
     return hashlib.sha256(scene.params.tobytes() + np.ascontiguousarray(scene.ijk, np.int64).tobytes()).hexdigest()
 
 
-def converted_digest() -> str:
-    """The corridor converted as the `scene` fixture does, hashed (run in another process below)."""
-    again = evidence_scene(_frames(), _to_chunk(), CFG)
+def converted_digest(update: dict | None = None) -> str:
+    """The corridor converted as the `scene` fixture does (with `update` to its config), hashed
+    (run in another process below)."""
+    again = evidence_scene(_frames(), _to_chunk(), CFG.model_copy(update=update or {}))
     centres = CHUNK_CORNER[:2] + (again.ijk[:, :2] + 0.5) * again.voxel_size
     return _digest(again.select_voxels(np.linalg.norm(centres, axis=1) <= 30.0))
 
@@ -205,3 +206,27 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     bad.write_text("route: scube\n")
     with pytest.raises(InputError, match="(?s)bad.yaml.*needs geometry and appearance"):
         load_profile(bad)
+
+
+def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):
+    """references [0, -2] (instants -4..2): the camera 1.6 m back sees the walls from 4.0 m ahead
+    of T's camera on (T's own view starts at 5.6 m: a 28 degree half-angle, the walls 3 m aside),
+    matched against the instants behind it; those voxels come in, on the walls."""
+    ctx = [Frames([_image(0.8 * k, 0.1 * k)], np.eye(4), 0.1 * k, offset=k) for k in (-4, -3, -2, -1, 1, 2)]
+    frames = Frames([_image(0.0, 0.0)], np.eye(4), 0.0, context=ctx)
+    one = evidence_scene(frames, _to_chunk(), CFG.model_copy(update={"references": [0]}))
+    two = evidence_scene(frames, _to_chunk(), CFG.model_copy(update={"references": [0, -2]}))
+
+    def walls_between(s, lo, hi):
+        c = CHUNK_CORNER + (s.ijk[s.channels["observed"].data] + 0.5) * s.voxel_size
+        on = (np.abs(np.abs(c[:, 1]) - 3.0) < 0.2) & (c[:, 0] > lo) & (c[:, 0] < hi) & (c[:, 2] > 0.3)
+        return c[on]
+
+    assert len(walls_between(one, 4.2, 5.4)) == 0
+    extra = walls_between(two, 4.2, 5.4)
+    assert len(extra) > 20 and np.median(_truth_distance(extra)) < 0.12
+    assert len(walls_between(two, 8.0, 16.0)) >= 0.9 * len(walls_between(one, 8.0, 16.0))
+
+
+def test_a_reference_instant_the_frames_lack_is_skipped(scene):
+    assert converted_digest({"references": [0, -7]}) == _digest(scene)

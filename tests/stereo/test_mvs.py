@@ -13,7 +13,7 @@ from scube_sim.boxes import Box
 from scube_sim.camera import Intrinsics
 from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.errors import InputError
-from scube_sim.stereo import StereoConfig, stereo_depth
+from scube_sim.stereo import StereoConfig, moved_pixels, stereo_depth
 from tests.stereo.test_sweep import _pose  # one analytic rig for the stereo tests
 
 W, H, F = 128, 96, 120.0
@@ -356,3 +356,18 @@ def test_the_geometric_check_rejects_the_moving_object_semi_global_lets_through(
     assert _confident_wrong(res, gt, on_box) <= 0.005 * on_box.sum(), _confident_wrong(res, gt, on_box)
     plane = ~on_box & _plane_interior(10)
     assert _confident_wrong(res, gt, plane) <= 0.01 * plane.sum()
+
+
+def test_moved_pixels_cover_the_box_of_an_object_that_moved_and_nothing_for_one_that_stood():
+    centre = (0.0, 0.0, BOX_Z)
+    ref, gt = _shot("ref", _pose(), 0.0, centre)
+    on_box = np.abs(gt - (BOX_Z - BOX_SIZE[2] / 2)) < 0.01  # the box's front face
+    here = [_box(centre)]
+    assert on_box.sum() > 500
+    assert not moved_pixels(ref, here, [_box(centre)]).any()
+    mask = moved_pixels(ref, here, [_box((1.0, 0.0, BOX_Z))])
+    # the whole face, and the 0.3 m margin around it, not much more
+    assert mask[on_box].all() and mask.sum() < 2.5 * on_box.sum()
+    # an object with no identity counts as moved (nothing says it stood still)
+    anon = Box(np.asarray(centre, float), BOX_SIZE, np.eye(3))
+    assert moved_pixels(ref, [anon], [anon])[on_box].all()
