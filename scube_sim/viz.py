@@ -231,3 +231,38 @@ def intensity_png(path: str | Path, images: dict[str, np.ndarray], *, title: str
         fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return save_png(fig, path)
+
+
+def sweeps_over_image_png(path: str | Path, image: np.ndarray, panels: dict[str, tuple[np.ndarray, np.ndarray]], *,
+                          title: str = "", value_name: str = "range [m]", vmax: float | None = None,
+                          error_panel: str | None = None, error_m: float = 1.0) -> Path:
+    """Points drawn over one camera image, one panel per entry, stacked: panels name -> (uv (N, 2)
+    pixel coordinates, value (N,)); values on a shared turbo scale (0 to `vmax`, default their
+    99th percentile), except the panel named `error_panel`, whose values are clipped at
+    `error_m` (a magnitude: light yellow 0 to dark purple `error_m` or more)."""
+    plt = pyplot()
+    h, w = image.shape[:2]
+    n = len(panels)
+    fig, axes = plt.subplots(n, 1, figsize=(12, (12 * h / w) * n + 0.9), dpi=110, squeeze=False)
+    values = [v for k, (_, v) in panels.items() if k != error_panel and len(v)]
+    finite = np.concatenate(values) if values else np.zeros(1)
+    finite = finite[np.isfinite(finite)]
+    vmax = float(vmax) if vmax is not None else (float(np.percentile(finite, 99)) if finite.size else 1.0)
+    for ax, (name, (uv, v)) in zip(axes[:, 0], panels.items()):
+        ax.imshow(image, interpolation="nearest")
+        if name == error_panel:
+            sc = ax.scatter(uv[:, 0], uv[:, 1], c=np.minimum(v, error_m), s=1.5, cmap="magma_r", vmin=0,
+                            vmax=error_m, linewidths=0)
+            fig.colorbar(sc, ax=ax, fraction=0.02, pad=0.01, label=f"|error| [m] ({error_m:g} = or more)")
+        else:
+            sc = ax.scatter(uv[:, 0], uv[:, 1], c=v, s=1.5, cmap="turbo", vmin=0, vmax=vmax, linewidths=0)
+            fig.colorbar(sc, ax=ax, fraction=0.02, pad=0.01, label=value_name)
+        ax.set_xlim(0, w)
+        ax.set_ylim(h, 0)
+        ax.set_title(f"{name} ({len(v)} points)", fontsize=9, loc="left")
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    return save_png(fig, path)

@@ -44,7 +44,7 @@ from ..mesh import TriangleMesh
 from ..raytrace.posed import place_scene
 from ..raytrace.tracer import Tracer
 from ..transforms import invert_pose
-from ..viz import fidelity_png, intensity_png
+from ..viz import fidelity_png, intensity_png, sweeps_over_image_png
 from ..voxsplat import unique_voxels
 from .ground import GroundPlane, fit_ground_plane
 from .build import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
@@ -388,7 +388,9 @@ SURFACE_COLUMNS = (("to_scene_median_m", "real -> surface median [cm]", 100),
 class FidelityResult:
     """rows: model name -> metrics (see `compare`); images: name -> range image (metres);
     intensity_images: 'real' and row name -> intensity range image (0-1 scale); notes: how rays
-    were chosen and what was left out; surface: region -> the surface distances of `regions`."""
+    were chosen and what was left out; surface: region -> the surface distances of `regions`;
+    camera_view: with `regions`, the first camera's image and the real and replayed returns in it
+    (`camera_view`)."""
 
     rows: dict[str, dict]
     images: dict[str, np.ndarray]
@@ -397,6 +399,7 @@ class FidelityResult:
     mismatch: np.ndarray | None = None
     intensity_images: dict[str, np.ndarray] = field(default_factory=dict)
     surface: dict[str, dict] = field(default_factory=dict)
+    camera_view: dict | None = None
 
     def markdown(self) -> str:
         head = "| scene | " + " | ".join(c[1] for c in METRIC_COLUMNS) + " | rays | both return |"
@@ -657,12 +660,32 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
     if scene.metadata.get("build"):
         context["built from"] = scene.metadata["build"].get("samples")
     surface = surface_distances(rays, sweep, smp.frames, scene, masks, world, plane) if masks else {}
-    return FidelityResult(rows, images, notes, context, mismatch, intensity_images, surface)
+    view = camera_view(rays, sim, sweep, smp.frames.images[0]) if masks else None
+    return FidelityResult(rows, images, notes, context, mismatch, intensity_images, surface, view)
+
+
+def camera_view(rays: RealRays, sim: SimRays, sweep: LidarSweep, image) -> dict:
+    """The real returns and the scene's replayed ones projected into `image` (a CameraImage):
+    {"image", "camera", "real": (uv (N, 2), range (N,)), "scene": (uv, range), "error": (uv of the
+    real returns that both hit, |scene - real| range)}, pixel coordinates, metres."""
+    def project(hit, rng):
+        pts = rays.cloud(rng, hit) @ sweep.sensor_to_world[:3, :3].T + sweep.sensor_to_world[:3, 3]
+        kept, flat, _ = project_to_pixels(pts, image)
+        w = image.intrinsics.width
+        uv = np.column_stack([flat % w + 0.5, flat // w + 0.5]).astype(np.float32)
+        return uv, np.flatnonzero(hit)[kept]
+
+    uv_r, idx_r = project(rays.hit, rays.range)
+    uv_s, idx_s = project(sim.hit, sim.range)
+    both = sim.hit[idx_r]
+    return {"image": np.asarray(image.image), "camera": image.name,
+            "real": (uv_r, rays.range[idx_r]), "scene": (uv_s, sim.range[idx_s]),
+            "error": (uv_r[both], np.abs(sim.range[idx_r[both]] - rays.range[idx_r[both]]))}
 
 
 def write_report(result: FidelityResult, out_dir) -> dict:
-    """report.md, report.json, range_images.png and intensity_images.png in `out_dir` (each
-    written atomically)."""
+    """report.md, report.json, range_images.png, intensity_images.png and (with regions)
+    camera_view.png in `out_dir` (each written atomically)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out / "report.md", "json": out / "report.json", "png": out / "range_images.png",
@@ -686,4 +709,11 @@ def write_report(result: FidelityResult, out_dir) -> dict:
         intensity_png(paths["intensity_png"], result.intensity_images, title=title, captions=captions)
     else:
         paths.pop("intensity_png")
+    if result.camera_view is not None:
+        v = result.camera_view
+        paths["camera_png"] = out / "camera_view.png"
+        sweeps_over_image_png(paths["camera_png"], v["image"],
+                              {"real returns": v["real"], "replayed through the scene": v["scene"],
+                               "|replayed - real| where both return": v["error"]},
+                              title=f"{title}; camera {v['camera']}", error_panel="|replayed - real| where both return")
     return paths

@@ -68,6 +68,9 @@ def test_nuscenes_same_pose_beats_both_baselines(nus_scene, tmp_path):
     assert vs["rays"] == 34688 and vs["real_returns"] == 26659
     img = Image.open(tmp_path / "range_images.png")
     assert img.size[0] > 1000 and img.size[1] > 400
+    # --regions also draws both sweeps over the first camera's image
+    view = Image.open(tmp_path / "camera_view.png")
+    assert view.size[0] > 1000 and view.size[1] > 800
     assert "| voxsplat |" in (tmp_path / "report.md").read_text()
     # Measured reflectance against class reflectivity on the same rays (report: 0.90 vs 0.14).
     cls = rows[CLASS]
@@ -188,3 +191,29 @@ def test_a_build_batch_writes_what_build_writes_and_skips_it_when_run_again(nus_
 
 def _sha(path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_camera_view_puts_the_returns_at_their_pixels():
+    """Two rays from a sensor at the camera's centre: their points land on the pixels the pinhole
+    model gives; the replayed one a metre long, the error panel says so."""
+    from scube_sim.camera import Intrinsics
+    from scube_sim.camera.frames import CameraImage
+    from scube_sim.realdata.fidelity import RealRays, SimRays, camera_view
+
+    intr = Intrinsics(100, 80, 50.0, 50.0, 50.0, 40.0)
+    cam = np.eye(4)  # camera axes = world axes: z forward
+    image = CameraImage("CAM", np.zeros((80, 100, 3), np.uint8), intr, cam, 0.0)
+    dirs = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
+    rays = RealRays(dirs, np.array([10.0, 5.0]), np.zeros(2), np.zeros(2), np.zeros(2, int), np.arange(2), 1, 2, True)
+    sim = SimRays(np.array([11.0, np.inf]), np.zeros(2), np.zeros(2, np.int16))
+
+    class Sweep:
+        sensor_to_world = np.eye(4)
+
+    v = camera_view(rays, sim, Sweep(), image)
+    uv, rng = v["real"]
+    # (0, 0, 10) -> the principal point's pixel; (3, 0, 4) -> u = 50 + 50 * 3 / 4 = 87.5
+    np.testing.assert_allclose(uv, [[50.5, 40.5], [87.5, 40.5]])
+    np.testing.assert_allclose(rng, [10.0, 5.0])
+    assert len(v["scene"][1]) == 1 and v["scene"][1][0] == 11.0
+    np.testing.assert_allclose(v["error"][1], [1.0])
