@@ -43,7 +43,7 @@ from ..stereo import StereoConfig, moved_pixels, stereo_depth
 from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
 from .geometry.fusion import DepthObservation, FusionConfig, SurfaceSamples, evidence_voxsplat, fuse_depth
-from .geometry.ground import HeightField, fit_height_field
+from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
 __all__ = ["EvidenceConfig", "evidence_scene"]
 
@@ -148,6 +148,10 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
     # the ground: points on surfaces facing up (a wall's foot is within a kerb's height of the road)
     flat = np.abs(grid.normals[:, 2]) >= np.cos(np.radians(cfg.ground_max_slope_deg))
     field = fit_height_field(grid.points[flat], extent, cell=cfg.ground_cell_m) if flat.sum() >= 3 else None
+    measured = field is not None
+    if field is None and cfg.fill_ground:
+        # no ground measured (no confident depth, or none facing up): the road the ego stands on
+        field = flat_height_field(extent, cell=cfg.ground_cell_m)
     if field is not None:
         near = np.abs(grid.points[:, 2] - field.height_at(grid.points[:, :2])) <= cfg.ground_band_m
         labels = np.where(near & flat, GROUND_LABEL, OTHER_LABEL).astype(np.int64)
@@ -163,7 +167,7 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
         "chunk_to_world": np.linalg.inv(to_chunk).tolist(),
         "trace_mode": TRACE_MODE,
         "confidence_kind": "fused occupancy probability (unobserved ground: a constant)",
-        "ground_field": None if field is None else {"cell_m": field.cell,
+        "ground_field": None if field is None else {"cell_m": field.cell, "measured": measured,
                                                     "observed_share": float(field.observed.mean())},
         "cameras": list(frames.names),
         "timestamp": float(frames.timestamp),

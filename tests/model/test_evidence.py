@@ -230,3 +230,15 @@ def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):
 
 def test_a_reference_instant_the_frames_lack_is_skipped(scene):
     assert converted_digest({"references": [0, -7]}) == _digest(scene)
+
+
+def test_with_nothing_measured_the_scene_is_the_road_under_the_ego():
+    # one image, no other camera, no instant: no stereo; the ground is filled at the ego's road, z = 0
+    alone = Frames([_image(0.0, 0.0)], np.eye(4), 0.0)
+    s = evidence_scene(alone, _to_chunk(), CFG)
+    assert not s.channels["observed"].data.any() and np.all(s.labels == LABEL_IDS["road"])
+    assert s.metadata["ground_field"]["measured"] is False
+    z = s.gaussians().means[:, 2] + s.origin[2]
+    assert np.abs(z).max() < 1e-3
+    with pytest.raises(InputError, match="nothing to fit"):
+        evidence_scene(alone, _to_chunk(), CFG.model_copy(update={"fill_ground": False}))

@@ -23,7 +23,7 @@ import numpy as np
 from ...errors import InputError
 from ...realdata.ground import GroundPlane, fit_ground_plane
 
-__all__ = ["HeightField", "fit_height_field"]
+__all__ = ["HeightField", "fit_height_field", "flat_height_field"]
 
 @dataclass
 class HeightField:
@@ -100,6 +100,16 @@ def _fill(grid: np.ndarray) -> np.ndarray:
             break
         g[ring] = total[ring] / cnt[ring]
     return g
+
+
+def flat_height_field(extent: tuple[float, float, float, float], *, cell: float = 1.0, z: float = 0.0) -> HeightField:
+    """A level ground at height `z` over `extent` (xmin, xmax, ymin, ymax) metres, no cell observed:
+    the ground where nothing measured one (the road under the ego, frame z up)."""
+    xmin, xmax, ymin, ymax = (float(v) for v in extent)
+    nx, ny = int(math.ceil((xmax - xmin) / cell)), int(math.ceil((ymax - ymin) / cell))
+    plane = GroundPlane(np.array([0.0, 0.0, float(z)]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    return HeightField(np.array([xmin, ymin]), float(cell), np.full((nx, ny), float(z)), np.zeros((nx, ny), bool),
+                       plane)
 
 
 def fit_height_field(points: np.ndarray, extent: tuple[float, float, float, float], *, cell: float = 1.0,
