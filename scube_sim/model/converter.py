@@ -60,7 +60,10 @@ PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 # and the demo read): its Gaussians are camera-trained blobs about half a voxel wide whose opacity
 # matters; at hard opacity their 3-sigma shells are slabs metres thick.
 TRACE_MODE = "soft"
-DEFAULT_PROFILE = "cpu"
+# the profile `convert` and the demo use unless told: measured geometry (docs/converter.md, "The
+# evidence profile"); PAPER_PROFILE: the paper's route, whose networks the depth evaluation reads
+DEFAULT_PROFILE = "evidence"
+PAPER_PROFILE = "cpu"
 
 
 class StageProfile(StrictModel):
@@ -526,5 +529,5 @@ def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_
                                max_range=max_range, fit_steps=fit_steps)
 
 
-__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "convert", "frames_item", "is_loaded", "load_profile",
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "PAPER_PROFILE", "convert", "frames_item", "is_loaded", "load_profile",
            "open_frames", "shipped_profiles"]

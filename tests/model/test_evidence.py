@@ -242,3 +242,20 @@ def test_with_nothing_measured_the_scene_is_the_road_under_the_ego():
     assert np.abs(z).max() < 1e-3
     with pytest.raises(InputError, match="nothing to fit"):
         evidence_scene(alone, _to_chunk(), CFG.model_copy(update={"fill_ground": False}))
+
+
+def test_the_command_line_defaults_are_the_converters():
+    """convert, eval sensor-to-sensor and the demo default to `DEFAULT_PROFILE` (the CLI names it
+    literally: it does not import torch to start)."""
+    import inspect
+
+    from scube_sim.cli.convert import convert_cmd
+    from scube_sim.cli.model import eval_cmd
+    from scube_sim.cli.runs import demo_cmd
+    from scube_sim.model.converter import DEFAULT_PROFILE
+    from scube_sim.runs.demo import run_demo
+
+    assert DEFAULT_PROFILE == "evidence"
+    for fn in (convert_cmd, eval_cmd, demo_cmd):
+        assert inspect.signature(fn).parameters["profile"].default.default == DEFAULT_PROFILE, fn.__name__
+    assert inspect.signature(run_demo).parameters["profile"].default == DEFAULT_PROFILE

@@ -52,7 +52,7 @@ from ...memory import peak_mb, reset_peak
 from ...realdata.ground import RANSAC_INLIER_M, fit_ground_plane
 from ...stereo import StereoConfig, stereo_depth
 from ..checkpoint import load_model
-from ..converter import DEFAULT_PROFILE, StageProfile, frames_item, load_profile
+from ..converter import PAPER_PROFILE, StageProfile, frames_item, load_profile
 from ..geometry.net import GeometryNet
 
 RANGE_BANDS_M = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0))
@@ -96,7 +96,7 @@ class MonoDepth:
             raise InputError(f"{checkpoint}: not a geometry checkpoint (the mono method reads its depth head)")
         self.checkpoint = str(checkpoint)
         self.conditioner = model.conditioner.eval()
-        base = load_profile(DEFAULT_PROFILE).geometry
+        base = load_profile(PAPER_PROFILE).geometry
         self.stage = StageProfile(checkpoint=self.checkpoint, focal_px=focal_px or base.focal_px,
                                   max_side=base.max_side)
 
