@@ -192,7 +192,9 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
 
     shipped = load_profile("evidence")
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
-    assert shipped.evidence == EvidenceConfig()
+    assert shipped.evidence == EvidenceConfig() and shipped.evidence.references == [0, -3]
+    fast = load_profile("evidence-fast")  # the same with T alone as the reference
+    assert fast.route == "evidence" and fast.context == 4 and fast.evidence == EvidenceConfig(references=[0])
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
     assert scene.metadata["instants_used"].startswith("all")
