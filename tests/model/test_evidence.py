@@ -208,6 +208,10 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     bad.write_text("route: scube\n")
     with pytest.raises(InputError, match="(?s)bad.yaml.*needs geometry and appearance"):
         load_profile(bad)
+    for refs in ("[]", "[0.5]", "three"):
+        bad.write_text(f"route: evidence\nevidence: {{references: {refs}}}\n")
+        with pytest.raises(InputError, match="(?s)bad.yaml.*references"):
+            load_profile(bad)
 
 
 def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):
