@@ -25,5 +25,5 @@ from .sweep import (
 from .views import SourceView, candidates, select_sources
 
 __all__ = ["COSTS", "SourceView", "StereoConfig", "StereoResult", "candidates", "census_codes", "combine_costs",
-           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "select_sources",
-           "moved_pixels", "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]
+           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "moved_pixels",
+           "select_sources", "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]
