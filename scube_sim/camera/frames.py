@@ -100,7 +100,7 @@ class Frames:
         ref = Frames(self.images, self.ego_pose, self.timestamp, self.metadata, self.log, self.offset, self.boxes)
         return sorted([ref, *self.context], key=lambda f: f.offset)
 
-    def around(self, offset: int) -> "Frames":
+    def around(self, offset: int) -> Frames:
         """The same instants with the one at `offset` (relative to this reference) as the
         reference: offsets counted from it, the others its context. NotFoundError names the
         offsets there are."""

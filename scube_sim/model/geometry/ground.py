@@ -106,7 +106,7 @@ def flat_height_field(extent: tuple[float, float, float, float], *, cell: float 
     """A level ground at height `z` over `extent` (xmin, xmax, ymin, ymax) metres, no cell observed:
     the ground where nothing measured one (the road under the ego, frame z up)."""
     xmin, xmax, ymin, ymax = (float(v) for v in extent)
-    nx, ny = int(math.ceil((xmax - xmin) / cell)), int(math.ceil((ymax - ymin) / cell))
+    nx, ny = math.ceil((xmax - xmin) / cell), math.ceil((ymax - ymin) / cell)
     plane = GroundPlane(np.array([0.0, 0.0, float(z)]), np.zeros(3), np.array([0.0, 0.0, 1.0]))
     return HeightField(np.array([xmin, ymin]), float(cell), np.full((nx, ny), float(z)), np.zeros((nx, ny), bool),
                        plane)
