@@ -76,6 +76,17 @@ class TriangleMesh:
         return TriangleMesh(np.concatenate(verts), np.concatenate(faces), np.concatenate(labels),
                             np.concatenate(inst), np.concatenate(cols) if any_color else None, origin)
 
+    def distance(self, points_world: np.ndarray) -> np.ndarray:
+        """(N, 3) world-frame points -> (N,) float64 metres to the nearest point of the surface
+        (open3d's RaycastingScene; float32 inside, in the mesh's local frame)."""
+        import open3d as o3d
+
+        p = np.asarray(points_world, np.float64).reshape(-1, 3) - self.origin
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                            o3d.core.Tensor(self.faces.astype(np.uint32)))
+        return scene.compute_distance(o3d.core.Tensor(p.astype(np.float32))).numpy().astype(np.float64)
+
     def sample_surface_grid(self, spacing: float) -> dict[str, np.ndarray]:
         """Deterministic, stratified surface samples: each triangle is cut into n x n similar
         sub-triangles (n = ceil(longest edge / spacing)) and sampled at their centroids.

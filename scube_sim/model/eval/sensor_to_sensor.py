@@ -156,7 +156,8 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
                     with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
                     trace_options: dict | None = None, context: int | None = None) -> dict:
     """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
-    voxels, PSNR at the input cameras, seconds, peak MB}, "rows": [{scene, ahead, split, rays,
+    voxels, PSNR at the input cameras, seconds, peak MB, the observed Gaussians' centres to the mesh
+    (median and p90 m) and the ground-truth VoxSplat's (median)}, "rows": [{scene, ahead, split, rays,
     median_m, p90_m, hit_agreement, chamfer_m}]}. gt_cache: a dict kept across calls that holds
     each sample's regenerated world, mesh sweeps and ground-truth rows (a trade sweep over
     converter settings then regenerates nothing). trace_mode: how the converted scene is traced
@@ -185,6 +186,11 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     if abs(scene.voxel_size - float(vox["coarse_voxel_size"])) < 1e-9:
         stages["geometry_iou"] = voxel_iou(ijk, gt_ijk)
         stages["geometry_chamfer_vox"] = chamfer_voxels(ijk, gt_ijk)
+    # the surfaces the cameras saw against the mesh: each observed Gaussian's centre to its nearest point
+    obs = _surface_distance(scene, cached["mesh"], observed_only=True)
+    if obs.size:
+        stages["surface_median_m"], stages["surface_p90_m"] = float(np.median(obs)), float(np.percentile(obs, 90))
+    stages["gt_surface_median_m"] = cached["gt_surface_median_m"]
     if with_psnr and "sky_panorama" in scene.channels:
         stages["input_psnr_db"] = _input_psnr(scene, frames, meta["rig"])
     tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
@@ -238,7 +244,19 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
         ref = {"img": m.range_image(), "masks": masks, "xyz": {k: pts[sel] for k, sel in sels.items()}}
         refs.append(ref)
         rows += _rows(SCENES[0], p.ahead, ref, lidar.scan(gt_tracer, p.chunk, seed=seed), p.chunk)
-    return {"voxels": voxels, "poses": poses, "refs": refs, "rows": rows, "gt_gaussians": gt.num_gaussians}
+    return {"voxels": voxels, "poses": poses, "refs": refs, "rows": rows, "gt_gaussians": gt.num_gaussians,
+            "mesh": mesh, "gt_surface_median_m": float(np.median(_surface_distance(gt, mesh)))}
+
+
+def _surface_distance(scene: VoxSplat, mesh, observed_only: bool = False) -> np.ndarray:
+    """(N,) metres from the scene's Gaussian centres (those of observed voxels only, where asked and
+    the scene has the channel) to the mesh; the scene in its chunk frame (metadata ``chunk_to_world``)."""
+    g = scene.gaussians()
+    keep = np.ones(len(g.means), bool)
+    if observed_only and "observed" in scene.channels:
+        keep = np.asarray(scene.channels["observed"].data, bool)[g.voxel]
+    c2w = np.asarray(scene.metadata["chunk_to_world"], np.float64)
+    return mesh.distance(transform_points(c2w, g.means[keep].astype(np.float64) + scene.origin))
 
 
 def _rows(scene: str, ahead: float, ref: dict, sweep, pose_chunk: np.ndarray) -> list[dict]:

@@ -91,6 +91,9 @@ def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_pa
         assert gt["median_m"] < 0.8 / 4 and gt["hit_agreement"] > 0.99 and gt["chamfer_m"] < 0.8 / 2
     st = res["stages"]
     assert st["seconds"] > 0 and st["peak_mb"] > 0 and np.isfinite(st["input_psnr_db"])
+    # the ground truth's surfels sit on the mesh (their centres within a few centimetres); the
+    # converted observed surfaces' distances are reported
+    assert st["gt_surface_median_m"] < 0.05 and st["surface_median_m"] >= 0 and st["surface_p90_m"] >= st["surface_median_m"]
     assert "median |dr|" in r.output and "converted" in r.output
     # the paper-route profile sees no context by default; the tiny data holds only its own instant
     assert res["samples"][0]["context"] == 0 and res["samples"][0]["offsets"] == [0]
