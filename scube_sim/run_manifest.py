@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Literal
 
 from .atomic import atomic_path
+from .config import json_loads
 from .errors import InputError
 
 MANIFEST_NAME = "manifest.json"
@@ -118,7 +119,7 @@ def read_manifest(folder: str | Path) -> RunManifest | None:
     if not path.is_file():
         return None
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json_loads(path.read_text(encoding="utf-8"), path, InputError)  # a key twice: refused
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise InputError(f"{path}: not valid JSON ({exc})") from exc
     return RunManifest.from_json(data, str(path))

@@ -262,18 +262,58 @@ class SlerpSegment:
         return out
 
 
+RIGID_TOL = 1e-5  # |R R^T - I| per entry (plus 1e-5 relative, as np.allclose), for every rigid-pose check
+RIGID = f"expected a rigid pose: rotation orthonormal with det +1 (within {RIGID_TOL:g}), last row [0, 0, 0, 1]"
+
+
+def _not_rigid(t: np.ndarray) -> tuple[int, str] | None:
+    """The first of (N, 4, 4) float64 poses that is not rigid and what is wrong with it, or None.
+    The one rigidity test of the package (check_pose, check_poses)."""
+    finite = np.isfinite(t).all(axis=(1, 2))
+    r = t[:, :3, :3]
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN / Inf poses: refused by `finite` first
+        err = np.abs(r @ np.swapaxes(r, 1, 2) - np.eye(3))
+        ortho = (err <= RIGID_TOL + RIGID_TOL * np.eye(3)).all(axis=(1, 2))
+        det = np.einsum("ni,ni->n", r[:, 0], np.cross(r[:, 1], r[:, 2]))  # rows r0 . (r1 x r2)
+        row = (np.abs(t[:, 3] - [0.0, 0.0, 0.0, 1.0]) <= [1e-8, 1e-8, 1e-8, 1e-8 + 1e-5]).all(axis=1)
+    bad = ~(finite & ortho & (det >= 0) & row)
+    if not bad.any():
+        return None
+    i = int(np.argmax(bad))
+    if not finite[i]:
+        return i, "contains NaN or Inf"
+    if not ortho[i]:
+        return i, (f"rotation part is not orthonormal with det +1 (max |R R^T - I| = {float(err[i].max()):.3g}: "
+                   f"scaled or sheared)")
+    if det[i] < 0:
+        return i, f"rotation part is not orthonormal with det +1 (det {float(det[i]):+.3f}: a reflection)"
+    return i, f"last row must be [0, 0, 0, 1], got {[float(v) for v in t[i, 3]]}"
+
+
 def check_pose(t, name: str = "pose") -> np.ndarray:
-    """Validate a (4, 4) rigid pose; raises ValueError naming `name` on NaN/Inf or a non-rotation."""
+    """Validate a (4, 4) rigid pose; raises InputError naming `name` on NaN/Inf or a non-rotation."""
     t = np.asarray(t, dtype=np.float64)
     if t.shape != (4, 4):
         raise InputError(f"{name}: expected a (4, 4) pose matrix, got shape {t.shape}")
-    if not np.all(np.isfinite(t)):
-        raise InputError(f"{name}: contains NaN or Inf")
-    r = t[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-5) or np.linalg.det(r) < 0:
-        raise InputError(f"{name}: rotation part is not orthonormal with det +1")
-    if not np.allclose(t[3], [0, 0, 0, 1]):
-        raise InputError(f"{name}: last row must be [0, 0, 0, 1]")
+    bad = _not_rigid(t[None])
+    if bad is not None:
+        raise InputError(f"{name}: {bad[1]}; {RIGID}")
+    return t
+
+
+def check_poses(t, name: str = "poses", times=None, count: int | None = None) -> np.ndarray:
+    """Validate (N, 4, 4) rigid poses at once (N = `count` if given) -> float64. The InputError
+    names `name`, the first bad pose's index (and its time, from `times` (N,) seconds) and what
+    a rigid pose is."""
+    t = np.asarray(t, dtype=np.float64)
+    if t.ndim != 3 or t.shape[1:] != (4, 4) or (count is not None and t.shape[0] != count):
+        want = "N" if count is None else str(count)
+        raise InputError(f"{name}: expected ({want}, 4, 4) pose matrices, got shape {t.shape}")
+    bad = _not_rigid(t)
+    if bad is not None:
+        i, problem = bad
+        when = "" if times is None else f" (time {float(np.asarray(times).reshape(-1)[i]):.6f} s)"
+        raise InputError(f"{name}: pose {i} of {t.shape[0]}{when}: {problem}; {RIGID}")
     return t
 
 

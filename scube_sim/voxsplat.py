@@ -35,6 +35,7 @@ import numpy as np
 
 from . import splat_params as sp
 from .atomic import atomic_path
+from .config import json_loads
 from .errors import InputError, NotFoundError, ScubeSimWarning
 from .labels import NUM_LABELS
 from .splat_params import NUM_RAW, OFFSET, OPACITY, QUAT, RGB, SCALE, SH_C0  # noqa: F401 (re-exported)
@@ -473,7 +474,7 @@ class VoxSplat:
             def need(key):
                 if key not in z.files:
                     raise InputError(f"{path}: missing key {key!r} (is this a scube_sim VoxSplat .npz?)")
-                return z[key]
+                return _npz_member(z, path, key)
 
             fmt = str(need("format"))
             if fmt != FORMAT_NAME:
@@ -482,12 +483,14 @@ class VoxSplat:
             a = {k: need(k) for k in ("ijk", "params", "valid", "labels", "voxel_size", "origin", "offset_range",
                                       "metadata")}
             if "logits" in z.files:
-                a["logits"] = z["logits"]
+                a["logits"] = need("logits")
             channels = {}
             if version >= 2 and "channels" in z.files:
                 try:
-                    manifest = json.loads(str(z["channels"]))
+                    manifest = json_loads(str(need("channels")), f"{path}: key 'channels'", InputError)
                     assert isinstance(manifest, dict)
+                except InputError:  # a channel named twice
+                    raise
                 except (ValueError, AssertionError):
                     raise InputError(f"{path}: key 'channels' is not a JSON mapping of channel name to kind") from None
                 channels = {n: Channel(str(per), need(f"channel.{n}")) for n, per in manifest.items()}
@@ -524,6 +527,22 @@ class VoxSplat:
 
 
 # --- load-time checks: every key of a VoxSplat .npz, named when it is wrong ------------------------
+
+def _npz_member(z, path: Path, key: str) -> np.ndarray:
+    """Array `key` of the open .npz `z`, or one InputError naming the file and the array: an array
+    of Python objects (it would need unpickling, which is never done) or a truncated or corrupt
+    member."""
+    try:
+        return z[key]
+    except ValueError as exc:
+        if "allow_pickle" in str(exc):
+            raise InputError(f"{path}: key {key!r} is an array of Python objects (dtype object), which a VoxSplat "
+                             f"never holds; refused without unpickling it") from None
+        raise InputError(f"{path}: key {key!r} is not a readable array ({' '.join(str(exc).split())})") from None
+    except Exception as exc:  # noqa: BLE001  (zipfile, zlib and EOF errors of a damaged member)
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise InputError(f"{path}: key {key!r} is truncated or corrupt ({reason})") from None
+
 
 def _file_version(path: Path, raw) -> int:
     if raw.shape != () or raw.dtype.kind not in "iu":
@@ -579,7 +598,9 @@ def _check_arrays(path: Path, a: dict) -> None:
     if a["metadata"].dtype.kind != "U" or a["metadata"].shape != ():
         raise InputError(f"{path}: key 'metadata': expected a JSON string, got {a['metadata'].dtype}")
     try:
-        meta = json.loads(str(a["metadata"]))
+        meta = json_loads(str(a["metadata"]), f"{path}: key 'metadata'", InputError)
+    except InputError:  # a key twice
+        raise
     except ValueError:
         raise InputError(f"{path}: key 'metadata': not valid JSON") from None
     if not isinstance(meta, dict):

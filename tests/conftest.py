@@ -67,10 +67,12 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return t
 
 
-def one_line_error(res, *needles):
-    """A CLI result that failed with exit code 2 and one `error: ...` line containing `needles`."""
+def one_line_error(res, *needles) -> str:
+    """The line of a CLI result that failed with exit code 2 and printed one `error: ...` line (no
+    traceback) containing `needles`."""
     assert res.exit_code == 2, res.output
     lines = [ln for ln in res.output.strip().splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("error: "), res.output
     for n in needles:
         assert n in lines[0], lines[0]
+    return lines[0]

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator
 
-from ..config import ConfigError, Mount, StrictModel, load_yaml, normalize_name, validate_model
+from ..config import ConfigError, Mount, StrictModel, listed_twice, load_yaml, normalize_name, validate_model
 from ..errors import NotFoundError
 from ..resources import sensors_dir
 from .model import Intrinsics
@@ -55,12 +55,13 @@ class RigConfig(StrictModel):
     notes: str = ""
     cameras: list[CameraConfig] = Field(min_length=1)
 
-    @model_validator(mode="after")
-    def _unique(self):
-        names = [c.name for c in self.cameras]
-        if len(set(names)) != len(names):
-            raise ValueError(f"camera names must be unique, got {names}")
-        return self
+    @field_validator("cameras")
+    @classmethod
+    def _unique(cls, v):
+        msg = listed_twice([c.name for c in v])
+        if msg:
+            raise ValueError(f"camera names must be unique: {msg}")
+        return v
 
     def camera(self, name: str) -> CameraConfig:
         for c in self.cameras:

@@ -4,10 +4,12 @@ that turns errors into one-line messages and exit codes, and option parsing (--p
 from __future__ import annotations
 
 import functools
+import inspect
 
 import numpy as np
 import typer
 
+from ..config import Range
 from ..errors import ScubeSimError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="rich",
@@ -54,6 +56,42 @@ def handle_errors(command):
     return run
 
 
+def _option_name(param: inspect.Parameter) -> str:
+    decls = getattr(param.default, "param_decls", None) or ()
+    longs = [d for d in decls if d.startswith("--")]
+    return max(longs, key=len) if longs else (decls[0] if decls else param.name)
+
+
+def bounded(**ranges: Range):
+    """Decorate a command (under `@handle_errors`) with its numeric options' valid ranges, by
+    parameter name: each given value is checked before the command runs, and one out of range
+    (NaN and infinity too) is a one-line error naming the option and the range
+    (`error: --steps: expected an integer from 1 to 1000, got 0`, exit 2). Each option's help
+    shows its range."""
+
+    def decorate(command):
+        sig = inspect.signature(command)
+        names = {}
+        for key, rng in ranges.items():
+            param = sig.parameters[key]  # a KeyError here is a typo in the decorator
+            names[key] = _option_name(param)
+            info = param.default
+            if hasattr(info, "param_decls"):  # rich markup: no square brackets
+                info.help = f"{info.help or ''} (valid: {rng.describe()})".strip()
+
+        @functools.wraps(command)
+        def run(*args, **kwargs):
+            given = sig.bind_partial(*args, **kwargs).arguments
+            for key, rng in ranges.items():
+                if key in given:
+                    rng.check(given[key], names[key], error=CliError)
+            return command(*args, **kwargs)
+
+        return run
+
+    return decorate
+
+
 def parse_pose(text: str) -> np.ndarray:
     """--pose x,y,z,roll,pitch,yaw (metres, degrees) -> (4, 4) pose."""
     from ..transforms import pose_from_xyz_rpy
@@ -73,4 +111,18 @@ def int_list(text: str, flag: str) -> list[int]:
         vals = [int(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise CliError(f"{flag}: expected comma-separated sample indices, got {text!r}")
-    return vals
+    for v in vals:
+        if v < 0:
+            raise CliError(f"{flag}: expected comma-separated sample indices >= 0, got {text!r}")
+    return name_list(vals, flag)
+
+
+def name_list(items: list, flag: str) -> list:
+    """`items` of option `flag`, or a CliError naming the one it lists twice:
+    `--samples: 0 is listed twice (at [0] and [2])`."""
+    from ..config import listed_twice
+
+    msg = listed_twice(items)
+    if msg:
+        raise CliError(f"{flag}: {msg}")
+    return items

@@ -8,11 +8,14 @@ from typing import Optional
 
 import typer
 
-from ._common import CliError, app, handle_errors
+from ..config import CONFIDENCE_SAMPLES, CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, MAX_RANGE_M, SAMPLE_INDEX, SEED
+from ._common import CliError, app, bounded, handle_errors
 
 
 @app.command("convert")
 @handle_errors
+@bounded(sample=SAMPLE_INDEX, steps=DDIM_STEPS, seed=SEED, confidence=CONFIDENCE_SAMPLES, max_range=MAX_RANGE_M,
+         context=CONTEXT_INSTANTS, fit_steps=FIT_STEPS)
 def convert_cmd(
     path: Path = typer.Argument(..., help="a worlds sample folder (DIR/test/000000), or with --dataset any adapter's folder"),
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
@@ -26,7 +29,7 @@ def convert_cmd(
     confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),
     sky: bool = typer.Option(True, "--sky/--no-sky", help="decode the sky panorama (--no-sky for LiDAR-only use)"),
     max_range: Optional[float] = typer.Option(None, "--max-range", help="keep voxels within this many metres of the ego (a LiDAR's range)"),
-    context: Optional[int] = typer.Option(None, "--context", min=0, max=100, help="also give the converter the K "
+    context: Optional[int] = typer.Option(None, "--context", help="also give the converter the K "
                                 "instants before and the K after the sample in the same log or scene (never across a "
                                 "scene boundary), counted in the source's instants: nuScenes keyframes are 2 Hz, KITTI "
                                 "and KITTI-360 10 Hz, a worlds sample its own stored instants minus the evaluation ones "
@@ -43,8 +46,6 @@ def convert_cmd(
         raise CliError(f"-o: expected a .npz path, got {output}")
     if confidence == 1 or confidence < 0:
         raise CliError(f"--confidence: expected 0 (off) or K >= 2 samples, got {confidence}")
-    if fit_steps is not None and fit_steps < 0:
-        raise CliError(f"--fit-steps: expected an integer >= 0, got {fit_steps}")
     conv = Converter(profile)
     context = conv.profile.context if context is None else context
     frames = open_frames(path, dataset, sample, context=context)

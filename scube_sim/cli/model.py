@@ -8,11 +8,16 @@ from typing import Optional
 
 import typer
 
-from ._common import CliError, app, handle_errors
+from ..config import CONTEXT_INSTANTS, FINE_VOXEL_M, SEED, Range
+from ._common import CliError, _fail, app, bounded, handle_errors
+
+# what `eval` evaluates besides one stage's checkpoint: the whole converter, per-pixel depth
+EVAL_MODES = ("sensor-to-sensor", "depth")
 
 
 @app.command("train")
 @handle_errors
+@bounded(ranks=Range(ge=1, le=256, integer=True))
 def train_cmd(
     stage: str = typer.Argument(..., help="converter stage to train (geometry, appearance)"),
     data: Path = typer.Option(..., "--data", help="dataset folder"),
@@ -47,22 +52,26 @@ def train_cmd(
 
 @app.command("eval")
 @handle_errors
+@bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True), gt_voxel=FINE_VOXEL_M, seed=SEED)
 def eval_cmd(
-    stage: str = typer.Argument(..., help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
+    stage: str = typer.Argument(..., is_eager=True, callback=lambda v: _eval_stage_name(v),
+                                help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
                                 "appearance), sensor-to-sensor: the whole converter, end to end, or depth: "
                                 "per-pixel depth of the camera images against ground truth"),
-    data: Path = typer.Option(..., "--data", help="dataset folder"),
+    data: Optional[Path] = typer.Option(None, "--data", help="dataset folder (required)"),
     checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
-                                             "checkpoint's name (appearance-cpu); a stage's evaluation needs it; "
-                                             "depth: the geometry checkpoint of --method mono "
-                                             "(default geometry-coarse-cpu)"),
+                                             "checkpoint's name (appearance-cpu); geometry, appearance: default "
+                                             "the shipped paper-route (cpu) profile's; another stage needs it; "
+                                             "depth: the geometry checkpoint of --method mono or fused "
+                                             "(default geometry-coarse-cpu); sensor-to-sensor: none (the "
+                                             "profile names them)"),
     dataset: Optional[str] = typer.Option(None, "--dataset", help="depth: the dataset adapter (worlds, nuscenes, "
                                           "kitti_raw, ...); worlds: --data DIR --split S or --data DIR/<split>"),
     method: str = typer.Option("mono", "--method", help="depth: the depth method (mono: the geometry "
                                "checkpoint's monocular depth head; stereo: plane-sweep multi-view stereo over "
                                "the other cameras and the --context instants, confident pixels only; fused: "
                                "stereo where confident, the monocular head elsewhere)"),
-    context: Optional[int] = typer.Option(None, "--context", min=0, help="depth: the method sees up to K instants "
+    context: Optional[int] = typer.Option(None, "--context", help="depth: the method sees up to K instants "
                                           "before and after each sample (stereo needs them; default 0: the sample's "
                                           "frames alone); sensor-to-sensor: the converter does (default: the "
                                           "profile's, evidence 4)"),
@@ -75,10 +84,10 @@ def eval_cmd(
     profile: str = typer.Option("evidence", "--profile", help="sensor-to-sensor: converter profile (shipped name "
                                 "or YAML)"),
     sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
-    limit: Optional[int] = typer.Option(None, "--limit", min=1, help="sensor-to-sensor, depth: the split's (the "
+    limit: Optional[int] = typer.Option(None, "--limit", help="sensor-to-sensor, depth: the split's (the "
                                         "dataset's) first N samples"),
     gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="sensor-to-sensor: the ground-truth VoxSplat's voxel (m)"),
-    seed: int = typer.Option(0, "--seed", min=0, help="sensor-to-sensor: converter and LiDAR seed"),
+    seed: int = typer.Option(0, "--seed", help="sensor-to-sensor: converter and LiDAR seed"),
 ) -> None:
     """Evaluate a checkpoint on one split of a dataset folder; `eval sensor-to-sensor` converts
     each held-out worlds sample's cameras and sweeps a LiDAR through the result against the same
@@ -92,17 +101,24 @@ def eval_cmd(
     from ..model.eval.evaluate import evaluate
     from ..model.stages import get_stage
 
+    if data is None:
+        raise CliError("--data: required (the dataset folder)")
     if stage == "sensor-to-sensor":
+        if checkpoint is not None:
+            raise CliError("--checkpoint: eval sensor-to-sensor uses the checkpoints its --profile names")
         _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress, context)
         return
     if stage == "depth":
+        if checkpoint is not None and method == "stereo":
+            raise CliError("--checkpoint: --method stereo uses no checkpoint (mono and fused do)")
         _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context or 0)
         return
-    if checkpoint is None:
-        raise CliError(f"--checkpoint: required to evaluate the {stage} stage")
 
     overrides = parse_key_values(data_option, "--data-option")
     st = get_stage(stage)
+    shipped_default = checkpoint is None
+    if shipped_default:
+        checkpoint = _default_checkpoint(st.name)
     metrics = evaluate(st, checkpoint, data, split=split, data_overrides=overrides, progress=progress)
     if output is not None:
         with atomic_path(output) as tmp:
@@ -111,8 +127,40 @@ def eval_cmd(
     order = "higher" if st.higher_is_better else "lower"
     for k, v in metrics.items():
         typer.echo(f"{k}: {v:.6g}" + (f"  (primary, {order} is better)" if k == st.primary_metric else ""))
+    if shipped_default:
+        from ..model.converter import PAPER_PROFILE
+
+        typer.echo(f"checkpoint: {checkpoint} (the shipped {PAPER_PROFILE} profile's {st.name} checkpoint)")
     if output is not None:
         typer.echo(f"-> {output}")
+
+
+def _eval_stage_name(stage: str) -> str:
+    """`eval`'s STAGE, checked before any option (an eager callback): a registered stage or one of
+    EVAL_MODES; otherwise one line naming it and listing what eval takes (exit 2)."""
+    from ..config import normalize_name
+    from ..model.stages import stage_names
+
+    names = stage_names()
+    if stage not in EVAL_MODES and normalize_name(stage) not in {normalize_name(n) for n in names}:
+        _fail(f"unknown stage {stage!r}; eval takes {', '.join(sorted([*names, *EVAL_MODES]))}")
+    return stage
+
+
+def _default_checkpoint(stage: str) -> str:
+    """The checkpoint `eval STAGE` uses without --checkpoint: the one the shipped paper-route
+    profile (`converter.PAPER_PROFILE`) names for the stage; a stage it names none for is an error
+    listing the shipped checkpoints of that stage."""
+    from ..model.checkpoint import load_checkpoint, shipped_checkpoints
+    from ..model.converter import PAPER_PROFILE, load_profile
+
+    prof = load_profile(PAPER_PROFILE)
+    named = {"geometry": prof.geometry.checkpoint, "appearance": prof.appearance.checkpoint}
+    if stage in named:
+        return named[stage]
+    own = [name for name, path in shipped_checkpoints().items() if load_checkpoint(path).get("stage") == stage]
+    raise CliError(f"--checkpoint: required to evaluate the {stage} stage (the shipped profiles name no {stage} "
+                   f"checkpoint); a run's last.pt or best.pt, or a shipped one: {', '.join(own) or 'none ships'}")
 
 
 def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, limit: int | None, gt_voxel: float,

@@ -9,11 +9,15 @@ from typing import Optional
 
 import typer
 
-from ._common import CliError, app, datasets_app, handle_errors, int_list
+from ..config import SAMPLE_INDEX
+from ..realdata.options import BUILD_RANGES
+from ._common import CliError, app, bounded, datasets_app, handle_errors, int_list, name_list
 
 
 @app.command("build")
 @handle_errors
+@bounded(**{k: BUILD_RANGES[k] for k in ("voxel_size", "gaussians_per_voxel", "patch_scale", "max_patch_sigma",
+                                             "max_normal_scale", "mesh_max_edge_rel")})
 def build_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
     dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | argoverse2 | waymo | folder"),
@@ -40,7 +44,7 @@ def build_cmd(
     if output.suffix != ".npz":
         raise CliError(f"-o: expected a .npz path, got {output}")
     opts = BuildOptions(samples=int_list(samples, "--samples"),
-                        sensors=[s for s in sensors.split(",") if s] if sensors else None,
+                        sensors=name_list([s for s in sensors.split(",") if s], "--sensors") if sensors else None,
                         remove=remove, carve_with=int_list(carve_with, "--carve-with"), voxel_size=voxel_size,
                         gaussians_per_voxel=gaussians_per_voxel, patch_scale=patch_scale,
                         max_patch_sigma=max_patch_sigma, max_normal_scale=max_normal_scale,
@@ -65,6 +69,7 @@ def build_cmd(
 
 @app.command("fidelity")
 @handle_errors
+@bounded(sample=SAMPLE_INDEX)
 def fidelity_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
     dataset: str = typer.Option(..., "--dataset", "-d", help="dataset format (as for `build`)"),
@@ -117,7 +122,8 @@ def datasets_export_cmd(
     from ..datasets.folder import write_folder_dataset
 
     ds = open_dataset(dataset, path)
-    samples = track((ds[i] for i in range(len(ds))), total=len(ds), description=f"exporting {ds.name}")
+    samples = track((ds[i] for i in range(len(ds))), total=len(ds), description=f"exporting {ds.name}",
+                    transient=True)  # gone when done, so that an error is the one line left
     write_folder_dataset(samples, output, points_format=points_format, image_format=image_format,
                          name=ds.name, overwrite=overwrite)
     typer.echo(f"{ds.name}: {len(ds)} sample(s) -> {output}")

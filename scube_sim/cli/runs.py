@@ -8,11 +8,13 @@ from typing import Optional
 
 import typer
 
-from ._common import CliError, app, handle_errors
+from ..config import SCENE_VOXEL_M, SEED, THREADS, WORKERS, Range
+from ._common import CliError, app, bounded, handle_errors
 
 
 @app.command("demo")
 @handle_errors
+@bounded(voxel_size=SCENE_VOXEL_M, seed=SEED)
 def demo_cmd(
     output: Path = typer.Option(Path("out"), "-o", "--output", help="output folder"),
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
@@ -33,6 +35,7 @@ def demo_cmd(
 
 @app.command("replay")
 @handle_errors
+@bounded(duration=Range(gt=0, le=86_400, unit="seconds"), seed=SEED)
 def replay_cmd(
     scenario: Path = typer.Argument(..., help="scenario YAML (see scenarios/)"),
     output: Path = typer.Option(..., "-o", "--output", help="output folder (new or empty; see --overwrite, --resume)"),
@@ -59,6 +62,7 @@ def replay_cmd(
 
 @app.command("batch")
 @handle_errors
+@bounded(workers=WORKERS, retries=Range(ge=0, le=100, integer=True), threads=THREADS)
 def batch_cmd(
     job: str = typer.Argument(..., help="worlds | build | replay | convert"),
     inputs: list[str] = typer.Option(..., "--inputs", "-i", help="inputs: comma-separated, a glob, or a list file "
@@ -75,15 +79,13 @@ def batch_cmd(
     progress: bool = typer.Option(True, "--progress/--no-progress"),
 ) -> None:
     """Run one job over many inputs, resumably: locally or on Ray (docs/batch.md)."""
-    import yaml
-
-    from ..config import parse_key_values
+    from ..config import load_yaml, parse_key_values
     from ..parallel.runner import run_batch
     from ..runs.batch_jobs import make_job
 
     data = {}
     if settings is not None:
-        data = yaml.safe_load(settings.read_text(encoding="utf-8")) or {}
+        data = load_yaml(settings, error=CliError) or {}  # names the file; refuses a key given twice
         if not isinstance(data, dict):
             raise CliError(f"--settings {settings}: expected a YAML mapping of settings")
     data.update(parse_key_values(set_, "--set"))
@@ -98,3 +100,21 @@ def batch_cmd(
             if r["status"] == "failed":
                 typer.echo(f"failed: {key} ({r['input']}): {r['error']}", err=True)
         raise typer.Exit(1)
+
+
+@app.command("bag-reindex")
+@handle_errors
+def bag_reindex_cmd(
+    folder: Path = typer.Argument(..., help="the rosbag2 folder (metadata.yaml + .mcap) a replay wrote"),
+) -> None:
+    """Make a ROS 2 bag that a killed replay left readable again (like `ros2 bag reindex`): keep its
+    whole chunks, cut an unfinished write, rewrite the MCAP's summary and metadata.yaml. A bag that
+    reads as it is stays as it is."""
+    from ..sim.sinks.rosbag import reindex_bag
+
+    r = reindex_bag(folder)
+    if not r.changed:
+        typer.echo(f"{folder}: reads as it is ({r.messages} messages in {r.chunks} chunks); nothing to do")
+        return
+    cut = f"; cut {r.cut_bytes} bytes of an unfinished write" if r.cut_bytes else ""
+    typer.echo(f"{folder}: {r.messages} messages in {r.chunks} chunks{cut}; summary and metadata.yaml rewritten")

@@ -10,11 +10,13 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ._common import CliError, app, handle_errors, parse_pose
+from ..config import SCALE_FACTOR, SEED, VOXEL_SIZE_M, Range
+from ._common import CliError, app, bounded, handle_errors, parse_pose
 
 
 @app.command("lidar")
 @handle_errors
+@bounded(threads=Range(ge=0, le=1024, integer=True), k=Range(gt=0, le=10), soft_alpha_min=Range(ge=0, lt=1), seed=SEED)
 def lidar_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or any 3DGS .ply"),
     sensor: str = typer.Option(..., "--sensor", "-s", help="preset name (see `scube-sim sensors`) or a sensor YAML path"),
@@ -64,6 +66,7 @@ def lidar_cmd(
 
 @app.command("export")
 @handle_errors
+@bounded(voxel_size=VOXEL_SIZE_M, max_gaussians=Range(ge=1, integer=True))
 def export_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or 3DGS .ply"),
     to: str = typer.Option(..., "--to", help="ply (3DGS, Inria layout) | usd (.usda) | usdc | npz (VoxSplat)"),
@@ -106,6 +109,7 @@ def export_cmd(
 
 @app.command("render")
 @handle_errors
+@bounded(scale=SCALE_FACTOR)
 def render_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or any 3DGS .ply"),
     rig: str = typer.Option(..., "--rig", help="camera rig preset (waymo-5, nuscenes-6) or a rig YAML"),
@@ -119,8 +123,6 @@ def render_cmd(
     from ..scene_file import load_scene
     from ..viz import mosaic_png
 
-    if not 0 < scale <= 1:
-        raise CliError(f"--scale: expected a factor in (0, 1], got {scale}")
     if output.suffix.lower() != ".png":
         raise CliError(f"{output}: expected a .png path")
     ego = parse_pose(pose)

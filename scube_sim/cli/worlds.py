@@ -8,11 +8,14 @@ from typing import Optional
 
 import typer
 
-from ._common import CliError, handle_errors, worlds_app
+from ..config import COARSE_FACTOR, FINE_VOXEL_M, SCALE_FACTOR, SEED, WORKERS, Range
+from ._common import CliError, bounded, handle_errors, worlds_app
 
 
 @worlds_app.command("generate")
 @handle_errors
+@bounded(count=Range(ge=0, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True), jobs=WORKERS,
+         image_scale=SCALE_FACTOR, fine_voxel=FINE_VOXEL_M, coarse_factor=COARSE_FACTOR)
 def worlds_generate_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="dataset folder (created, or resumed)"),
     split: str = typer.Option("train", "--split", help="train | val | test (fixed seeds per split)"),
@@ -38,8 +41,6 @@ def worlds_generate_cmd(
     from ..config import validate_model
     from ..worlds.dataset import DatasetConfig, generate_dataset
 
-    if count < 0 or start < 0 or jobs < 1:
-        raise CliError("--count and --start must be >= 0 and --jobs >= 1")
     cfg = None
     new = any(v is not None for v in (rig, image_scale, frame_offsets, fine_voxel, coarse_factor))
     if new or not (output / "dataset.json").exists():
@@ -65,6 +66,7 @@ def worlds_generate_cmd(
 
 @worlds_app.command("preview")
 @handle_errors
+@bounded(seed=SEED)
 def worlds_preview_cmd(
     scenario: Optional[Path] = typer.Argument(None, help="scenario YAML with a `world:` section"),
     style: str = typer.Option("urban", "--style", help="urban | suburban | intersection | boulevard"),

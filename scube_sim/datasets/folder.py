@@ -30,6 +30,7 @@ have no ``pose_fn``. Renderer ground truth on images (depth, semantic, sky) is n
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import shutil
@@ -38,14 +39,15 @@ from typing import Annotated, Iterable, Iterator, Literal
 
 import numpy as np
 import yaml
-from PIL import Image, UnidentifiedImageError
-from pydantic import AfterValidator, ConfigDict, Field, StringConstraints, model_validator
+from PIL import Image
+from pydantic import AfterValidator, ConfigDict, Field, StringConstraints, field_validator, model_validator
 
 from ..atomic import atomic_path
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
-from ..config import ConfigError, StrictModel, load_yaml, validate_model
+from ..config import ConfigError, StrictModel, load_yaml, repeated, validate_model
 from ..errors import InputError
+from ..io.images import read_rgb
 from ..io.pointcloud import read_points, write_points
 from ..labels import LABEL_IDS
 from ..lidar.config import dump_config, load_config_file, load_lidar_config
@@ -172,6 +174,16 @@ class SweepEntry(_Strict):
     intensity_max: float = Field(default=1.0, gt=0)
     origins: list[OriginEntry] | None = Field(default=None, min_length=1)
 
+    @field_validator("origins")
+    @classmethod
+    def _sensors_once(cls, v):
+        named = [(k, o.sensor) for k, o in enumerate(v or []) if o.sensor is not None]
+        hit = repeated([s for _, s in named])
+        if hit is not None:  # each measuring sensor once: its points are one sensor_id
+            (i, s), (j, _) = named[hit[0]], named[hit[1]]
+            raise ValueError(f"sensor {s!r} is listed twice (at [{i}] and [{j}])")
+        return v
+
 
 class BoxEntry(_Strict):
     """center (world, m), size (length, width, height along the box x, y, z), and exactly one of
@@ -204,6 +216,16 @@ class SampleFile(_Strict):
     sweeps: dict[Name, SweepEntry] = {}
     boxes: list[BoxEntry] = []
     metadata: dict = {}
+
+    @field_validator("images", "sweeps")
+    @classmethod
+    def _files_once(cls, v):
+        files = [e.file for e in v.values()]  # two sensors' data in one file: one of them is wrong
+        hit = repeated(files)
+        if hit is not None:
+            names = list(v)
+            raise ValueError(f"file {files[hit[1]]!r} is listed twice ({names[hit[0]]}.file and {names[hit[1]]}.file)")
+        return v
 
 
 # --- reading ---------------------------------------------------------------------------------
@@ -304,11 +326,7 @@ class FolderDataset:
             raise DatasetError(f"{src}: images.{cam}.file: {file.name!r} is not one of {', '.join(IMAGE_SUFFIXES)}")
         if not file.is_file():
             raise DatasetError(f"{src}: images.{cam}.file: missing file {file}")
-        try:
-            with Image.open(file) as im:
-                rgb = np.asarray(im.convert("RGB"), dtype=np.uint8)
-        except (UnidentifiedImageError, OSError) as exc:
-            raise DatasetError(f"{file}: not a readable image ({exc})") from None
+        rgb = read_rgb(file, error=DatasetError)
         try:
             return CameraImage(cam, rgb, self.cameras[cam], np.asarray(e.cam_to_world, np.float64), e.timestamp)
         except ValueError as exc:
@@ -508,6 +526,10 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
                          f"{', '.join(s[1:] for s in POINT_SUFFIXES)}")
     if image_suffix not in (".png", ".jpg"):
         raise InputError(f"write_folder_dataset: image_format {image_format!r}: expected png or jpg")
+    # the first sample is read before any folder is made: one that cannot be read leaves nothing behind
+    source, samples = samples, iter(samples)
+    first = next(samples, None)
+    samples = itertools.chain([first], samples) if first is not None else samples
     sdir = root / "samples"
     if (root / DATASET_FILE).exists() or (sdir.is_dir() and any(sdir.iterdir())):
         if not overwrite:
@@ -552,8 +574,8 @@ def write_folder_dataset(samples: Iterable[Sample], root: str | Path, *, points_
         (root / "lidars").mkdir(exist_ok=True)
         dump_config(spec.config, root / rel)
         lidar_entries[n] = {"config": rel, "sensor_to_ego": _rows(spec.sensor_to_ego)}
-    data = {"format": FORMAT, "version": VERSION if merged else 1, "name": str(name or getattr(samples, "name", "")),
-            "poses_from_icp": bool(getattr(samples, "poses_from_icp", False)),
+    data = {"format": FORMAT, "version": VERSION if merged else 1, "name": str(name or getattr(source, "name", "")),
+            "poses_from_icp": bool(getattr(source, "poses_from_icp", False)),
             "lidars": lidar_entries,
             "cameras": {n: _plain(c.to_dict()) for n, c in cameras.items()}}
     _dump_yaml(root / DATASET_FILE, data)

@@ -25,11 +25,11 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from PIL import Image
 
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..errors import InputError
+from ..io.images import read_rgb
 from ..io.safe_pickle import load_pickle
 from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
@@ -135,13 +135,9 @@ def read_velodyne(path: Path) -> np.ndarray:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """An 8-bit RGB image file -> (H, W, 3) uint8."""
+    """A camera image file -> (H, W, 3) uint8 (`scube_sim.io.images.read_rgb`: any mode and bit depth)."""
     require_file(path, "camera image")
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"), np.uint8)
-    except OSError as exc:
-        raise DatasetError(f"{path}: not a readable image ({exc})") from None
+    return read_rgb(path, error=DatasetError)
 
 
 def _label_id(name: str) -> int:

@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from PIL import Image
 
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..errors import NotFoundError
+from ..io.images import read_rgb
 from ..io.safe_pickle import load_pickle
 from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
@@ -249,11 +249,7 @@ class NuScenesDataset:
         images = []
         for c in e.cameras:
             path = self._resolve(c.img_path, c.name, f"{c.name} image")
-            try:
-                with Image.open(path) as im:
-                    rgb = np.asarray(im.convert("RGB"), np.uint8)
-            except OSError as exc:
-                raise DatasetError(f"{path}: not a readable image ({exc})") from None
+            rgb = read_rgb(path, error=DatasetError)
             # lidar2cam maps the LiDAR at the LiDAR time to the camera at *its* time (mmdet3d
             # composes lidar -> ego(t_lidar) -> global -> ego(t_cam) -> cam), so this is the camera
             # pose at its own timestamp; ego2global @ cam2ego would place it where the ego was at

@@ -72,11 +72,12 @@ from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
+from ..config import json_loads
 from ..errors import InputError
+from ..io.images import read_rgb
 from ..labels import LABEL_IDS
 from ..lidar.config import ConfigError, LidarConfig, load_lidar_config
 from ..transforms import invert_pose, make_pose, quat_to_rotmat, rotmat_to_euler
@@ -105,7 +106,7 @@ _EPOCH = datetime(1970, 1, 1, tzinfo=timezone.utc)
 def _read_json(path: Path, what: str):
     require_file(path, what)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json_loads(path.read_text(encoding="utf-8"), path, DatasetError)  # a key twice: refused
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from None
 
@@ -158,11 +159,7 @@ def _stamp_us(value, src: str, at: str) -> int:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"), np.uint8)
-    except (UnidentifiedImageError, OSError) as exc:
-        raise DatasetError(f"{path}: not a readable image ({exc})") from None
+    return read_rgb(path, error=DatasetError)
 
 
 # --- the scene index -----------------------------------------------------------------------------

@@ -33,11 +33,12 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..camera.rig import BODY_FROM_OPTICAL
+from ..config import json_loads, listed_twice
+from ..io.images import read_rgb
 from ..labels import LABEL_IDS
 from ..lidar.config import ConfigError
 from ..lidar.importers import from_waymo_frame
@@ -58,12 +59,15 @@ def _rz(yaw: float) -> np.ndarray:
 
 
 def _read_rgb(path: Path) -> np.ndarray:
+    return read_rgb(path, error=DatasetError)
 
-    try:
-        with Image.open(path) as im:
-            return np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except (UnidentifiedImageError, OSError) as exc:
-        raise DatasetError(f"{path}: not a readable image ({exc})") from None
+
+def _names_once(entries, src: str, key: str) -> None:
+    """A camera or laser that `entries` (a list of mappings with `name`) lists twice: DatasetError."""
+    names = [str(e["name"]) for e in entries if isinstance(e, dict) and "name" in e] if isinstance(entries, list) else []
+    msg = listed_twice(names)
+    if msg:
+        raise DatasetError(f"{src}: {key}: name {msg}")
 
 
 class WaymoFrameDataset:
@@ -82,7 +86,7 @@ class WaymoFrameDataset:
         self.root = self.meta_path.parent
         self.load_images = bool(load_images)
         try:
-            self.meta = json.loads(self.meta_path.read_text(encoding="utf-8"))
+            self.meta = json_loads(self.meta_path.read_text(encoding="utf-8"), self.meta_path, DatasetError)
         except (json.JSONDecodeError, UnicodeDecodeError) as exc:
             raise DatasetError(f"{self.meta_path}: not valid JSON ({exc})") from None
         if not isinstance(self.meta, dict):
@@ -118,6 +122,8 @@ class WaymoFrameDataset:
     def _frames(self, ego_pose: np.ndarray, timestamp: float) -> Frames | None:
         src = str(self.meta_path)
         calibs = {}
+        _names_once(require_key(self.meta, "camera_calibrations", src), src, "camera_calibrations")
+        _names_once([im for im in self.meta.get("images") or [] if im.get("file") is not None], src, "images")
         for i, c in enumerate(require_key(self.meta, "camera_calibrations", src)):
             calibs[str(require_key(c, "name", src, f"camera_calibrations[{i}] key"))] = c
         images = []
@@ -155,6 +161,7 @@ class WaymoFrameDataset:
     def _lidars(self) -> dict[str, LidarSpec]:
         src = str(self.meta_path)
         out = {}
+        _names_once(require_key(self.meta, "laser_calibrations", src), src, "laser_calibrations")
         for i, laser in enumerate(require_key(self.meta, "laser_calibrations", src)):
             name = str(require_key(laser, "name", src, f"laser_calibrations[{i}] key"))
             if not laser.get("beam_inclinations_rad"):

@@ -36,17 +36,19 @@ from __future__ import annotations
 
 import json
 import re
+import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
 
 from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
-from ..config import ConfigError
+from ..config import ConfigError, json_loads
 from ..errors import InputError
+from ..io.images import read_rgb
 from ..labels import label_id
 from ..lidar.config import load_lidar_config
 from ..run_manifest import read_manifest
@@ -144,7 +146,7 @@ class WorldsSample(Sample):
 def _read_json(path: Path, what: str) -> dict:
     require_file(path, what)
     try:
-        data = json.loads(path.read_text())
+        data = json_loads(path.read_text(), path, DatasetError)  # a key twice: refused
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise DatasetError(f"{path}: not valid JSON ({exc})") from None
     if not isinstance(data, dict):
@@ -159,8 +161,9 @@ def _load_npz(path: Path, what: str, tags: set[str] | None = None) -> dict[str, 
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files if tags is None or _map_tag(k) in tags}
-    except (OSError, ValueError) as exc:  # truncated or not a zip; pickled object arrays
-        raise DatasetError(f"{path}: not a readable .npz ({exc})") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        # truncated, corrupt or not a zip; pickled object arrays (never unpickled)
+        raise DatasetError(f"{path}: not a readable .npz ({' '.join(str(exc).split()) or type(exc).__name__})") from None
 
 
 def _map_tag(key: str) -> str | None:
@@ -338,11 +341,7 @@ class WorldsDataset:
                 raise DatasetError(f"{cwhere}.intrinsics: {exc}") from None
             rgb_path = d / f"rgb_{tag}_{name}.png"
             require_file(rgb_path, f"image of camera {name!r} at frame offset {k}")
-            try:
-                with Image.open(rgb_path) as im:
-                    rgb = np.asarray(im.convert("RGB"), np.uint8)
-            except (UnidentifiedImageError, OSError) as exc:
-                raise DatasetError(f"{rgb_path}: not a readable image ({exc})") from None
+            rgb = read_rgb(rgb_path, error=DatasetError)
             depth = _array(maps, f"depth_{tag}_{name}", maps_path).astype(np.float32)
             sem = _array(maps, f"semantic_{tag}_{name}", maps_path).astype(np.int16)
             inst = _array(maps, f"instance_{tag}_{name}", maps_path).astype(np.int32)

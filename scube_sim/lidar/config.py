@@ -19,6 +19,7 @@ from pydantic import Field, field_validator, model_validator
 from ..atomic import atomic_path
 from ..config import ConfigError, Mount, StrictModel, load_yaml, normalize_name, validate_model
 from ..labels import LABEL_IDS
+from ..memory import check_fits
 from ..resources import sensors_dir
 
 
@@ -83,7 +84,7 @@ class SpinningPattern(StrictModel):
     columns: int = Field(gt=0, le=100_000)
     rotation_hz: float = Field(gt=0, le=100)
     direction: Literal["cw", "ccw"] = "cw"
-    start_azimuth_deg: float = 0.0
+    start_azimuth_deg: float = Field(default=0.0, ge=-360, le=360)
     channels: Channels
 
     @property
@@ -343,15 +344,20 @@ class LidarConfig(StrictModel):
 
 
 # A sweep's rays, sub-rays included, are traced and held in memory at once (about 10^8 of them
-# took over 6 GB); past this many a sensor file is refused instead of exhausting the machine.
+# took over 6 GB); past this many a sensor file is refused instead of exhausting the machine, and
+# below it, where the machine has less memory available than the sweep needs (BYTES_PER_TRACED_RAY).
 MAX_RAYS_PER_SWEEP = 1 << 25  # 33.5 M
+BYTES_PER_TRACED_RAY = 64
 
 
 def check_rays_per_sweep(rays: int, samples: int, what: str) -> None:
-    """Raise ValueError when rays x beam.samples sub-rays exceed MAX_RAYS_PER_SWEEP."""
+    """Raise ValueError when rays x beam.samples sub-rays exceed MAX_RAYS_PER_SWEEP or the memory
+    the machine has available (`memory.check_fits`)."""
     if rays * samples > MAX_RAYS_PER_SWEEP:
         raise ValueError(f"{what} x beam.samples {samples} = {rays * samples:,} traced rays per sweep; at most "
                          f"{MAX_RAYS_PER_SWEEP:,} fit in memory at once (fewer columns or sub-rays)")
+    check_fits(rays * samples * BYTES_PER_TRACED_RAY,
+               f"{what} x beam.samples {samples} = {rays * samples:,} traced rays per sweep")
 
 
 # --- loading ---------------------------------------------------------------------------------

@@ -43,6 +43,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import json_loads
 from ..errors import InputError
 from ..transforms import rotmat_to_euler
 from .config import ConfigError, LidarConfig, config_from_dict, load_yaml
@@ -189,6 +190,8 @@ def _norm(s: str) -> str:
 def _find_column(header: list[str], path: Path, wanted: str) -> int:
     for i, cell in enumerate(header):
         if _norm(cell).startswith(_norm(wanted)):
+            if any(_norm(c) == _norm(cell) for c in header[i + 1:]):  # which one is meant?
+                raise ConfigError(f"{path}: header: column {cell!r} is listed twice ({', '.join(header)})")
             return i
     raise ConfigError(f"{path}: missing column '{wanted}' (header: {', '.join(header)})")
 
@@ -281,6 +284,8 @@ def _hesai_fire_times(path: Path, n: int, operation_mode: int, angle_state: int,
         if row[col] in ("-", ""):
             raise ConfigError(f"{path}: row {line}: channel {ch} does not fire in operation mode "
                               f"{operation_mode}, angle state {angle_state}")
+        if ch in table:
+            raise ConfigError(f"{path}: row {line}: channel {ch} listed twice")
         table[ch] = _float(row[col], path, f"row {line} column {col + 1}") / per_us
     _check_channels(list(table), path, n)
     return [table[c] for c in range(1, n + 1)]
@@ -355,7 +360,7 @@ def from_ouster_json(path: str | Path, *, columns: int | None = None, rotation_h
     """
     path = _require_file(path)
     try:
-        data = json.loads(path.read_text(encoding="utf-8-sig"))
+        data = json_loads(path.read_text(encoding="utf-8-sig"), path)  # a key twice: refused
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
     if not isinstance(data, dict):
@@ -410,12 +415,16 @@ def from_waymo_frame(frame_metadata_json: str | Path, laser_name: str = "TOP", *
     """
     path = _require_file(frame_metadata_json)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = json_loads(path.read_text(encoding="utf-8"), path)  # a key twice: refused
     except json.JSONDecodeError as exc:
         raise ConfigError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}): {exc.msg}") from None
     lasers = data.get("laser_calibrations") if isinstance(data, dict) else None
     if not isinstance(lasers, list):
         raise ConfigError(f"{path}: missing key 'laser_calibrations'")
+    hits = [k for k, l in enumerate(lasers) if isinstance(l, dict) and l.get("name") == laser_name]
+    if len(hits) > 1:
+        raise ConfigError(f"{path}: laser_calibrations: name {laser_name!r} is listed twice (at [{hits[0]}] and "
+                          f"[{hits[1]}])")
     laser = next((l for l in lasers if isinstance(l, dict) and l.get("name") == laser_name), None)
     if laser is None:
         names = [l.get("name") for l in lasers if isinstance(l, dict)]

@@ -27,7 +27,15 @@ from ..errors import InputError
 from ..labels import LABEL_IDS, LABEL_REFLECTIVITY
 from ..raytrace.compose import nearest_hits
 from ..raytrace.tracer import Tracer
-from ..transforms import PoseFn, check_pose, interpolate_poses, invert_pose, rotate_vectors, transform_points
+from ..transforms import (
+    PoseFn,
+    check_pose,
+    check_poses,
+    interpolate_poses,
+    invert_pose,
+    rotate_vectors,
+    transform_points,
+)
 from .config import LidarConfig, check_rays_per_sweep
 from .drop import DropModel
 from .pattern import ScanPattern, make_pattern
@@ -244,8 +252,9 @@ class Lidar:
     def _end_poses(pose_start, pose_end, pose_fn, t_start, t_end):
         """(4, 4) sensor-to-world poses at the sweep's start and end, checked rigid."""
         if pose_fn is not None:
-            ends = np.asarray(pose_fn(np.array([t_start, t_end], np.float64)), np.float64)
-            return check_pose(ends[0], "pose_fn(t_start)"), check_pose(ends[1], "pose_fn(t_end)")
+            times = np.array([t_start, t_end], np.float64)
+            ends = check_poses(pose_fn(times), "pose_fn (asked for the sweep's start and end)", times, count=2)
+            return ends[0], ends[1]
         pose_start = check_pose(pose_start, "pose_start")
         return pose_start, (pose_start if pose_end is None else check_pose(pose_end, "pose_end"))
 
@@ -293,10 +302,8 @@ class Lidar:
             return transform_points(pose_start, o_sub), rotate_vectors(pose_start, d_sub), None
         times, of_pulse = self._distinct_fire_times()
         if pose_fn is not None:
-            poses = np.asarray(pose_fn(t_start + times), np.float64)
-            if poses.shape != (times.shape[0], 4, 4) or not np.all(np.isfinite(poses)):
-                raise InputError(f"pose_fn: expected finite ({times.shape[0]}, 4, 4) poses (one per distinct fire "
-                                 f"time), got {poses.shape}")
+            poses = check_poses(pose_fn(t_start + times), "pose_fn (asked for each distinct fire time)",
+                                t_start + times, count=times.shape[0])
         else:
             poses = interpolate_poses(pose_start, pose_end, times / pat.period_s)
         # Each sub-ray's pose: a gather of the (3, 4) part only, skipped when every time is distinct.

@@ -104,6 +104,9 @@ def read_emitter_table(path: str | Path) -> dict[str, np.ndarray]:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             reader = csv.DictReader(fh)
             fields = [f.strip() for f in (reader.fieldnames or [])]
+            twice = next((f for k, f in enumerate(fields) if f in fields[:k]), None)
+            if twice is not None:  # csv.DictReader would keep the last column of the name
+                raise ConfigError(f"{path}: header: column {twice!r} is listed twice ({', '.join(fields)})")
             for need in cols[:2]:
                 if need not in fields:
                     raise ConfigError(f"{path}: missing column {need!r} (header: {', '.join(fields)})")

@@ -8,7 +8,11 @@ plain ints/lists/floats (numpy's global MT19937, Python's `random`).
 
 from __future__ import annotations
 
+import pickle
 import random
+import re
+import warnings
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -89,17 +93,35 @@ def load_checkpoint(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: not a loadable checkpoint (an empty file)")
+    if not zipfile.is_zipfile(path):  # torch.save writes a zip; a bare pickle is never unpickled
+        raise CheckpointError(f"{path}: not a loadable checkpoint (not the zip archive torch.save writes: "
+                              f"truncated, or another kind of file)")
     try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
+        with warnings.catch_warnings():  # torch warns about pickle protocols before refusing
+            warnings.simplefilter("ignore")
+            state = torch.load(path, weights_only=True, map_location="cpu")
     except Exception as exc:  # anything the unpickler or the zip reader raises: the file is at fault
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-        raise CheckpointError(f"{path}: not a loadable checkpoint "
-                              f"(torch.load with weights_only=True: {first})") from None
+        raise CheckpointError(f"{path}: not a loadable checkpoint ({_load_failure(exc)})") from None
     if not isinstance(state, dict) or state.get("format") != FORMAT or state.get("version") != VERSION:
         got = (f"format {state.get('format')!r}, version {state.get('version')!r}" if isinstance(state, dict)
                else f"a {type(state).__name__}")
         raise CheckpointError(f"{path}: {got}; expected format {FORMAT!r}, version {VERSION}")
     return state
+
+
+def _load_failure(exc: Exception) -> str:
+    """Why torch.load(weights_only=True) refused a file, in our words: torch's own message tells
+    the reader to load with weights_only=False, which would run whatever code the file holds."""
+    text = str(exc)
+    if isinstance(exc, pickle.UnpicklingError) or "weights_only" in text:
+        m = re.search(r"GLOBAL ([\w.]+)", text)  # "Unsupported global: GLOBAL x.y was not ..." and others
+        what = f"a pickled Python object ({m[1]})" if m else "pickle instructions other than tensors and plain values"
+        return (f"it holds {what}; a checkpoint holds tensors and plain values only, and this file is refused "
+                f"without running its code")
+    first = text.strip().split(". ")[0].strip().rstrip(".") or type(exc).__name__
+    return f"a damaged torch archive: {' '.join(first.split())}"
 
 
 def rng_state() -> dict:
@@ -151,6 +173,8 @@ def stage_checkpoint(stage: Stage, name_or_path: str | Path) -> tuple[Path, dict
     """The checkpoint file (a path or a shipped name) and its contents, which must be `stage`'s."""
     path = resolve_checkpoint(name_or_path)
     ck = load_checkpoint(path)
+    if "stage" not in ck:
+        raise CheckpointError(f"{path}: records no stage; expected a checkpoint of stage {stage.name!r}")
     if normalize_name(str(ck.get("stage"))) != normalize_name(stage.name):
         raise CheckpointError(f"{path}: a checkpoint of stage {ck.get('stage')!r}, not {stage.name!r}")
     return path, ck

@@ -23,35 +23,35 @@ by the field of view, not by the sensor's pixel count.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import time
 from pathlib import Path
+from typing import Annotated, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 import yaml
-from typing import Literal
-
 from pydantic import Field, ValidationError, model_validator
 
 from ..camera.frames import Frames
-from ..config import StrictModel
+from ..config import CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, StrictModel, format_validation_error, load_yaml
 from ..datasets import open_dataset
 from ..datasets.base import frames_with_context
 from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
 from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
 from ..errors import InputError
 from ..labels import NUM_LABELS
-from ..memory import peak_mb, reset_peak
+from ..memory import check_fits, peak_mb, reset_peak
 from ..transforms import invert_pose
 from ..voxsplat import SCALE, VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .appearance.fit import fit_input_views
 from .appearance.net import AppearanceNet, first_hit_voxels
 from .checkpoint import load_model, resolve_checkpoint
-from .evidence import EvidenceConfig, evidence_scene
 from .data.worlds import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
+from .evidence import EvidenceConfig, evidence_scene
 from .geometry.data import GeometryDataConfig
 from .geometry.net import GeometryNet, flat_keys, observed_voxels
 
@@ -72,14 +72,14 @@ class StageProfile(StrictModel):
     (a camera with a very long focal length over a wide image)."""
 
     checkpoint: str
-    focal_px: float = Field(gt=0)
-    max_side: int = Field(default=1024, ge=16)
+    focal_px: float = Field(gt=0, le=100_000)
+    max_side: int = Field(default=1024, ge=16, le=8192)
 
 
 class GeometryProfile(StageProfile):
     """sample_steps: DDIM steps (None: the checkpoint's own)."""
 
-    sample_steps: int | None = Field(default=None, ge=1)
+    sample_steps: int | None = DDIM_STEPS.field(None)
 
 
 class FineProfile(StageProfile):
@@ -103,10 +103,22 @@ class AppearanceProfile(StageProfile):
     Gaussians and the panorama fitted to the input views themselves; about 3 s per step for a
     5-camera 0.4 m grid on 2 cores; 0: the network's prediction as it is, the paper's method)."""
 
-    sky_size: tuple[int, int] = (128, 256)
-    fit_steps: int = Field(default=0, ge=0)  # a test-time fit on the input views (`appearance.fit_input_views`)
-    max_scale_voxels: float | None = Field(default=1.0, gt=0)
-    gaussians_per_voxel: int | None = Field(default=None, ge=1)  # keep the M most opaque (None: all)
+    sky_size: tuple[Annotated[int, Field(ge=8, le=8192)], Annotated[int, Field(ge=8, le=16384)]] = (128, 256)
+    fit_steps: int = FIT_STEPS.field(0)  # a test-time fit on the input views (`appearance.fit_input_views`)
+    max_scale_voxels: float | None = Field(default=1.0, gt=0, le=100)
+    gaussians_per_voxel: int | None = Field(default=None, ge=1, le=64)  # keep the M most opaque (None: all)
+
+    @model_validator(mode="after")
+    def _sky_fits_in_memory(self):
+        rows, cols = self.sky_size
+        check_fits(rows * cols * SKY_BYTES_PER_PIXEL, f"sky_size [{rows}, {cols}] = {rows * cols:,} panorama pixels "
+                   f"(~{SKY_BYTES_PER_PIXEL} bytes each while decoded)")
+        return self
+
+
+# The sky decoder's working memory per panorama pixel: directions (float64), sampled features,
+# the decoder's layers and the colours (float32); measured order of magnitude, rounded up.
+SKY_BYTES_PER_PIXEL = 384
 
 
 class ConverterProfile(StrictModel):
@@ -124,8 +136,8 @@ class ConverterProfile(StrictModel):
     fine: FineProfile | None = None
     appearance: AppearanceProfile | None = None
     evidence: EvidenceConfig | None = None
-    context: int = Field(default=0, ge=0, le=100)
-    confidence_samples: int = Field(default=4, ge=2)
+    context: int = CONTEXT_INSTANTS.field(0)
+    confidence_samples: int = Field(default=4, ge=2, le=64)
 
     @model_validator(mode="after")
     def _route_keys(self):
@@ -158,7 +170,7 @@ def load_profile(profile: str | Path | ConverterProfile = DEFAULT_PROFILE) -> Co
                              f"(shipped: {', '.join(shipped_profiles())})")
         path = PROFILE_DIR / f"{profile}.yaml"
     try:
-        data = yaml.safe_load(path.read_text())
+        data = load_yaml(path, error=InputError)  # a duplicate key: file, line and key path
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not YAML ({exc})") from None
     if not isinstance(data, dict):
@@ -166,8 +178,8 @@ def load_profile(profile: str | Path | ConverterProfile = DEFAULT_PROFILE) -> Co
     data.setdefault("name", path.stem)
     try:
         return ConverterProfile(**data)
-    except ValidationError as exc:
-        raise InputError(f"{path}: {exc}") from None
+    except ValidationError as exc:  # each key at fault: `p.yaml: appearance.sky_size[0]: Input should be ...`
+        raise InputError(format_validation_error(exc, str(path), ConverterProfile)) from None
 
 
 def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0, context: int = 0) -> Frames:
@@ -439,6 +451,13 @@ class Converter:
             raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
         if self.profile.route == "evidence":
             return self._convert_evidence(frames, max_range)
+        with _one_torch_thread():
+            return self._convert_networks(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
+                                          max_range=max_range, fit_steps=fit_steps, progress=progress)
+
+    def _convert_networks(self, frames: Frames, *, steps, seed, confidence, k, sky, max_range, fit_steps,
+                          progress) -> VoxSplat:
+        """The paper's route (`convert`'s arguments, checked there)."""
         fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
         if k is not None and k < 1:
             raise InputError(f"k: expected at least one geometry sample, got {k}")
@@ -489,12 +508,13 @@ class Converter:
         """The evidence route (`model.evidence`): steps, seed, K, sky and fit steps do not apply."""
         reset_peak()
         t0 = time.perf_counter()
-        scene = evidence_scene(frames, invert_pose(chunk_to_world(frames)), self.profile.evidence)
+        parts: dict[str, float] = {}
+        scene = evidence_scene(frames, invert_pose(chunk_to_world(frames)), self.profile.evidence, timings=parts)
         if max_range is not None:
-            centres = CHUNK_CORNER[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
+            centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
             scene = scene.select_voxels(np.linalg.norm(centres, axis=1) <= max_range)
         self.timings = {"geometry_s": time.perf_counter() - t0, "appearance_s": 0.0, "peak_mb": peak_mb(),
-                        **{k: v for k, v in scene.metadata["timings"].items() if k != "peak_mb"}}
+                        **{k: v for k, v in parts.items() if k != "peak_mb"}}
         scene.metadata.update({
             "source": "scube_sim.convert",
             "profile": self.profile.name,
@@ -507,6 +527,20 @@ class Converter:
             scene.metadata["instants"] = context_record(frames)
             scene.metadata["instants_used"] = "all: stereo over every camera of every instant given"
         return scene
+
+
+@contextlib.contextmanager
+def _one_torch_thread():
+    """torch on one intra-op thread for the block, restored afterwards. The networks' convolutions
+    and matrix products split their sums by thread count, so their float results (1e-6 apart) and
+    the file's bytes would depend on it; `convert` and a batch worker must write the same file.
+    Costs about 1.4x on 2 cores (cpu profile: 1.6 s -> 2.2 s); a batch runs samples side by side."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(threads)
 
 
 _CACHE: dict[str, Converter] = {}

@@ -23,7 +23,10 @@ hit agreement; geometry time beside another job): [0] 1.87 m, 81 %, 26 s; [0, -3
 Each reference costs one more stereo pass per camera.
 
 Frame: the output is in the chunk frame `to_chunk` maps the world into (the converter's chunk:
-x forward, z up from the road under the ego), voxels anchored at `CHUNK_CORNER`.
+x forward, z up from the road under the ego), voxels anchored at `CHUNK_CORNER` (the paper's
+chunk, 10 m behind to 92 m ahead) or, for a rig with a camera looking back (nuScenes' six), on a
+chunk of the same size centred on the ego (`grid_corner`): what the rear cameras saw is kept, and
+the ground under it filled. The scene's `origin` is the corner either way.
 """
 
 from __future__ import annotations
@@ -32,10 +35,10 @@ import dataclasses
 import time
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from ..camera.frames import Frames
-from ..config import StrictModel
+from ..config import StrictModel, unique_names
 from ..errors import InputError
 from ..labels import LABEL_IDS
 from ..memory import peak_mb, reset_peak
@@ -58,20 +61,35 @@ class EvidenceConfig(StrictModel):
 
     stereo: StereoConfig = Field(default_factory=StereoConfig)
     fusion: FusionConfig = Field(default_factory=FusionConfig)
-    ground_cell_m: float = Field(default=1.0, gt=0)  # the height field's cells
+    ground_cell_m: float = Field(default=1.0, ge=0.05, le=100)  # the height field's cells
     ground_band_m: float = Field(default=0.2, gt=0)  # a point this close to the height field is ground ...
     ground_max_slope_deg: float = Field(default=30.0, gt=0, le=90)  # ... if its surface tilts at most this
     ground_confidence: float = Field(default=0.5, ge=0, le=1)  # confidence of ground voxels no camera saw
     fill_ground: bool = True  # ground surfels under the columns no observed ground voxel covers
-    gaussians_per_voxel: int = Field(default=4, ge=1)
+    gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     # the instants (offsets from T) whose images are stereo references, each against the others
     # (those the frames lack are skipped): a forward-driving camera saw the objects beside it at T
     # from farther back, less obliquely (module docstring: the trade)
     references: list[int] = Field(default_factory=lambda: [0, -3], min_length=1)
+    _references_once = field_validator("references")(classmethod(lambda cls, v: unique_names(v)))
     # the surfels' thickness, a share of the voxel: depth noise spreads a voxel's points across the
     # surface, and at hard opacity a thick surfel is hit early by 3 sigma / sin(incidence) (a
     # grazing ray along the road); the build flattens LiDAR surfels the same way
     max_normal_share: float = Field(default=0.1, gt=0)
+
+
+REAR_AXIS_X = -0.5  # a camera looks back when its optical axis' forward component (chunk frame) is below this
+
+
+def grid_corner(frames: Frames, to_chunk: np.ndarray) -> np.ndarray:
+    """(3,) metres, chunk frame: `CHUNK_CORNER`, or the corner of a chunk of the same size centred
+    on the ego where a camera of the reference instant looks back (its axis over 120 degrees from
+    forward)."""
+    for im in frames.images:
+        axis = (np.asarray(to_chunk) @ im.cam_to_world)[:3, 2]
+        if axis[0] < REAR_AXIS_X:
+            return np.array([-CHUNK_SIZE / 2, -CHUNK_SIZE / 2, CHUNK_CORNER[2]])
+    return np.asarray(CHUNK_CORNER, np.float64).copy()
 
 
 def _chunk_bounds(voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
@@ -110,10 +128,11 @@ def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceC
 
 
 def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | None = None, *,
-                   progress: bool = False) -> VoxSplat:
+                   progress: bool = False, timings: dict | None = None) -> VoxSplat:
     """Frames -> VoxSplat in the chunk frame (`to_chunk` (4, 4): world -> chunk) (module docstring),
-    labels from the geometry, channels `observed` and `confidence`, metadata `trace_mode` entry and
-    `timings`. Same frames, same bytes."""
+    labels from the geometry, channels `observed` and `confidence`, metadata `trace_mode` entry.
+    Same frames, same bytes, whatever the thread count (no timings in the file); `timings`, if
+    given, receives stereo_s, fusion_s (seconds) and peak_mb."""
     cfg = cfg or EvidenceConfig()
     to_chunk = np.asarray(to_chunk, np.float64)
     if to_chunk.shape != (4, 4) or not np.all(np.isfinite(to_chunk)):
@@ -139,12 +158,13 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
     t1 = time.perf_counter()
     # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
     fusion = cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
-    grid = fuse_depth(observations, fusion, origin=CHUNK_CORNER)
+    corner = grid_corner(frames, to_chunk)
+    grid = fuse_depth(observations, fusion, origin=corner)
     lo, hi = _chunk_bounds(cfg.fusion.voxel_size)
     inside = np.all((grid.ijk >= lo) & (grid.ijk < hi), 1)
     if not inside.all():  # evidence beyond the chunk: dropped with its points
         grid = _select(grid, inside)
-    extent = (CHUNK_CORNER[0], CHUNK_CORNER[0] + CHUNK_SIZE, CHUNK_CORNER[1], CHUNK_CORNER[1] + CHUNK_SIZE)
+    extent = (corner[0], corner[0] + CHUNK_SIZE, corner[1], corner[1] + CHUNK_SIZE)
     # the ground: points on surfaces facing up (a wall's foot is within a kerb's height of the road)
     flat = np.abs(grid.normals[:, 2]) >= np.cos(np.radians(cfg.ground_max_slope_deg))
     field = fit_height_field(grid.points[flat], extent, cell=cfg.ground_cell_m) if flat.sum() >= 3 else None
@@ -171,8 +191,9 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
                                                     "observed_share": float(field.observed.mean())},
         "cameras": list(frames.names),
         "timestamp": float(frames.timestamp),
-        "timings": {"stereo_s": t1 - t0, "fusion_s": t2 - t1, "peak_mb": peak_mb()},
     })
+    if timings is not None:
+        timings.update({"stereo_s": t1 - t0, "fusion_s": t2 - t1, "peak_mb": peak_mb()})
     return scene
 
 

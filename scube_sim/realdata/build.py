@@ -24,6 +24,7 @@ import numpy as np
 
 from ..boxes import Box, points_in_boxes
 from ..camera.frames import Frames
+from ..config import listed_twice
 from ..datasets.base import LidarSweep, Sample
 from ..datasets.origins import require_single_origin
 from ..errors import InputError
@@ -34,6 +35,7 @@ from ..lidar.response import Response
 from ..mesh import TriangleMesh
 from ..transforms import invert_pose, transform_points
 from ..voxsplat import KNOWN_CHANNELS, VoxSplat
+from .options import check_build_options
 
 
 def _scipy() -> SimpleNamespace:
@@ -476,9 +478,22 @@ class BuildOptions:
     reflectance: bool = True
     assume_single_origin: bool = False
 
+    def __post_init__(self):
+        check_build_options(self)  # each number in its range (`realdata.options.BUILD_RANGES`)
+
+
+def check_build_lists(opts: BuildOptions, prefix: str = "") -> None:
+    """InputError where `opts` lists a sample or sensor twice (its sweeps would count twice):
+    `samples: 0 is listed twice (at [0] and [1])`, each key after `prefix`."""
+    for key in ("samples", "sensors", "carve_with"):
+        msg = listed_twice(list(getattr(opts, key) or []))
+        if msg:
+            raise InputError(f"{prefix}{key}: {msg}")
+
 
 def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[Sample]]:
     """Load the samples, accumulate their sweeps and carve away what other sweeps saw through."""
+    check_build_lists(opts)
     samples = [ds[i] for i in opts.samples]
     acc = accumulate(samples, sensors=opts.sensors, min_range=opts.min_range, max_range=opts.max_range,
                      remove=opts.remove, mesh=opts.mesh, max_edge=opts.mesh_max_edge,

@@ -19,13 +19,25 @@ import hashlib
 from dataclasses import asdict, fields
 from pathlib import Path
 
-from pydantic import Field, ValidationError
+from pydantic import Field, ValidationError, field_validator
 
 from .._version import __version__
-from ..config import StrictModel
+from ..config import (
+    BOUND_ERRORS,
+    CONFIDENCE_SAMPLES,
+    CONTEXT_INSTANTS,
+    DDIM_STEPS,
+    MAX_RANGE_M,
+    SAMPLE_INDEX,
+    SEED,
+    StrictModel,
+    field_range,
+    unique_names,
+)
 from ..datasets import open_dataset
+from ..errors import InputError
 from ..parallel.tasks import BatchError, Job, Task
-from ..realdata.build import BuildOptions, build_from_dataset
+from ..realdata.build import BuildOptions, build_from_dataset, check_build_lists
 from ..run_manifest import RunManifest, read_manifest, sha256_file
 from ..worlds.dataset import DatasetConfig, WorldsJob
 from .replay import replay, replay_manifest
@@ -55,7 +67,10 @@ def _validate(model, data: dict, job: str):
     except ValidationError as exc:
         err = exc.errors()[0]
         where = ".".join(str(p) for p in err["loc"]) or "(settings)"
-        raise BatchError(f"batch {job} settings: {where}: {err['msg']}") from None
+        rng = field_range(model, err["loc"]) if err["type"] in BOUND_ERRORS else None  # the whole range
+        msg = (f"expected {rng.describe()}, got {err['input']!r}" if rng is not None
+               else err["msg"].removeprefix("Value error, "))  # our validators' own words
+        raise BatchError(f"batch {job} settings: {where}: {msg}") from None
 
 
 def _unique_names(paths: list[Path], job: str) -> list[str]:
@@ -85,7 +100,11 @@ class BuildJob(Job):
         if bad:
             raise BatchError(f"batch build settings: options.{bad[0]}: not a build option (expected: "
                              f"{', '.join(sorted(names))})")
-        self.options = BuildOptions(**{"samples": [0], **self.settings.options})
+        try:
+            self.options = BuildOptions(**{"samples": [0], **self.settings.options})
+            check_build_lists(self.options)  # a sample or sensor listed twice
+        except InputError as exc:  # a number out of its range: `realdata.options.BUILD_RANGES`
+            raise BatchError(f"batch build settings: options.{exc}") from None
 
     def tasks(self, inputs, out):
         paths = [Path(p) for p in inputs]
@@ -109,9 +128,11 @@ class BuildJob(Job):
 
 
 class ReplaySettings(StrictModel):
-    duration_s: float | None = Field(default=None, gt=0)
-    seeds: list[int] | None = None  # one replay per seed (default: the scenario's own)
+    duration_s: float | None = Field(default=None, gt=0, le=86_400)
+    seeds: list[SEED.annotated()] | None = None  # one replay per seed (default: the scenario's own)
     edits: dict[str, EditSpec] | None = None  # one replay per named trajectory edit, replacing the scenario's
+
+    _seeds_once = field_validator("seeds")(classmethod(lambda cls, v: unique_names(v)))  # one run folder each
 
 
 class ReplayJob(Job):
@@ -123,10 +144,7 @@ class ReplayJob(Job):
     keep = CACHE_FOLDERS
 
     def __init__(self, settings: dict):
-        self.settings = _validate(ReplaySettings, settings, self.name)
-        for s in self.settings.seeds or []:
-            if s < 0:
-                raise BatchError(f"batch replay settings: seeds: expected integers >= 0, got {s}")
+        self.settings = _validate(ReplaySettings, settings, self.name)  # seeds: each in SEED's range
 
     def tasks(self, inputs, out):
         paths = [Path(p) for p in inputs]
@@ -165,14 +183,17 @@ class ReplayJob(Job):
 
 class ConvertSettings(StrictModel):
     dataset: str | None = None  # None: each input is a worlds sample folder
-    samples: list[int] = Field(default_factory=lambda: [0])  # with `dataset`: the samples of each folder
-    profile: str = "cpu"
-    steps: int | None = Field(default=None, ge=1)
-    seed: int = Field(default=0, ge=0)
-    confidence: int = Field(default=0, ge=0)  # K geometry samples for per-voxel confidence (0: off)
+    samples: list[SAMPLE_INDEX.annotated()] = Field(default_factory=lambda: [0])  # with `dataset`: each folder's
+    profile: str = "evidence"  # `convert`'s default (model.converter.DEFAULT_PROFILE; not imported: torch)
+    steps: int | None = DDIM_STEPS.field(None)
+    seed: int = SEED.field(0)
+    confidence: int = CONFIDENCE_SAMPLES.field(0)  # K geometry samples for per-voxel confidence (0: off)
     sky: bool = True
-    max_range: float | None = Field(default=None, gt=0)
-    context: int = Field(default=0, ge=0, le=100)  # instants before and after in the same log (convert --context)
+    max_range: float | None = MAX_RANGE_M.field(None)
+    # instants before and after in the same log (convert --context); None: the profile's own
+    context: int | None = CONTEXT_INSTANTS.field(None)
+
+    _samples_once = field_validator("samples")(classmethod(lambda cls, v: unique_names(v)))  # one task each
 
 
 class ConvertJob(Job):
@@ -221,16 +242,17 @@ class ConvertJob(Job):
         s = self.settings
         return RunManifest("convert", {}, {"input": folder_fingerprint(Path(task.params["path"])),
                                            "sample": task.params["sample"],
-                                           # context 0 left out: batches run before the option resume
-                                           "settings": s.model_dump(mode="json", exclude={"context"} if not s.context
+                                           # the profile's context left out: batches run before the option resume
+                                           "settings": s.model_dump(mode="json", exclude={"context"} if s.context is None
                                                                     else None),
                                            **self._weights, "scube_sim": __version__})
 
     def run(self, task, folder, out):
-        from ..model.converter import convert, is_loaded, open_frames  # torch: in the worker, when converting
+        from ..model.converter import convert, is_loaded, load_profile, open_frames  # torch: in the worker
 
         s = self.settings
-        frames = open_frames(task.params["path"], s.dataset, task.params["sample"], context=s.context)
+        context = load_profile(s.profile).context if s.context is None else s.context
+        frames = open_frames(task.params["path"], s.dataset, task.params["sample"], context=context)
         loaded = not is_loaded(s.profile)
         vs = convert(frames, profile=s.profile, steps=s.steps, seed=s.seed, confidence=s.confidence > 1,
                                k=s.confidence or None, sky=s.sky, max_range=s.max_range)

@@ -24,9 +24,9 @@ repository). `build_run` turns a scenario into a ready `Simulator`, its pose sou
 `scene.frames` converts camera frames into the scene (`scube_sim.convert`, the converter's
 profile) on first use and caches the result under -o/scene_chunks/: either `path` (a worlds sample
 folder, or any adapter's folder with `dataset` and `sample`; the string shorthand `frames: PATH`)
-or `world` (a generated world whose `rig` cameras are rendered at time 0; the world's ego path and
-moving actors then drive the run, and the actors' voxels are cut out of the converted scene,
-`sim.converted`). With `world` and `route: true`, a long road is converted chunk by chunk
+or `world` (a generated world whose `rig` cameras are rendered at time 0, and at the `context`
+instants either side of it as a log's frames would be; the world's ego path and moving actors then
+drive the run, and the actors' voxels are cut out of the converted scene, `sim.converted`). With `world` and `route: true`, a long road is converted chunk by chunk
 (`scene.chunk_spacing_m` apart), each from the rig held at the chunk's origin when the ego passes
 it (`route_stops`), and loaded as a `ChunkSet` within the sensors' reach.
 """
@@ -47,7 +47,20 @@ from pydantic import Field, field_validator, model_validator
 
 from .._version import __version__
 from ..atomic import atomic_path
-from ..config import ConfigError, Mount, StrictModel, load_yaml, validate_model
+from ..config import (
+    CONTEXT_INSTANTS,
+    MAX_RANGE_M,
+    SAMPLE_INDEX,
+    SCENE_VOXEL_M,
+    SEED,
+    ConfigError,
+    Mount,
+    StrictModel,
+    listed_twice,
+    load_yaml,
+    unique_names,
+    validate_model,
+)
 from ..errors import ScubeSimWarning
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
@@ -64,7 +77,7 @@ from ..sim.sinks.viewer import ViewerConfig, ViewerSink
 from ..sim.sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
 from ..sim.vehicle import DeadReckoner
 from ..voxsplat import VoxSplat
-from ..worlds.dataset import render_frames
+from ..worlds.dataset import render_frames_with_context
 from ..worlds.generator import World, WorldConfig, generate_world
 from ..worlds.groundtruth import chunk_frames, gt_voxsplat
 from ..worlds.textures import TEXTURE_VERSION, world_albedo
@@ -80,21 +93,20 @@ class FramesSpec(StrictModel):
 
     path: str | None = None
     dataset: str | None = None
-    sample: int = Field(default=0, ge=0)
+    sample: int = SAMPLE_INDEX.field(0)
     world: WorldConfig | None = None
     rig: str = "waymo-5"
-    profile: str = "cpu-lidar"  # the loop simulates LiDAR: one Gaussian per voxel (docs/converter.md)
-    max_range_m: float | None = Field(default=None, gt=0)
+    profile: str = "evidence"  # `convert`'s default (docs/converter.md: which profile when)
+    max_range_m: float | None = MAX_RANGE_M.field(None)
     route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
-    # path only: the instants before and after the sample in the same log (`convert --context`)
-    context: int = Field(default=0, ge=0, le=100)
+    # the instants before and after the sample in the same log (`convert --context`), or rendered
+    # around the world's instant at its frame rate; None: the profile's own
+    context: int | None = CONTEXT_INSTANTS.field(None)
 
     @model_validator(mode="after")
     def _one_source(self):
         if (self.path is None) == (self.world is None):
             raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
-        if self.context and self.world is not None:
-            raise ValueError("context: frames on disk only (path); a rendered world's frames have no log")
         if self.route and self.world is None:
             raise ValueError("route: needs world (the rig is rendered at each chunk along its road)")
         return self
@@ -103,7 +115,7 @@ class FramesSpec(StrictModel):
 class SceneSpec(StrictModel):
     world: WorldConfig | None = None
     representation: Literal["voxsplat", "mesh"] = "voxsplat"
-    voxel_size: float = Field(default=0.4, gt=0.01, le=5.0)
+    voxel_size: float = SCENE_VOXEL_M.field(0.4)
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     # None: a VoxSplat file's own trace mode (metadata trace_mode; converted scenes: soft), else max_response
     depth: Literal["entry", "max_response", "soft"] | None = None
@@ -160,7 +172,7 @@ class TrajectorySpec(StrictModel):
     source: Literal["world", "file", "can", "openscenario"] = "world"
     file: str | None = None
     entity: str | None = None  # openscenario: the ego's ScenarioObject (default: 'Ego' or the first)
-    rate_hz: float = Field(default=10.0, gt=0)
+    rate_hz: float = Field(default=10.0, gt=0, le=1000)
     can: CanSpec | None = None
     edit: EditSpec | None = None
 
@@ -176,7 +188,7 @@ class TrajectorySpec(StrictModel):
 class SensorSpec(StrictModel):
     preset: str
     name: str | None = None
-    rate_hz: float | None = Field(default=None, gt=0)
+    rate_hz: float | None = Field(default=None, gt=0, le=1000)
     mount: Mount | None = None
     phase_s: float = 0.0
     overrides: dict = Field(default_factory=dict)
@@ -218,6 +230,8 @@ class OutputsSpec(StrictModel):
     usd_scene: bool = True
     can: CanOutputSpec | None = None
 
+    _files_once = field_validator("files")(classmethod(lambda cls, v: unique_names(v)))
+
     @field_validator("rosbag", mode="before")
     @classmethod
     def _bag_folder(cls, v):
@@ -251,8 +265,8 @@ class OutputsSpec(StrictModel):
 class Scenario(StrictModel):
     name: str
     description: str = ""
-    seed: int = Field(default=0, ge=0)
-    duration_s: float | None = Field(default=None, gt=0)
+    seed: int = SEED.field(0)
+    duration_s: float | None = Field(default=None, gt=0, le=86_400)  # a day at most
     tick_hz: float = Field(default=10.0, gt=0, le=1000)
     scene: SceneSpec
     trajectory: TrajectorySpec = TrajectorySpec()
@@ -328,8 +342,9 @@ def run_manifest(sc: Scenario, base: Path, scenario_path: str | Path) -> RunMani
     if tr.source == "can":
         inputs["trajectory.can.log"] = resolve_path(tr.can.log, base)
         inputs["trajectory.can.dbc"] = resolve_path(tr.can.dbc, base)
-    sensors = [sensor_config(s, sc.effects, base, f"sensors[{i}]").model_dump(mode="json")
-               for i, s in enumerate(sc.sensors)]
+    configs = [sensor_config(s, sc.effects, base, f"sensors[{i}]") for i, s in enumerate(sc.sensors)]
+    sensor_names(sc, configs, str(scenario_path))
+    sensors = [c.model_dump(mode="json") for c in configs]
     settings = {"scenario": sc.model_dump(mode="json"), "sensors": sensors, "scube_sim": __version__}
     return RunManifest.for_inputs("replay", inputs, settings)
 
@@ -437,8 +452,9 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
     # the converter's settings, its weights included (a retrained checkpoint at the same path
     # converts again); each entry adds its frames' digest
-    # context 0 left out of the key: caches made before the option existed stay valid
-    key = {"spec": f.model_dump(mode="json", exclude={"context"} if not f.context else None), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
+    context = profile.context if f.context is None else f.context
+    # the profile's context left out of the key: caches made before the option existed stay valid
+    key = {"spec": f.model_dump(mode="json", exclude={"context"} if f.context is None else None), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
            "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
                            for stage in ("geometry", "appearance") if getattr(profile, stage) is not None}}
     folder.mkdir(parents=True, exist_ok=True)
@@ -446,7 +462,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
         path = resolve_path(f.path, base)
         if not path.exists():
             raise ConfigError(f"scene.frames.path: {path}: no such folder")
-        frames = open_frames(path, f.dataset, f.sample, context=f.context)
+        frames = open_frames(path, f.dataset, f.sample, context=context)
         scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
         part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
         return BuiltScene(SimScene(static=[part]), file_scene=scene)
@@ -455,7 +471,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     if not f.route:
         if progress:
             progress(f"rendering the {f.rig} cameras of the world")
-        frames = render_frames(world, f.rig)
+        frames = render_frames_with_context(world, f.rig, context)
         scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
         scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
         if progress and removed:
@@ -467,7 +483,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     for i, (t, pose) in enumerate(route_stops(world, sc.scene.chunk_spacing_m)):
         if progress:
             progress(f"route chunk {i + 1}: rendering the {f.rig} cameras at {t:.1f} s")
-        frames = render_frames(world, f.rig, t, ego_pose=pose)
+        frames = render_frames_with_context(world, f.rig, context, t_ref=t, ego_pose=pose)
         scene = _cached_conversion(folder / f"converted_{i:03d}", frames, key, profile, sc.seed, f.max_range_m,
                                    progress)
         scene, _ = remove_boxes(scene, [a.box_at(t) for a in actors])
@@ -521,6 +537,9 @@ def frames_digest(frames) -> str:
         h.update(np.asarray(im.cam_to_world, np.float64).tobytes())
     h.update(np.asarray(frames.ego_pose, np.float64).tobytes())
     h.update(json.dumps({str(k): str(v) for k, v in frames.metadata.items()}, sort_keys=True).encode())
+    for other in frames.context:  # (none: the digest of caches made before context existed)
+        h.update(f"offset {other.offset}".encode())
+        h.update(frames_digest(other).encode())
     return h.hexdigest()
 
 
@@ -548,6 +567,17 @@ def build_pose_source(sc: Scenario, base: Path, world: World | None) -> PoseSour
     if not sc.effects.motion_distortion:
         source = HeldPoses(source)
     return source
+
+
+def sensor_names(sc: Scenario, configs: list[LidarConfig], source: str = "scenario") -> list[str]:
+    """Each sensor entry's name: its `name`, else its LiDAR config's id or name (as `LidarSensor`).
+    Two entries of one name (outputs are kept by sensor name) are a ConfigError naming `source`:
+    `s.yaml: sensors: 'vlp16' is listed twice (at [0] and [1]); give each sensor its own name`."""
+    names = [spec.name or cfg.id or cfg.name for spec, cfg in zip(sc.sensors, configs)]
+    msg = listed_twice(names)
+    if msg:
+        raise ConfigError(f"{source}: sensors: {msg}; give each sensor its own name")
+    return names
 
 
 def build_sensors(sc: Scenario, configs: list[LidarConfig]) -> list[LidarSensor]:

@@ -25,7 +25,7 @@ from ..raytrace.compose import nearest_hits
 from ..raytrace.contracts import TraceableScene
 from ..raytrace.hits import Hits
 from ..raytrace.tracer import Tracer
-from ..transforms import PoseFn
+from ..transforms import PoseFn, check_pose, check_poses
 from ..voxsplat import VoxSplat
 from .contracts import SimulatedScene
 
@@ -54,6 +54,13 @@ class Part:
     name: str = ""
     _sphere: tuple = field(default=None, init=False, repr=False)
 
+    def __post_init__(self):
+        if self.pose is not None:
+            self.pose = check_pose(self.pose, f"{self._what()}: pose")
+
+    def _what(self) -> str:
+        return f"part {self.name!r}" if self.name else f"part (instance {self.instance})"
+
     @property
     def moving(self) -> bool:
         return self.pose_fn is not None
@@ -66,7 +73,8 @@ class Part:
 
     def poses_at(self, times: np.ndarray) -> np.ndarray:
         if self.pose_fn is not None:
-            return np.asarray(self.pose_fn(np.atleast_1d(times)), np.float64)
+            times = np.atleast_1d(times)
+            return check_poses(self.pose_fn(times), f"{self._what()}: pose_fn", times, count=times.shape[0])
         p = np.eye(4) if self.pose is None else self.pose
         return np.broadcast_to(p, (np.atleast_1d(times).shape[0], 4, 4))
 

@@ -80,6 +80,14 @@ Steps (`stereo_depth`):
    at 5 times the time: not the default.
 8. Back to the original image's pixels (nearest pinhole pixel of each pixel's ray); sky
    (`CameraImage.sky`) and pixels no source sees: NaN depth, confidence 0.
+9. Optional gap filling (`fill_gap_deg` > 0, `fill_gaps`): an unsure run of pixels along a row
+   or a column, at most `fill_gap_deg` of view long, between two confident pixels whose depths
+   agree within `fill_tolerance`, takes the depth interpolated between them (linear in inverse
+   depth: a plane's depth along a line of pixels) and `fill_confidence` times the smaller of their
+   confidences; where a row and a column both fill a pixel, their mean. A textureless patch of a
+   wall or a car door between textured edges. On worlds test 0-1 (10 images, object pixels within
+   60 m): 73.9 % confident (94.5 % of them within 5 %); 7 degrees fill 10.8 % more at 92.5 % within
+   5 %. Not sky, never across a depth step.
 
 Depth: metres along the reference camera's optical axis. Deterministic: the bytes do not depend on
 the thread count (`sweep`'s operations, a fixed summation order over sources).
@@ -110,18 +118,18 @@ _COST_FNS = {"ad": cost_ad, "ncc": cost_ncc, "census": cost_census}
 # the cost of an uncorrelated match (census: half the bits differ; ncc: 1 - 0), `StereoConfig.unseen`
 UNSEEN_COST = {"ad": 0.25, "ncc": 1.0, "census": 0.5}
 
-__all__ = ["FLAT_COST", "StereoConfig", "StereoResult", "moved_pixels", "stereo_depth"]
+__all__ = ["FLAT_COST", "StereoConfig", "StereoResult", "fill_gaps", "moved_pixels", "stereo_depth"]
 
 
 class StereoConfig(StrictModel):
     """Plane-sweep multi-view stereo settings (module docstring). Depths in metres."""
 
-    sources: int = Field(default=4, ge=1)  # source views per reference
-    hypotheses: int = Field(default=128, ge=3)  # depth planes, uniform in 1/depth (step 5b: why 128)
+    sources: int = Field(default=4, ge=1, le=64)  # source views per reference
+    hypotheses: int = Field(default=128, ge=3, le=4096)  # depth planes, uniform in 1/depth (step 5b: why 128)
     near_m: float = Field(default=2.0, gt=0)
     far_m: float = Field(default=90.0, gt=0)
     cost: Literal["ad", "ncc", "census"] = "census"
-    window: int = Field(default=7, ge=3)  # the cost's window (census bits and aggregation), odd
+    window: int = Field(default=7, ge=3, le=31)  # the cost's window (census bits and aggregation), odd
     scale: float = Field(default=0.5, gt=0, le=1)  # of the given image's resolution
     min_baseline_m: float = Field(default=0.05, ge=0)
     max_axis_angle_deg: float = Field(default=60.0, gt=0, le=180)
@@ -131,7 +139,7 @@ class StereoConfig(StrictModel):
     peak_full: float = Field(default=0.6, gt=0)  # peak ratio at which that factor of the confidence reaches 1
     moved_m: float = Field(default=0.1, gt=0)  # a box whose centre moved more than this between instants moves
     box_margin_m: float = Field(default=0.3, ge=0)
-    chunk: int = Field(default=8, ge=1)  # hypotheses per warp and cost batch (memory)
+    chunk: int = Field(default=8, ge=1, le=256)  # hypotheses per warp and cost batch (memory)
     # aggregation: "penalty": best k of all sources, an unseen entry costs `unseen_cost` (default
     # UNSEEN_COST of the cost); "seen": best k of the sources that see the entry
     aggregation: Literal["penalty", "seen"] = "seen"
@@ -158,6 +166,10 @@ class StereoConfig(StrictModel):
     consistency_px: float = Field(default=1.0, gt=0)
     consistency_rel: float = Field(default=0.02, gt=0)
     consistency_agree: int = Field(default=1, ge=1)  # of the views that can check a pixel, this many must agree
+    # gap filling (step 9): runs of unsure pixels up to this angle between agreeing confident ones (0: off)
+    fill_gap_deg: float = Field(default=0.0, ge=0, le=45)
+    fill_tolerance: float = Field(default=0.03, gt=0, le=1)  # relative depth difference of the two ends
+    fill_confidence: float = Field(default=0.5, ge=0, le=1)  # a filled pixel's share of its ends' confidence
 
 
 @dataclass
@@ -570,11 +582,50 @@ def stereo_depth(frames: Frames, index: int, cfg: StereoConfig | None = None, *,
     depth_o, conf_o, peak_o, agree_o = _to_original(
         [depth.numpy(), conf.numpy(), peak.numpy(), agreement.numpy().astype(np.float32)], ref, k_ref,
         [math.nan, 0.0, 0.0, 0.0])
-    if ref.sky is not None:
-        sky = np.asarray(ref.sky, bool)
-        depth_o, conf_o = np.where(sky, np.float32(np.nan), depth_o), np.where(sky, np.float32(0), conf_o)
+    sky = np.zeros(depth_o.shape, bool) if ref.sky is None else np.asarray(ref.sky, bool)
+    depth_o, conf_o = np.where(sky, np.float32(np.nan), depth_o), np.where(sky, np.float32(0), conf_o)
+    if cfg.fill_gap_deg > 0:
+        gap_px = int(math.radians(cfg.fill_gap_deg) * float(ref.intrinsics.K[0, 0]))
+        depth_o, conf_o = fill_gaps(depth_o, conf_o, gap_px, cfg.fill_tolerance, cfg.fill_confidence, ~sky)
     return StereoResult(depth_o.astype(np.float32), conf_o.astype(np.float32), peak_o.astype(np.float32),
                         agree_o.astype(np.float32), views)
+
+
+def _fill_rows(depth: np.ndarray, conf: np.ndarray, max_gap: int, tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per pixel of each row: the depth interpolated (in inverse depth) between the nearest confident
+    pixels left and right of it, and the smaller of their confidences, where both exist, lie at most
+    `max_gap` + 1 apart and agree within `tol`; NaN and 0 elsewhere (confident pixels included)."""
+    h, w = depth.shape
+    cols = np.broadcast_to(np.arange(w), (h, w))
+    sure = conf > 0
+    left = np.maximum.accumulate(np.where(sure, cols, -1), axis=1)
+    right = np.minimum.accumulate(np.where(sure, cols, w)[:, ::-1], axis=1)[:, ::-1]
+    ok = ~sure & (left >= 0) & (right < w) & (right - left <= max_gap + 1)
+    rows = np.broadcast_to(np.arange(h)[:, None], (h, w))
+    li, ri = np.where(ok, left, 0), np.where(ok, right, 0)
+    z0, z1 = depth[rows, li], depth[rows, ri]
+    ok &= np.abs(z0 - z1) <= tol * np.minimum(z0, z1)
+    t = (cols - li) / np.maximum(ri - li, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        filled = 1.0 / ((1 - t) / z0 + t / z1)
+    c = np.minimum(conf[rows, li], conf[rows, ri])
+    return np.where(ok, filled, np.nan).astype(np.float32), np.where(ok, c, 0).astype(np.float32)
+
+
+def fill_gaps(depth: np.ndarray, conf: np.ndarray, max_gap_px: int, tol: float, share: float,
+              allowed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step 9 (module docstring): (H, W) depth (metres, NaN where none) and confidence with the
+    unsure pixels of `allowed` (H, W) bool (default all) that a row or column gap of at most
+    `max_gap_px` pixels fills; confident pixels keep theirs."""
+    if max_gap_px < 1:
+        return depth, conf
+    dr, cr = _fill_rows(depth, conf, max_gap_px, tol)
+    dc, cc = (a.T for a in _fill_rows(depth.T, conf.T, max_gap_px, tol))
+    both = np.isfinite(dr) & np.isfinite(dc)
+    d = np.where(both, 0.5 * (dr + dc), np.where(np.isfinite(dr), dr, dc))
+    c = np.where(both, 0.5 * (cr + cc), np.where(np.isfinite(dr), cr, cc)) * np.float32(share)
+    take = np.isfinite(d) & (conf <= 0) & (True if allowed is None else allowed)
+    return (np.where(take, d, depth).astype(np.float32), np.where(take, c, conf).astype(np.float32))
 
 
 def _geometric_check(frames: Frames, depth: torch.Tensor, k_ref: np.ndarray, views: list[SourceView], boxes: dict,

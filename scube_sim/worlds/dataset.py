@@ -50,8 +50,9 @@ from ..camera.frames import CameraImage, Frames
 from ..camera.model import Intrinsics
 from ..camera.render import render_camera
 from ..camera.rig import load_rig
-from ..config import StrictModel
+from ..config import COARSE_FACTOR, FINE_VOXEL_M, SCALE_FACTOR, StrictModel, json_loads, normalize_name, unique_names
 from ..errors import InputError
+from ..io.images import read_rgb
 from ..labels import LABEL_TABLE_VERSION, LABELS, label_id
 from ..lidar.config import load_lidar_config
 from ..lidar.model import Lidar
@@ -106,14 +107,18 @@ class DatasetConfig(StrictModel):
     """How samples are made. Stored in dataset.json; frozen once a converter trains on it."""
 
     rigs: list[str] = Field(default_factory=lambda: ["waymo-5"], min_length=1)
-    image_scale: float = Field(default=0.25, gt=0, le=1)
+    image_scale: float = SCALE_FACTOR.field(0.25)
     frame_offsets: list[int] = Field(default_factory=lambda: [0, 5, 10], min_length=1)  # frames after T
-    frame_rate_hz: float = 10.0
-    fine_voxel_m: float = Field(default=0.1, ge=0.05, le=1.6)
-    coarse_factor: int = Field(default=4, ge=1, le=16)
+    frame_rate_hz: float = Field(default=10.0, gt=0, le=1000)
+    fine_voxel_m: float = FINE_VOXEL_M.field(0.1)
+    coarse_factor: int = COARSE_FACTOR.field(4)
     visibility_scale: float = Field(default=0.5, gt=0, le=1)
     lidar: str = "waymo-top"
     styles: list[str] = Field(default_factory=lambda: list(STYLES))
+
+    # a rig or style twice would weigh it twice in the samples' cycle: refused, naming it
+    _rigs_once = field_validator("rigs")(classmethod(lambda cls, v: unique_names(v, key=normalize_name)))
+    _styles_once = field_validator("styles")(classmethod(lambda cls, v: unique_names(v)))
 
     @field_validator("frame_offsets")
     @classmethod
@@ -224,17 +229,24 @@ def render_frames(world, rig_name: str = "waymo-5", t_ref: float = 0.0, image_sc
 
 
 def render_frames_with_context(world, rig_name: str = "waymo-5", context: int = 0,
-                               image_scale: float | None = None, log: str = "") -> Frames:
-    """`render_frames` at T = 0 with the instants up to `context` before and after it (at the
-    datasets' `frame_rate_hz`) as its `Frames.context`, as a dataset with those frame offsets
-    gives them to the converter."""
+                               image_scale: float | None = None, log: str = "", t_ref: float = 0.0,
+                               ego_pose: np.ndarray | None = None) -> Frames:
+    """`render_frames` at T = `t_ref` with the instants up to `context` before and after it (at
+    the datasets' `frame_rate_hz`) as its `Frames.context`, as a dataset with those frame offsets
+    gives them to the converter. ego_pose: (4, 4) ego-to-world to hold the reference rig at (a
+    route's chunk origin); the context rigs keep that pose relative to the ego's path, moving as
+    the ego moves between T and their instant (a rig driving through the chunk)."""
     rate = DatasetConfig().frame_rate_hz
     scene_at = _SceneAt(world)
     ctx = []
     for k in [k for k in range(-int(context), int(context) + 1) if k != 0]:
-        f = render_frames(world, rig_name, k / rate, image_scale, scene_at=scene_at)
+        t = t_ref + k / rate
+        pose = None
+        if ego_pose is not None:
+            pose = world.ego_pose_at(t) @ invert_pose(world.ego_pose_at(t_ref)) @ np.asarray(ego_pose, np.float64)
+        f = render_frames(world, rig_name, t, image_scale, scene_at=scene_at, ego_pose=pose)
         ctx.append(Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=k))
-    f = render_frames(world, rig_name, 0.0, image_scale, scene_at=scene_at)
+    f = render_frames(world, rig_name, t_ref, image_scale, scene_at=scene_at, ego_pose=ego_pose)
     return Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=0, context=ctx)
 
 
@@ -360,7 +372,7 @@ def read_dataset_config(out: Path) -> DatasetConfig:
     is another format, a version this scube_sim does not read (READABLE_VERSIONS), or a version
     that does not match its frame offsets)."""
     head = Path(out) / "dataset.json"
-    old = json.loads(head.read_text())
+    old = json_loads(head.read_text(), head, InputError)  # a key twice: refused
     if old.get("format") != DATASET_FORMAT:
         raise InputError(f"{head}: not a scube_sim worlds dataset (format {old.get('format')!r})")
     version = old.get("version")
@@ -382,7 +394,7 @@ def ensure_dataset_config(out: Path, cfg: DatasetConfig | None) -> DatasetConfig
     head = out / "dataset.json"
     if head.exists():
         existing = read_dataset_config(out)
-        version = json.loads(head.read_text()).get("version")
+        version = json_loads(head.read_text(), head, InputError).get("version")
         if version != dataset_version(existing):
             # new samples would look different from the folder's (another texture version)
             raise InputError(f"{head}: dataset version {version} was made with older textures; this scube_sim "
@@ -466,11 +478,11 @@ def load_sample(folder: Path) -> dict:
     meta_path = folder / "meta.json"
     if not meta_path.exists():
         raise FileNotFoundError(f"{folder}: not a complete sample (no meta.json)")
-    meta = json.loads(meta_path.read_text())
+    meta = json_loads(meta_path.read_text(), meta_path, InputError)  # a key twice: refused
     if meta.get("format") != DATASET_FORMAT or meta.get("version", 0) > DATASET_VERSION:
         raise InputError(f"{meta_path}: format {meta.get('format')!r} version {meta.get('version')} is not readable "
                          f"by this scube_sim ({DATASET_FORMAT} {DATASET_VERSION})")
-    images = {p.name: np.asarray(Image.open(p)) for p in sorted(folder.glob("rgb_*.png"))}
+    images = {p.name: read_rgb(p) for p in sorted(folder.glob("rgb_*.png"))}
     with np.load(folder / "frames.npz", allow_pickle=False) as z:
         frames = {k: z[k] for k in z.files}
     with np.load(folder / "voxels.npz", allow_pickle=False) as z:

@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import Field, model_serializer
 
 from ..boxes import Box
-from ..config import StrictModel, load_yaml, validate_model
+from ..config import SEED, StrictModel, load_yaml, validate_model
 from ..labels import label_id
 from ..mesh import TriangleMesh
 from ..transforms import interpolate_poses, make_pose
@@ -43,7 +43,7 @@ class WorldConfig(StrictModel):
     """What to generate. Every count and size not given is drawn from the style's ranges."""
 
     style: Literal["urban", "suburban", "intersection", "boulevard"] = "urban"
-    seed: int = Field(default=0, ge=0)
+    seed: int = SEED.field(0)
     layout: Literal["auto", "straight", "curved", "t_junction", "x_junction"] = "auto"
     length_m: float = Field(default=102.4, gt=20, le=5000, description="road length ahead of the ego")
     ego_speed_mps: float | None = Field(default=None, ge=0, le=40)

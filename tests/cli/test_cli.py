@@ -108,7 +108,7 @@ def test_bad_inputs_give_one_line_and_exit_2(scene_npz, tmp_path):
     one_line_error(run("lidar", scene_npz, "--sensor", "vlp16", "--pose", "1,2,3", "-o", tmp_path / "a.pcd"), "--pose")
     one_line_error(run("lidar", scene_npz, "--sensor", "vlp16", "-o", tmp_path / "a.xyz"), "a.xyz")
     one_line_error(run("lidar", scene_npz, "--sensor", "vlp16", "--soft-alpha-min", "1.5", "-o", tmp_path / "a.pcd"),
-                   "soft_alpha_min")
+                   "--soft-alpha-min", ">= 0 and < 1")
     assert not (tmp_path / "a.pcd").exists()
 
 

@@ -240,7 +240,7 @@ def test_missing_files_name_the_file_and_key(written):
     (lambda d: d.update(format="other"), r"format: expected 'scube-sim-folder'"),
     (lambda d: d["lidars"]["lidar_top"].update(preset="VLP-16"),
      r"lidars\.lidar_top: .*exactly one of 'preset' and 'config'"),
-    (lambda d: d["cameras"]["CAM_A"].update(fx=-1.0), r"cameras\.CAM_A\.fx: Input should be greater than 0"),
+    (lambda d: d["cameras"]["CAM_A"].update(fx=-1.0), r"cameras\.CAM_A\.fx: expected a finite number > 0, got -1\.0"),
     (lambda d: d["cameras"]["CAM_A"].update(lens="wide"), r"cameras\.CAM_A\.lens: unknown key"),
     (lambda d: d["lidars"].update({"bad/name": d["lidars"]["lidar_top"]}),
      r"lidars\.bad/name\.\[key\]: String should match"),

@@ -31,10 +31,10 @@ def test_defaults_follow_the_paper_and_a_file_loads_by_path(tmp_path):
     ({"epochs": 2, "batchsize": 4}, "train.batchsize: unknown key"),
     ({"epochs": 2, "steps": 10}, "train: give exactly one of 'epochs' and 'steps'"),
     ({}, "train: give exactly one of 'epochs' and 'steps'"),
-    ({"epochs": 2, "lr": 0}, "train.lr: Input should be greater than 0"),
+    ({"epochs": 2, "lr": 0}, "train.lr: expected a finite number > 0, got 0"),
     ({"epochs": 2, "betas": [0.9, 1.0]}, "train.betas: each beta must lie in [0, 1)"),
     ({"epochs": 2, "betas": [0.9]}, "train.betas"),
-    ({"epochs": 0}, "train.epochs: Input should be greater than or equal to 1"),
+    ({"epochs": 0}, "train.epochs: expected an integer >= 1, got 0"),
 ])
 def test_bad_train_settings_name_the_file_and_key(tmp_path, train, needle):
     path = _write(tmp_path / "bad.yaml", {"stage": "toy", "train": train})
@@ -98,7 +98,7 @@ def test_the_stage_sections_are_validated_by_the_stages_classes(tmp_path):
     with pytest.raises(ConfigError) as exc:
         stage_configs(bad, _Model, _Data)
     lines = str(exc.value).splitlines()
-    assert f"{bad.source}: model.width: Input should be greater than or equal to 1" in lines
+    assert f"{bad.source}: model.width: expected an integer >= 1, got 0" in lines
     assert f"{bad.source}: model.depth: unknown key" in lines
 
 

@@ -68,6 +68,25 @@ def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(t
     assert r.exit_code == 0 and "mode soft" in r.output, r.output
 
 
+def test_the_same_file_whatever_torch_s_thread_count(tiny_converter, tmp_path):
+    """A batch worker runs on one thread, `convert` on all the cores: the networks' sums split by
+    thread count (without the converter's pin, 1 and 2 threads differ by ~1e-6 here), the files
+    must not."""
+    import torch
+
+    threads = torch.get_num_threads()
+    conv = Converter(tiny_converter["profile"])
+    files = []
+    try:
+        for n in (2, 1):
+            torch.set_num_threads(n)
+            files.append(conv.convert(_frames(tiny_converter), seed=1).save(tmp_path / f"t{n}.npz").read_bytes())
+            assert torch.get_num_threads() == n  # the caller's setting is restored
+    finally:
+        torch.set_num_threads(threads)
+    assert files[0] == files[1]
+
+
 def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(tiny_converter):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)

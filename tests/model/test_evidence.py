@@ -9,6 +9,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -90,18 +91,24 @@ def _to_chunk() -> np.ndarray:
     return np.eye(4)  # the ego at the world origin, its road at z = 0: the chunk frame is the world
 
 
+def _convert(update: dict | None = None):
+    """The corridor through the converter, as `scube-sim convert --profile` runs it (a 30 m range:
+    the voxels kept), with `update` to the evidence config."""
+    from scube_sim.model.converter import Converter, ConverterProfile
+
+    cfg = CFG.model_copy(update=update or {})
+    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=cfg)).convert(_frames(),
+                                                                                              max_range=30.0)
+
+
 @pytest.fixture(scope="module")
 def scene():
-    # through the converter, as `scube-sim convert --profile` runs it (a 30 m range: the voxels kept)
     import torch
-
-    from scube_sim.model.converter import Converter, ConverterProfile
 
     threads = torch.get_num_threads()
     torch.set_num_threads(max(2, threads))  # several threads here, one in the determinism test's process
     try:
-        return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames(),
-                                                                                                    max_range=30.0)
+        return _convert()
     finally:
         torch.set_num_threads(threads)
 
@@ -161,15 +168,15 @@ def test_the_converted_corridor_traces_in_entry_mode_at_the_walls(scene):
 
 
 def _digest(scene) -> str:
-    return hashlib.sha256(scene.params.tobytes() + np.ascontiguousarray(scene.ijk, np.int64).tobytes()).hexdigest()
+    """The sha256 of the file `scene` saves to (metadata and channels included)."""
+    with tempfile.TemporaryDirectory() as tmp:
+        return hashlib.sha256(scene.save(Path(tmp) / "s.npz").read_bytes()).hexdigest()
 
 
 def converted_digest(update: dict | None = None) -> str:
-    """The corridor converted as the `scene` fixture does (with `update` to its config), hashed
-    (run in another process below)."""
-    again = evidence_scene(_frames(), _to_chunk(), CFG.model_copy(update=update or {}))
-    centres = CHUNK_CORNER[:2] + (again.ijk[:, :2] + 0.5) * again.voxel_size
-    return _digest(again.select_voxels(np.linalg.norm(centres, axis=1) <= 30.0))
+    """The file the `scene` fixture's conversion (with `update`) saves to, hashed (run in another
+    process below)."""
+    return _digest(_convert(update))
 
 
 def test_the_same_frames_give_the_same_bytes_in_another_process_with_one_thread(scene):
@@ -235,7 +242,9 @@ def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):
 
 
 def test_a_reference_instant_the_frames_lack_is_skipped(scene):
-    assert converted_digest({"references": [0, -7]}) == _digest(scene)
+    other = _convert({"references": [0, -7]})  # its metadata records the references it was given
+    np.testing.assert_array_equal(other.ijk, scene.ijk)
+    assert other.params.tobytes() == scene.params.tobytes()
 
 
 def test_with_nothing_measured_the_scene_is_the_road_under_the_ego():
@@ -250,9 +259,30 @@ def test_with_nothing_measured_the_scene_is_the_road_under_the_ego():
         evidence_scene(alone, _to_chunk(), CFG.model_copy(update={"fill_ground": False}))
 
 
+def test_a_rig_that_looks_back_gets_a_chunk_centred_on_the_ego():
+    """nuScenes' six cameras see behind the ego: the chunk (the same size) is centred, so the ground
+    under what the rear camera saw is there; a forward rig keeps the paper's chunk ahead."""
+    from dataclasses import replace
+
+    from scube_sim.model.evidence import grid_corner
+    from scube_sim.transforms import pose_from_xyz_rpy
+
+    front = _image(0.0, 0.0)
+    turned = pose_from_xyz_rpy([0, 0, 0], [0, 0, 180]) @ front.cam_to_world  # yawed to look back
+    back = replace(front, name="BACK", cam_to_world=turned)
+    np.testing.assert_array_equal(grid_corner(Frames([front], np.eye(4), 0.0), _to_chunk()), CHUNK_CORNER)
+    both = Frames([front, back], np.eye(4), 0.0)
+    np.testing.assert_allclose(grid_corner(both, _to_chunk()), [-51.2, -51.2, CHUNK_CORNER[2]])
+    forward = evidence_scene(Frames([front], np.eye(4), 0.0), _to_chunk(), CFG)
+    around = evidence_scene(both, _to_chunk(), CFG)
+    for scene, lo in ((forward, CHUNK_CORNER[0]), (around, -51.2)):
+        x = scene.gaussians().means[:, 0] + scene.origin[0]
+        assert lo <= x.min() < lo + scene.voxel_size and x.max() < lo + 102.4
+
+
 def test_the_command_line_defaults_are_the_converters():
-    """convert, eval sensor-to-sensor and the demo default to `DEFAULT_PROFILE` (the CLI names it
-    literally: it does not import torch to start)."""
+    """convert, eval sensor-to-sensor, the demo and a batch convert default to `DEFAULT_PROFILE`
+    (they name it literally: the CLI does not import torch to start)."""
     import inspect
 
     from scube_sim.cli.convert import convert_cmd
@@ -265,3 +295,6 @@ def test_the_command_line_defaults_are_the_converters():
     for fn in (convert_cmd, eval_cmd, demo_cmd):
         assert inspect.signature(fn).parameters["profile"].default.default == DEFAULT_PROFILE, fn.__name__
     assert inspect.signature(run_demo).parameters["profile"].default == DEFAULT_PROFILE
+    from scube_sim.runs.batch_jobs import ConvertSettings
+
+    assert ConvertSettings().profile == DEFAULT_PROFILE and ConvertSettings().context is None  # the profile's

@@ -196,11 +196,11 @@ def test_an_openscenario_trajectory_into_a_ros_bag_a_viewer_recording_and_las_fi
     np.testing.assert_allclose(np.asarray(f0.x), s.points["x"], atol=1e-3)  # LAS stores millimetres
 
 
-def test_a_frames_scene_takes_context_from_disk_only(tmp_path):
+def test_a_frames_scene_takes_context_from_disk_or_a_rendered_world(tmp_path):
     from scube_sim.runs.scenario import FramesSpec
 
     assert FramesSpec(path="some/drive", dataset="kitti_raw", context=2).context == 2
-    with pytest.raises(ValueError, match="context: frames on disk only"):
-        FramesSpec(world={"style": "urban", "seed": 1}, context=1)
+    assert FramesSpec(world={"style": "urban", "seed": 1}, context=1).context == 1
+    assert FramesSpec(path="x").context is None  # the profile's own
     with pytest.raises(ValueError, match="greater than or equal to 0"):
         FramesSpec(path="x", context=-1)

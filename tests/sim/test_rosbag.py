@@ -12,7 +12,6 @@ import yaml
 
 pytest.importorskip("rosbags")
 pytest.importorskip("mcap_ros2")
-from mcap.exceptions import EndOfFile  # noqa: E402
 from mcap.reader import make_reader  # noqa: E402
 from mcap.records import Channel, Message  # noqa: E402
 from mcap.stream_reader import StreamReader  # noqa: E402
@@ -394,7 +393,8 @@ def test_an_interrupted_run_leaves_a_bag_of_the_frames_written(tmp_path, rng):
     bag = read_bag(tmp_path / "bag")
     assert len(bag["/tf"]) >= 4 and len(bag["/clock"]) == len(bag["/tf"])  # each frame complete, in order
 
-    # A killed process: no close(). Each frame ended a chunk and rewrote metadata.yaml.
+    # A killed process: no close(). Each frame ended a chunk, wrote a summary and footer after it
+    # and rewrote metadata.yaml (a real SIGKILL: tests/sim/test_rosbag_kill.py).
     sink = RosbagSink(tmp_path / "killed")
     sink.open(run_info())
     for f in frames[:3]:
@@ -404,15 +404,17 @@ def test_an_interrupted_run_leaves_a_bag_of_the_frames_written(tmp_path, rng):
     assert counts["/tf"] == 3 and counts["/tf_static"] == 1
     seen: dict[str, int] = {}
     topics: dict[int, str] = {}
-    with open(tmp_path / "killed" / "killed.mcap", "rb") as fh:  # no summary, no footer: read as a stream
-        with pytest.raises(EndOfFile):  # where the kill left it, after the last complete chunk
-            for rec in StreamReader(fh).records:
-                if isinstance(rec, Channel):
-                    topics[rec.id] = rec.topic
-                elif isinstance(rec, Message):
-                    seen[topics[rec.channel_id]] = seen.get(topics[rec.channel_id], 0) + 1
+    with open(tmp_path / "killed" / "killed.mcap", "rb") as fh:  # a whole MCAP, footer and all
+        for rec in StreamReader(fh).records:
+            if isinstance(rec, Channel):
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Message):
+                seen[topics[rec.channel_id]] = seen.get(topics[rec.channel_id], 0) + 1
     assert seen == {k: v for k, v in counts.items() if v}
+    assert {k: len(v) for k, v in read_bag(tmp_path / "killed").items()} == seen  # and indexed
+    sink.write(frames[3])
     sink.close()
+    assert len(read_bag(tmp_path / "killed")["/tf"]) == 4  # closed by rosbags over the last summary
 
 
 def test_errors_name_the_key(tmp_path):

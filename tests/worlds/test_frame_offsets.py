@@ -163,3 +163,24 @@ def test_rendered_context_instants_are_the_datasets_instants():
             assert a.name == b.name and a.timestamp == b.timestamp
             np.testing.assert_allclose(a.cam_to_world, b.cam_to_world, atol=1e-9)
             assert np.array_equal(a.image, b.image)
+
+
+def test_a_held_rig_s_context_instants_move_with_the_ego():
+    """A route chunk's rig held off the ego's path (`ego_pose`): its context rigs keep that
+    offset from the ego, so between instants they move exactly as the ego does."""
+    from scube_sim.transforms import invert_pose
+    from scube_sim.worlds.dataset import render_frames_with_context, sample_rig
+
+    cfg = DatasetConfig(**TINY)
+    world = generate_world(sample_world_config("train", FAST, cfg))
+    t, rate = 1.0, cfg.frame_rate_hz
+    held = world.ego_pose_at(t).copy()
+    held[:3, 3] += held[:3, 1] * 4.0  # 4 m to the ego's left
+    frames = render_frames_with_context(world, sample_rig(FAST, cfg), 1, 0.02, t_ref=t, ego_pose=held)
+    np.testing.assert_allclose(frames.ego_pose, held, atol=1e-12)
+    assert frames.timestamp == pytest.approx(t)
+    for f in frames.context:
+        ego_step = world.ego_pose_at(t + f.offset / rate) @ invert_pose(world.ego_pose_at(t))
+        np.testing.assert_allclose(f.ego_pose, ego_step @ held, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(f.ego_pose[:3, 3] - held[:3, 3]),
+                                   np.linalg.norm(ego_step[:3, 3] + ego_step[:3, :3] @ held[:3, 3] - held[:3, 3]))

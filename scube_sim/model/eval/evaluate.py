@@ -27,11 +27,16 @@ def evaluate_model(stage: Stage, model: nn.Module, dataset: Dataset, batch_size:
                         num_workers=num_workers, generator=torch.Generator().manual_seed(0))
     was_training = model.training
     model.eval()
+    batches = iter(loader)
     try:
         with torch.no_grad(), batch_bar(progress, len(loader), f"eval {stage.name}") as tick:
-            metrics = stage.evaluate(model, (tick(b) for b in loader))
+            metrics = stage.evaluate(model, (tick(b) for b in batches))
     finally:
         model.train(was_training)
+        # A sample that fails in a worker leaves the iterator (and its worker processes) held by
+        # the traceback; stop the workers now, not when the garbage collector gets to them (which
+        # waits out torch's 5 s join timeout).
+        getattr(batches, "_shutdown_workers", lambda: None)()
     if stage.primary_metric not in metrics:
         raise StageError(f"stage {stage.name!r}: evaluate returned no {stage.primary_metric!r} "
                          f"(got {', '.join(metrics) or 'nothing'})")

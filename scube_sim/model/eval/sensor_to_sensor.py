@@ -22,7 +22,6 @@ two sweeps' points inside the chunk (metres).
 
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +31,7 @@ import numpy as np
 import torch
 
 from ...camera.rig import load_rig
+from ...config import json_loads
 from ...errors import InputError
 from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
 from ...lidar.compare import fidelity_config, sweep_agreement
@@ -165,7 +165,7 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     example ``soft_alpha_min``). context: the instants before and after the sample the converter
     sees (`open_frames`; default the profile's)."""
     sample_dir = Path(sample_dir)
-    meta = json.loads((sample_dir / "meta.json").read_text())
+    meta = json_loads((sample_dir / "meta.json").read_text(), sample_dir / "meta.json", InputError)
     key = str(sample_dir.resolve())
     cached = gt_cache.get(key) if gt_cache is not None else None
     if cached is None:

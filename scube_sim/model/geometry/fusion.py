@@ -44,9 +44,9 @@ __all__ = ["DepthObservation", "FusedGrid", "FusionConfig", "SurfaceSamples", "e
 class FusionConfig(BaseModel):
     """How depth maps become occupancy (module docstring)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # as `config.StrictModel`
 
-    voxel_size: float = Field(default=0.2, gt=0)  # metres
+    voxel_size: float = Field(default=0.2, ge=0.01, le=10)  # metres
     min_confidence: float = Field(default=0.5, ge=0, le=1)  # pixels below give no evidence
     max_depth_m: float = Field(default=80.0, gt=0)  # pixels beyond give no evidence
     hit_logodds: float = Field(default=0.85, gt=0)  # log-odds added by a hit at confidence 1 (p 0.7)
@@ -60,7 +60,7 @@ class FusionConfig(BaseModel):
     # give no footprint or normal between them
     pixel_stride: int = Field(default=1, ge=1)
     carve_stride: int = Field(default=1, ge=1)  # carve along every n-th of those pixels' rays in each direction
-    chunk_rays: int = Field(default=4096, ge=1)  # rays per carving batch (memory)
+    chunk_rays: int = Field(default=4096, ge=1, le=1 << 20)  # rays per carving batch (memory)
     patch_max_rel: float = Field(default=0.1, gt=0)  # a pixel's step to its neighbour's point longer than this x depth is an edge
     edge_margin_px: int = Field(default=3, ge=0)  # pixels this close to a depth edge give no evidence (half the census window)
 

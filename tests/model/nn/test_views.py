@@ -48,7 +48,7 @@ def test_render_command_writes_a_mosaic(tmp_path):
     with Image.open(out) as im:
         assert im.size[0] > 300
     res = CliRunner().invoke(app, ["render", str(path), "--rig", "nuscenes-6", "--scale", "2", "-o", str(out)])
-    assert res.exit_code == 2 and "--scale: expected a factor in (0, 1]" in res.output
+    assert res.exit_code == 2 and "--scale: expected a finite number > 0 and <= 1, got 2.0" in res.output
 
 
 def gradient_sky(h: int = 64, w: int = 128) -> np.ndarray:

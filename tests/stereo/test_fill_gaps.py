@@ -1,0 +1,54 @@
+"""Stereo's gap filling (step 9, `fill_gaps`): an unsure band on a plane takes the plane's depth
+(a plane's inverse depth is linear along any line of pixels), a depth step and sky stay unfilled,
+and gaps wider than the bound stay holes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from scube_sim.stereo.mvs import fill_gaps
+
+H, W, F, CX, CY = 40, 60, 50.0, 30.0, 20.0
+
+
+def plane_depth(normal, offset) -> np.ndarray:
+    """(H, W) camera-z depth of the plane n . X = offset seen by a pinhole (F, CX, CY)."""
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    rays = np.stack([(u - CX) / F, (v - CY) / F, np.ones_like(u)], -1)
+    return (offset / (rays @ np.asarray(normal, float))).astype(np.float32)
+
+
+def test_an_unsure_band_on_a_tilted_plane_takes_the_plane_s_depth():
+    truth = plane_depth([0.3, -0.2, 1.0], 12.0)  # 9-16 m, sloping both ways
+    conf = np.ones((H, W), np.float32)
+    conf[10:18, 20:30] = 0  # a textureless patch, 8 rows x 10 columns
+    depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5)
+    hole = conf == 0
+    np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
+    assert np.all(c[hole] == np.float32(0.5))  # half of its ends' confidence (1)
+    assert np.array_equal(d[~hole], depth[~hole]) and np.array_equal(c[~hole], conf[~hole])
+
+
+def test_a_depth_step_a_wide_gap_and_sky_stay_holes():
+    near, far = plane_depth([0, 0, 1], 5.0), plane_depth([0, 0, 1], 30.0)
+    truth = np.where(np.arange(W) < 25, near, far)  # a pole's edge at column 25
+    conf = np.ones((H, W), np.float32)
+    conf[:, 20:30] = 0  # the unsure band straddles the step: left end 5 m, right end 30 m
+    conf[30:, :] = 0  # and the bottom rows are unsure with nothing below them
+    depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5)
+    assert np.isnan(d[:30, 20:30]).all() and (c[:30, 20:30] == 0).all()  # never across the step
+    assert np.isnan(d[30:]).all()  # no confident pixel below: no column gap, and rows are all unsure
+    # the same plane, a gap wider than the bound
+    conf2 = np.ones((H, W), np.float32)
+    conf2[:, 10:40] = 0  # 30 columns
+    d2, _ = fill_gaps(np.where(conf2 > 0, far, np.nan).astype(np.float32), conf2, 12, 0.03, 0.5)
+    assert np.isnan(d2[:, 10:40]).all()
+    # sky is never filled, even between two agreeing walls
+    conf3 = np.ones((H, W), np.float32)
+    conf3[5:10, 20:25] = 0
+    sky = np.zeros((H, W), bool)
+    sky[5:10, 20:25] = True
+    d3, _ = fill_gaps(np.where(conf3 > 0, far, np.nan).astype(np.float32), conf3, 12, 0.03, 0.5, ~sky)
+    assert np.isnan(d3[sky]).all()
