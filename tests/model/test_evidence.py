@@ -199,9 +199,12 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
 
     shipped = load_profile("evidence")
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
-    assert shipped.evidence == EvidenceConfig() and shipped.evidence.references == [0, -3]
+    # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in both profiles)
+    filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
+    assert shipped.evidence == filled and shipped.evidence.references == [0, -3]
     fast = load_profile("evidence-fast")  # the same with T alone as the reference
-    assert fast.route == "evidence" and fast.context == 4 and fast.evidence == EvidenceConfig(references=[0])
+    assert fast.route == "evidence" and fast.context == 4
+    assert fast.evidence == filled.model_copy(update={"references": [0]})
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
     assert scene.metadata["instants_used"].startswith("all")
