@@ -83,3 +83,24 @@ def worlds_preview_cmd(
     res = preview_world(cfg, output, name=name, rig=rig)
     typer.echo(f"wrote {res['views']} and {res['voxels']} ({res['num_voxels']} voxels, "
                f"{res['visible'] * 100:.0f} % seen by the cameras)")
+
+
+@worlds_app.command("evidence")
+@handle_errors
+@bounded(count=Range(ge=1, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True))
+def worlds_evidence_cmd(
+    data: Path = typer.Argument(..., help="worlds dataset folder (generated with context instants)"),
+    split: str = typer.Option("train", "--split", help="train | val | test"),
+    count: Optional[int] = typer.Option(None, "--count", help="number of samples (default: all from --start)"),
+    start: int = typer.Option(0, "--start", help="index of the first sample"),
+    profile: str = typer.Option("evidence", "--profile", help="the evidence-route profile that measures"),
+) -> None:
+    """Measure the evidence of worlds samples with the real stereo pipeline and cache it for the completion
+    stage (DATA/evidence/<split>/<sample>.npz); resumable: cached samples with the same settings are skipped."""
+    from ..model.completion.data import cache_evidence
+
+    if split not in ("train", "val", "test"):
+        raise CliError(f"--split: expected train, val or test, got {split!r}")
+    res = cache_evidence(data, split, count=count, start=start, profile=profile)
+    typer.echo(f"{split}: measured {res['written']}, skipped {res['skipped']} cached; "
+               f"{res['seconds_per_sample']:.1f} s per sample -> {data / 'evidence' / split}")

@@ -51,7 +51,10 @@ from .appearance.fit import fit_input_views
 from .appearance.net import AppearanceNet, first_hit_voxels
 from .checkpoint import load_model, resolve_checkpoint
 from .data.worlds import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
-from .evidence import EvidenceConfig, evidence_scene
+from .completion.features import completion_input
+from .completion.merge import CompletionConfig, merge_completion
+from .completion.net import CompletionNet
+from .evidence import EvidenceConfig, fusion_config, measure_evidence, scene_from_evidence
 from .geometry.data import GeometryDataConfig
 from .geometry.net import GeometryNet, flat_keys, observed_voxels
 
@@ -126,8 +129,10 @@ class ConverterProfile(StrictModel):
     settings (module docstring); confidence_samples: K, the geometry samples per-voxel confidence
     is counted over when a caller asks for confidence. route `evidence` (`model.evidence`: stereo
     depth fused into a grid, no learning): its `evidence` settings (default `EvidenceConfig()`),
-    no checkpoints; per-voxel confidence is the fused occupancy probability whatever K. context:
-    the instants before and after the sample the route reads when the caller names none."""
+    no checkpoints; per-voxel confidence is the fused occupancy probability whatever K; with a
+    `completion` section, the completion network's checkpoint and merge (`model.completion`) fill
+    what no camera saw. context: the instants before and after the sample the route reads when
+    the caller names none."""
 
     name: str
     description: str = ""
@@ -136,6 +141,7 @@ class ConverterProfile(StrictModel):
     fine: FineProfile | None = None
     appearance: AppearanceProfile | None = None
     evidence: EvidenceConfig | None = None
+    completion: CompletionConfig | None = None
     context: int = CONTEXT_INSTANTS.field(0)
     confidence_samples: int = Field(default=4, ge=2, le=64)
 
@@ -143,9 +149,9 @@ class ConverterProfile(StrictModel):
     def _route_keys(self):
         if self.route == "scube":
             missing = [k for k in ("geometry", "appearance") if getattr(self, k) is None]
-            if missing or self.evidence is not None:
+            if missing or self.evidence is not None or self.completion is not None:
                 raise ValueError(f"route scube needs geometry and appearance (missing: {', '.join(missing) or 'none'}) "
-                                 f"and takes no evidence key")
+                                 f"and takes no evidence or completion key")
         else:
             given = [k for k in ("geometry", "fine", "appearance") if getattr(self, k) is not None]
             if given:
@@ -308,8 +314,15 @@ class Converter:
         p = self.profile
         self._hashes: dict[str, str] = {}
         self.timings: dict[str, float] = {}
-        if p.route == "evidence":  # no weights to load
+        if p.route == "evidence":  # no weights to load, but the completion's
             self._paths, self.geometry, self.fine, self.appearance = {}, None, None, None
+            self.completion = self.uncompleted = self.completion_grid = None
+            if p.completion is not None:
+                self._paths["completion"] = resolve_checkpoint(p.completion.checkpoint)
+                self.completion, run = load_model("completion", self._paths["completion"])
+                if not isinstance(self.completion, CompletionNet):
+                    raise InputError(f"{self._paths['completion']}: not a completion checkpoint")
+                self.completion_voxel_size = float(run.data.get("voxel_size", 0.8))
             return
         self._paths = {"geometry": resolve_checkpoint(p.geometry.checkpoint),
                        "appearance": resolve_checkpoint(p.appearance.checkpoint)}
@@ -505,16 +518,37 @@ class Converter:
 
 
     def _convert_evidence(self, frames: Frames, max_range: float | None) -> VoxSplat:
-        """The evidence route (`model.evidence`): steps, seed, K, sky and fit steps do not apply."""
+        """The evidence route (`model.evidence`), with the completion where the profile names one:
+        steps, seed, K, sky and fit steps do not apply."""
         reset_peak()
         t0 = time.perf_counter()
         parts: dict[str, float] = {}
-        scene = evidence_scene(frames, invert_pose(chunk_to_world(frames)), self.profile.evidence, timings=parts)
+        cfg = self.profile.evidence
+        ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts)
+        scene = scene_from_evidence(ev, cfg)
+        scene.metadata.update({"cameras": list(frames.names), "timestamp": float(frames.timestamp)})
+        t1 = time.perf_counter()
+        parts["fusion_s"] = t1 - t0 - parts["stereo_s"]
+        completed = None
+        self.uncompleted = self.completion_grid = None
+        if self.completion is not None:
+            self.uncompleted = scene  # the evidence alone (`eval sensor-to-sensor` scores both)
+            feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
+                                     pixel_stride=fusion_config(cfg).pixel_stride)
+            with _one_torch_thread():
+                occ_logit, lab_logit = self.completion(torch.from_numpy(feats)[None])
+            occ = torch.sigmoid(occ_logit[0]).double().numpy()
+            lab = lab_logit[0].argmax(0).numpy()
+            # the coarse grid, for scoring (`eval sensor-to-sensor`): probabilities, labels, the input
+            self.completion_grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": ev.corner,
+                                    "voxel_size": self.completion_voxel_size}
+            scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
+                                                self.profile.completion)
+            parts["completion_s"] = time.perf_counter() - t1
         if max_range is not None:
             centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
             scene = scene.select_voxels(np.linalg.norm(centres, axis=1) <= max_range)
-        self.timings = {"geometry_s": time.perf_counter() - t0, "appearance_s": 0.0, "peak_mb": peak_mb(),
-                        **{k: v for k, v in parts.items() if k != "peak_mb"}}
+        self.timings = {"geometry_s": time.perf_counter() - t0, "appearance_s": 0.0, "peak_mb": peak_mb(), **parts}
         scene.metadata.update({
             "source": "scube_sim.convert",
             "profile": self.profile.name,
@@ -523,6 +557,12 @@ class Converter:
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},
             "evidence": self.profile.evidence.model_dump(mode="json"),
         })
+        if completed is not None:
+            scene.metadata["completion"] = {**self.profile.completion.model_dump(mode="json"),
+                                            "checkpoint_sha256": self.checkpoint_hashes()["completion"],
+                                            "voxel_size": self.completion_voxel_size, **completed}
+            scene.metadata["confidence_kind"] = ("fused occupancy probability; unobserved ground: a constant; "
+                                                 "completed: the network's occupancy probability")
         if frames.context:
             scene.metadata["instants"] = context_record(frames)
             scene.metadata["instants_used"] = "all: stereo over every camera of every instant given"

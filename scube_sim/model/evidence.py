@@ -45,10 +45,11 @@ from ..memory import peak_mb, reset_peak
 from ..stereo import StereoConfig, moved_pixels, stereo_depth
 from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
-from .geometry.fusion import DepthObservation, FusionConfig, SurfaceSamples, evidence_voxsplat, fuse_depth
+from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, SurfaceSamples, evidence_voxsplat,
+                              fuse_depth)
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
-__all__ = ["EvidenceConfig", "evidence_scene"]
+__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "measure_evidence", "scene_from_evidence"]
 
 TRACE_MODE = "entry"
 GROUND_LABEL = LABEL_IDS["road"]
@@ -65,6 +66,9 @@ class EvidenceConfig(StrictModel):
     ground_band_m: float = Field(default=0.2, gt=0)  # a point this close to the height field is ground ...
     ground_max_slope_deg: float = Field(default=30.0, gt=0, le=90)  # ... if its surface tilts at most this
     ground_confidence: float = Field(default=0.5, ge=0, le=1)  # confidence of ground voxels no camera saw
+    # beyond the measured ground the height field's rise over its plane decays with this length
+    # (`geometry.ground.fit_height_field`; None: carried unchanged, as before 2026-12-05)
+    ground_fill_decay_m: float | None = Field(default=8.0, gt=0, le=10_000)
     fill_ground: bool = True  # ground surfels under the columns no observed ground voxel covers
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     # the instants (offsets from T) whose images are stereo references, each against the others
@@ -127,17 +131,37 @@ def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceC
                           np.full(len(pts), GROUND_LABEL, np.int64), cfg.ground_confidence)
 
 
-def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | None = None, *,
-                   progress: bool = False, timings: dict | None = None) -> VoxSplat:
-    """Frames -> VoxSplat in the chunk frame (`to_chunk` (4, 4): world -> chunk) (module docstring),
-    labels from the geometry, channels `observed` and `confidence`, metadata `trace_mode` entry.
-    Same frames, same bytes, whatever the thread count (no timings in the file); `timings`, if
-    given, receives stereo_s, fusion_s (seconds) and peak_mb."""
+@dataclasses.dataclass
+class Evidence:
+    """What the cameras measured, before surfels: the fused `grid` (chunk frame, cut to the chunk),
+    per-point `labels` (N,) (ground / other), the ground height `field` (None: none measured and
+    `fill_ground` off) and whether it was `measured`, every reference image's depth (`observations`,
+    cam_to_world in the chunk frame), the chunk's `corner` (3,) metres and `to_chunk` (4, 4)."""
+
+    grid: FusedGrid
+    labels: np.ndarray
+    field: HeightField | None
+    measured: bool
+    observations: list[DepthObservation]
+    corner: np.ndarray
+    to_chunk: np.ndarray
+
+    @property
+    def extent(self) -> tuple[float, float, float, float]:
+        """(x0, x1, y0, y1) metres, chunk frame: the chunk's footprint."""
+        c = self.corner
+        return (c[0], c[0] + CHUNK_SIZE, c[1], c[1] + CHUNK_SIZE)
+
+
+def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | None = None, *,
+                     progress: bool = False, timings: dict | None = None) -> Evidence:
+    """Frames -> the `Evidence` in the chunk frame (`to_chunk` (4, 4): world -> chunk): stereo per
+    reference image, fusion, the ground height field and the points' labels (module docstring).
+    `timings`, if given, receives stereo_s and fusion_s (seconds)."""
     cfg = cfg or EvidenceConfig()
     to_chunk = np.asarray(to_chunk, np.float64)
     if to_chunk.shape != (4, 4) or not np.all(np.isfinite(to_chunk)):
         raise InputError(f"evidence_scene: to_chunk must be a finite (4, 4) pose, got shape {to_chunk.shape}")
-    reset_peak()
     t0 = time.perf_counter()
     observations = []
     have = {f.offset - frames.offset for f in frames.instants()}
@@ -157,7 +181,7 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
             observations.append(DepthObservation(moved, res.depth, conf))
     t1 = time.perf_counter()
     # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
-    fusion = cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
+    fusion = fusion_config(cfg)
     corner = grid_corner(frames, to_chunk)
     grid = fuse_depth(observations, fusion, origin=corner)
     lo, hi = _chunk_bounds(cfg.fusion.voxel_size)
@@ -167,7 +191,8 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
     extent = (corner[0], corner[0] + CHUNK_SIZE, corner[1], corner[1] + CHUNK_SIZE)
     # the ground: points on surfaces facing up (a wall's foot is within a kerb's height of the road)
     flat = np.abs(grid.normals[:, 2]) >= np.cos(np.radians(cfg.ground_max_slope_deg))
-    field = fit_height_field(grid.points[flat], extent, cell=cfg.ground_cell_m) if flat.sum() >= 3 else None
+    field = (fit_height_field(grid.points[flat], extent, cell=cfg.ground_cell_m, fill_decay_m=cfg.ground_fill_decay_m)
+             if flat.sum() >= 3 else None)
     measured = field is not None
     if field is None and cfg.fill_ground:
         # no ground measured (no confident depth, or none facing up): the road the ego stands on
@@ -177,23 +202,55 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
         labels = np.where(near & flat, GROUND_LABEL, OTHER_LABEL).astype(np.int64)
     else:
         labels = np.full(len(grid.points), OTHER_LABEL, np.int64)
+    if timings is not None:
+        timings.update({"stereo_s": t1 - t0, "fusion_s": time.perf_counter() - t1})
+    return Evidence(grid, labels, field, measured, observations, corner, to_chunk)
+
+
+def fusion_config(cfg: EvidenceConfig) -> FusionConfig:
+    """The fusion settings the route uses: `cfg.fusion` with the depth maps' pixel stride (a depth
+    map at stereo scale s holds one measurement per 1 / s pixels)."""
+    return cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
+
+
+def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxSplat:
+    """The evidence's VoxSplat in the chunk frame: surfels on the observed points, ground surfels
+    under the columns no observed ground covers, channels `observed` and `confidence`, metadata
+    `trace_mode` entry (module docstring)."""
+    cfg = cfg or EvidenceConfig()
+    field, grid, labels = ev.field, ev.grid, ev.labels
     samples = _ground_samples(field, grid, labels, cfg) if (field is not None and cfg.fill_ground) else None
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,
                               max_normal_scale=cfg.max_normal_share * cfg.fusion.voxel_size)
-    t2 = time.perf_counter()
     scene.metadata.update({
         "source": "scube_sim.evidence",
         "frame": "chunk",
-        "chunk_to_world": np.linalg.inv(to_chunk).tolist(),
+        "chunk_to_world": np.linalg.inv(ev.to_chunk).tolist(),
         "trace_mode": TRACE_MODE,
         "confidence_kind": "fused occupancy probability (unobserved ground: a constant)",
-        "ground_field": None if field is None else {"cell_m": field.cell, "measured": measured,
+        "ground_field": None if field is None else {"cell_m": field.cell, "measured": ev.measured,
                                                     "observed_share": float(field.observed.mean())},
-        "cameras": list(frames.names),
-        "timestamp": float(frames.timestamp),
     })
+    return scene
+
+
+def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | None = None, *,
+                   progress: bool = False, timings: dict | None = None) -> VoxSplat:
+    """Frames -> VoxSplat in the chunk frame (`to_chunk` (4, 4): world -> chunk) (module docstring),
+    labels from the geometry, channels `observed` and `confidence`, metadata `trace_mode` entry.
+    Same frames, same bytes, whatever the thread count (no timings in the file); `timings`, if
+    given, receives stereo_s, fusion_s (seconds) and peak_mb."""
+    cfg = cfg or EvidenceConfig()
+    reset_peak()
+    parts: dict = {}
+    t0 = time.perf_counter()
+    ev = measure_evidence(frames, to_chunk, cfg, progress=progress, timings=parts)
+    scene = scene_from_evidence(ev, cfg)
+    scene.metadata.update({"cameras": list(frames.names), "timestamp": float(frames.timestamp)})
     if timings is not None:
-        timings.update({"stereo_s": t1 - t0, "fusion_s": t2 - t1, "peak_mb": peak_mb()})
+        # fusion_s: fusion, ground and surfels (everything after stereo)
+        timings.update({"stereo_s": parts["stereo_s"], "fusion_s": time.perf_counter() - t0 - parts["stereo_s"],
+                        "peak_mb": peak_mb()})
     return scene
 
 

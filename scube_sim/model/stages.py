@@ -35,7 +35,7 @@ from ..errors import NotFoundError, ScubeSimError
 
 # Modules that register a stage when imported (each stage folder's `stage` module).
 STAGE_MODULES: list[str] = ["scube_sim.model.semantics.stage", "scube_sim.model.appearance.stage",
-                             "scube_sim.model.geometry.stage"]
+                             "scube_sim.model.geometry.stage", "scube_sim.model.completion.stage"]
 
 
 class StageError(ScubeSimError):
@@ -57,6 +57,9 @@ class Stage(ABC):
     primary_metric: ClassVar[str]  # key of `evaluate`'s result that picks best.pt
     higher_is_better: ClassVar[bool]
     splits: ClassVar[tuple[str, ...]] = ("train", "val", "test")
+    # the trainer calls the train dataset's `set_epoch(epoch)` before each epoch's loader, so that
+    # its augmentation draws anew each epoch (opt-in: the shipped stages' runs replay without it)
+    epoch_aware: ClassVar[bool] = False
 
     @abstractmethod
     def build_model(self, model_cfg: BaseModel) -> nn.Module:

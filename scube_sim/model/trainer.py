@@ -356,6 +356,8 @@ class _Loop:
                 # Its own generator: otherwise the DataLoader draws its worker seed from torch's global
                 # generator, and a resumed run (which opens the loader at another moment) diverges.
                 gen = torch.Generator().manual_seed(_derive_seed(self.tc.seed, s.epoch, self.rank))
+                if self.stage.epoch_aware:
+                    self.train_ds.set_epoch(s.epoch)
                 loader = DataLoader(self.train_ds, batch_sampler=sampler, collate_fn=self.stage.collate,
                                     num_workers=self.tc.num_workers, generator=gen)
                 for batch in loader:

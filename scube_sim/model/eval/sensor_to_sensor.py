@@ -16,7 +16,9 @@ Rays compared: those whose mesh return lies inside the converted chunk (0.5 m in
 Seen / unseen: whether the mesh return's fine ground-truth voxel was seen by an input camera
 (the dataset's ``fine_visible``, from the input cameras' depth maps), independent of the
 prediction; seen-obj / seen-gnd: the seen rays whose voxel's label is not / is a ground class
-(`GROUND_LABEL_NAMES`). Chamfer: the mean of the two directed mean nearest-neighbour distances between the
+(`GROUND_LABEL_NAMES`); unseen-obj / unseen-gnd: the same for the unseen rays. A converter with
+a completion (`model.completion`) is also scored without it, on the same measurement: the scene
+"evidence alone". Chamfer: the mean of the two directed mean nearest-neighbour distances between the
 two sweeps' points inside the chunk (metres).
 """
 
@@ -33,7 +35,7 @@ import torch
 from ...camera.rig import load_rig
 from ...config import json_loads
 from ...errors import InputError
-from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
+from ...labels import GROUND_LABEL_NAMES, LABEL_IDS, NUM_LABELS
 from ...lidar.compare import fidelity_config, sweep_agreement
 from ...lidar.config import Drop, load_lidar_config
 from ...lidar.model import Lidar
@@ -44,16 +46,20 @@ from ...voxsplat import VoxSplat, voxel_keys
 from ...worlds.generator import WorldConfig, generate_world
 from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, gt_voxsplat
 from ...worlds.textures import world_albedo
+from ..completion.features import FEATURES
 from ..converter import Converter, open_frames
 from ..data.worlds import resize_bilinear
+from ..geometry.data import grid_in_box
 from ..geometry.metrics import chamfer_voxels, voxel_iou
 from ..nn.image_metrics import psnr
+from ..nn.lifting import LiftGrid
 from ..nn.views import render_rig
+from ..semantics.stage import semantic_metrics
 
 AHEAD_M = (0.0, 20.0, 60.0)
 CHUNK_MARGIN_M = 0.5
-SCENES = ("ground-truth VoxSplat", "converted")
-SPLITS = ("all", "seen", "unseen", "seen-obj", "seen-gnd")
+SCENES = ("ground-truth VoxSplat", "evidence alone", "converted")
+SPLITS = ("all", "seen", "unseen", "seen-obj", "seen-gnd", "unseen-obj", "unseen-gnd")
 _GROUND_IDS = np.array([LABEL_IDS[n] for n in GROUND_LABEL_NAMES])
 
 __all__ = ["AHEAD_M", "SCENES", "SweepPoses", "ahead_poses", "evaluate_sample", "evaluate_split",
@@ -109,22 +115,31 @@ def _inside_chunk(p_chunk: np.ndarray) -> np.ndarray:
     return np.all((p_chunk >= lo) & (p_chunk < hi), axis=1)
 
 
+def point_labels(p_chunk: np.ndarray, voxels: dict) -> tuple[np.ndarray, np.ndarray]:
+    """((N,) int16 the label of each chunk-frame point's fine ground-truth voxel, -1 where it falls
+    in none; (N,) bool whether an input camera saw that voxel)."""
+    size = float(voxels["fine_voxel_size"])
+    vis = np.asarray(voxels["fine_visible"], bool)
+    keys_gt = voxel_keys(voxels["fine_ijk"])
+    labels = np.asarray(voxels["fine_labels"]) if "fine_labels" in voxels else np.zeros(len(keys_gt), np.uint8)
+    order = np.argsort(keys_gt)
+    keys_gt, labels, vis = keys_gt[order], labels[order], vis[order]
+    keys = voxel_keys(np.floor((p_chunk - CHUNK_CORNER) / size).astype(np.int64))
+    out = np.full(len(keys), -1, np.int16)
+    seen = np.zeros(len(keys), bool)
+    if len(keys_gt):
+        pos = np.minimum(np.searchsorted(keys_gt, keys), len(keys_gt) - 1)
+        hit = keys_gt[pos] == keys
+        out[hit] = labels[pos[hit]]
+        seen[hit] = vis[pos[hit]]
+    return out, seen
+
+
 def seen_labels(p_chunk: np.ndarray, voxels: dict) -> np.ndarray:
     """(N,) int16: the label of each chunk-frame point's fine ground-truth voxel where an input
     camera saw that voxel, else -1."""
-    size = float(voxels["fine_voxel_size"])
-    vis = np.asarray(voxels["fine_visible"], bool)
-    seen_keys = voxel_keys(voxels["fine_ijk"][vis])
-    labels = np.asarray(voxels["fine_labels"])[vis] if "fine_labels" in voxels else np.zeros(len(seen_keys), np.uint8)
-    order = np.argsort(seen_keys)
-    seen_keys, labels = seen_keys[order], labels[order]
-    keys = voxel_keys(np.floor((p_chunk - CHUNK_CORNER) / size).astype(np.int64))
-    out = np.full(len(keys), -1, np.int16)
-    if len(seen_keys):
-        pos = np.minimum(np.searchsorted(seen_keys, keys), len(seen_keys) - 1)
-        hit = seen_keys[pos] == keys
-        out[hit] = labels[pos[hit]]
-    return out
+    labels, seen = point_labels(p_chunk, voxels)
+    return np.where(seen, labels, np.int16(-1)).astype(np.int16)
 
 
 def seen_points(p_chunk: np.ndarray, voxels: dict) -> np.ndarray:
@@ -196,14 +211,53 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
     t1 = time.perf_counter()
     rows = list(cached["rows"])
+    grid = getattr(conv, "completion_grid", None)
+    if grid is not None:
+        stages.update(completion_grid_metrics(grid, vox))
+        done = scene.metadata.get("completion", {})
+        stages["completion_added_cells"] = float(done.get("added_cells", 0))
+        stages["completion_removed_share"] = done.get("removed_voxels", 0) / max(done.get("observed_voxels", 0), 1)
+        stages["completion_s"] = conv.timings.get("completion_s", float("nan"))
+    # with a completion: the same measurement without it, traced from the same poses
+    alone = getattr(conv, "uncompleted", None)
+    alone_tracer = None if alone is None else Tracer(alone, mode=trace_mode or alone.metadata.get("trace_mode", "entry"),
+                                                     **(trace_options or {}))
     for ref, p in zip(cached["refs"], cached["poses"]):
         sweep = lidar.scan(tracer, p.chunk, seed=seed)
         rows += _rows("converted", p.ahead, ref, sweep, p.chunk)
+        if alone_tracer is not None:
+            rows += _rows(SCENES[1], p.ahead, ref, lidar.scan(alone_tracer, p.chunk, seed=seed), p.chunk)
     stages["trace_s_per_sweep"] = (time.perf_counter() - t1) / max(len(cached["poses"]), 1)
     # the context asked for and the instants the converter was given (fewer where the log has fewer)
     return {"sample": f"{sample_dir.parent.name}/{sample_dir.name}", "context": context,
             "offsets": [0] + [c.offset for c in frames.context], "stages": stages, "rows": rows,
             "voxels": len(ijk), "observed_fraction": float(np.mean(scene.channel("observed")))}
+
+
+def completion_grid_metrics(grid: dict, voxels: dict) -> dict:
+    """The completion's coarse grid (`Converter.completion_grid`) against the ground truth's coarse
+    voxels coarsened to it (occupied if any child is, the most frequent label): IoU of the cells at
+    p >= 0.5, mIoU of their labels (over the labels present in the truth or the prediction, on
+    the cells both hold), and the evidence alone's IoU (the cells holding an observed voxel)."""
+    vs, occ, lab = float(grid["voxel_size"]), grid["occupancy"] >= 0.5, grid["labels"]
+    stored = float(voxels["coarse_voxel_size"])
+    factor = int(round(vs / stored))
+    box = LiftGrid(tuple(float(v) for v in grid["corner"]), vs, tuple(int(d) for d in occ.shape))
+    rel, labels, _ = grid_in_box(torch.from_numpy(voxels["coarse_ijk"].astype(np.int64)),
+                                 torch.from_numpy(voxels["coarse_labels"].astype(np.int64)),
+                                 torch.from_numpy(np.asarray(voxels["coarse_visible"], bool)), factor, stored, box)
+    rel, labels = rel.numpy(), labels.numpy()
+    gt = np.zeros(occ.shape, bool)
+    gt[rel[:, 0], rel[:, 1], rel[:, 2]] = True
+    gt_lab = np.full(occ.shape, -1, np.int64)
+    gt_lab[rel[:, 0], rel[:, 1], rel[:, 2]] = labels
+    evidence = grid["features"][FEATURES.index("occupied")] > 0
+    both = occ & gt
+    n = NUM_LABELS
+    conf = np.bincount(gt_lab[both] * n + lab[both], minlength=n * n).reshape(n, n)
+    iou = lambda a: float((a & gt).sum() / max((a | gt).sum(), 1))  # noqa: E731
+    return {"completion_iou": iou(occ), "completion_miou": semantic_metrics(torch.from_numpy(conf))["miou"],
+            "evidence_iou": iou(evidence)}
 
 
 def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, seed: int,
@@ -231,11 +285,12 @@ def _reference(sample_dir: Path, meta: dict, lidar: Lidar, *, gt_voxel: float, s
         pts = transform_points(to_chunk @ p.world, m.xyz().astype(np.float64))
         rr, cc = m.pixels()
         inside = _inside_chunk(pts)
-        lab = seen_labels(pts, voxels)
-        seen, ground = lab >= 0, np.isin(lab, _GROUND_IDS)
+        lab, seen = point_labels(pts, voxels)
+        ground = np.isin(lab, _GROUND_IDS)
         img_shape = (m.channels, m.columns)
         sels = {"all": inside, "seen": inside & seen, "unseen": inside & ~seen,
-                "seen-obj": inside & seen & ~ground, "seen-gnd": inside & ground}
+                "seen-obj": inside & seen & ~ground, "seen-gnd": inside & seen & ground,
+                "unseen-obj": inside & ~seen & ~ground, "unseen-gnd": inside & ~seen & ground}
         masks = {}
         for name, sel in sels.items():
             mk = np.zeros(img_shape, bool)

@@ -63,3 +63,25 @@ def test_no_ground_no_field_and_bad_extents_refused():
     assert fit_ground_plane(wall) is None  # vertical: tilted beyond the limit
     with pytest.raises(InputError, match="extent"):
         fit_height_field(_road(), (5.0, 1.0, 0.0, 1.0))
+
+
+def test_beyond_the_measured_ground_a_rise_decays_to_the_plane():
+    # a level road measured from x = 0 to 30 m, its last 4 m raised 0.5 m (far stereo's noisy
+    # heights), nothing measured from 30 to 90 m
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([0.0, -10.0], [30.0, 10.0], (12000, 2))
+    z = np.where(xy[:, 0] > 26.0, 0.5, 0.0) + rng.normal(0, 0.01, len(xy))
+    pts = np.column_stack([xy, z])
+    extent = (0.0, 90.0, -10.0, 10.0)
+    carried = fit_height_field(pts, extent, cell=1.0)
+    decayed = fit_height_field(pts, extent, cell=1.0, fill_decay_m=8.0)
+    far = np.array([[40.0, 0.0], [60.0, 0.0], [88.0, 0.0]])
+    plane_z = decayed.plane.z_at(far)
+    # carried unchanged: the rise runs on to the edge; decayed: exp(-d / 8 m) of it d metres on
+    assert np.all(carried.height_at(far) - plane_z > 0.4)
+    rise = decayed.height_at(far) - plane_z
+    d = far[:, 0] - 29.5  # from the last measured cells' centres
+    assert np.all(np.isfinite(rise)) and np.all(rise > 0)
+    assert np.all(np.abs(rise - (carried.height_at(far) - plane_z) * np.exp(-d / 8.0)) < 0.05), rise
+    # measured cells are the same either way
+    assert np.array_equal(decayed.heights[decayed.observed], carried.heights[carried.observed])

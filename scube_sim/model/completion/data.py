@@ -1,0 +1,182 @@
+"""The completion stage's data: the evidence of worlds samples, measured by the real stereo
+pipeline and cached (`cache_evidence`, `scube-sim worlds evidence`), with the ground truth.
+
+Cache: DATA/evidence/<split>/<sample>.npz, one per sample, written atomically:
+``features`` (len(FEATURES), X, Y, Z) float16 (`features.completion_input`), ``key`` (JSON: the
+evidence settings, the profile's context, the grid's voxel size and the features' version; a
+sample whose key differs is measured again), ``seconds`` (the measurement's time). The cache is
+rebuilt by the same command, never edited.
+
+Items (`CompletionDataset`): ``features`` (C, X, Y, Z) float32, ``occupancy`` (X, Y, Z) float32
+and ``labels`` (X, Y, Z) int64 (-1 where empty): the ground truth's coarse voxels coarsened to
+the grid (a cell is occupied if any child is; the most frequent label). Training items keep a
+random `crop` x `crop` metre window in x, y and are mirrored left-right with probability one
+half (seeded by seed, epoch and index); validation items are the whole chunk.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from pydantic import Field
+from rich.progress import Progress
+from torch.utils.data import Dataset
+
+from ...atomic import atomic_path
+from ...config import StrictModel, json_loads
+from ...datasets import open_dataset
+from ...datasets.base import frames_with_context
+from ...errors import InputError
+from ...transforms import invert_pose
+from ...worlds.groundtruth import CHUNK_CORNER
+from ..data.worlds import item_generator
+from ..converter import chunk_to_world, load_profile
+from ..eval.evaluate import bar_columns
+from ..evidence import fusion_config, measure_evidence
+from ..geometry.data import grid_in_box
+from ..nn.lifting import LiftGrid
+from .features import FEATURES, coarse_dims, completion_input
+
+__all__ = ["CompletionData", "CompletionDataset", "cache_evidence", "cache_path"]
+
+FEATURES_VERSION = 1
+CACHE_DIR = "evidence"
+
+
+class CompletionData(StrictModel):
+    """voxel_size: the grid's (metres; the stored coarse ground truth's size times a whole
+    number); crop: training windows (metres, a multiple of 8 cells; None: the whole chunk);
+    flip: mirror training items left-right (y) with probability one half."""
+
+    voxel_size: float = Field(default=0.8, gt=0, le=10)
+    crop: float | None = Field(default=51.2, gt=0)
+    flip: bool = True
+
+
+def cache_path(data_dir: Path, split: str, sample: str) -> Path:
+    return Path(data_dir) / CACHE_DIR / split / f"{sample}.npz"
+
+
+def _key(profile, voxel_size: float) -> str:
+    return json.dumps({"evidence": profile.evidence.model_dump(mode="json"), "context": profile.context,
+                       "voxel_size": voxel_size, "features": list(FEATURES), "version": FEATURES_VERSION},
+                      sort_keys=True)
+
+
+def _cached_key(path: Path) -> str | None:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return str(z["key"])
+    except (OSError, ValueError, KeyError):
+        return None  # damaged or from an interrupted writer: measured again
+
+
+def cache_evidence(data_dir: Path, split: str, *, count: int | None = None, start: int = 0,
+                   profile: str = "evidence", voxel_size: float = 0.8, progress: bool = True) -> dict:
+    """Measure and cache the evidence features of samples [start, start + count) of a worlds
+    split (all from `start` when count is None) with the evidence route of `profile`; samples
+    already cached with the same key are skipped (resumable). Returns {written, skipped,
+    seconds_per_sample}."""
+    prof = load_profile(profile)
+    if prof.route != "evidence":
+        raise InputError(f"--profile: {prof.name!r} is route {prof.route!r}; the completion's evidence needs "
+                         f"an evidence-route profile")
+    data_dir = Path(data_dir)
+    ds = open_dataset("worlds", data_dir, split=split, eval_frames=False)
+    names = [d.name for d in ds.sample_dirs]
+    stop = len(names) if count is None else min(len(names), start + count)
+    if start >= stop:
+        raise InputError(f"{data_dir / split}: no samples from {start} ({len(names)} in the split)")
+    key = _key(prof, voxel_size)
+    cfg = prof.evidence
+    written = skipped = 0
+    spent = 0.0
+    with Progress(*bar_columns(), disable=not progress) as bar:
+        task = bar.add_task(f"evidence {split}", total=stop - start)
+        for i in range(start, stop):
+            out = cache_path(data_dir, split, names[i])
+            if out.is_file() and _cached_key(out) == key:
+                skipped += 1
+                bar.advance(task)
+                continue
+            t0 = time.perf_counter()
+            frames = frames_with_context(ds, i, prof.context) if prof.context else ds[i].frames
+            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg)
+            feats = completion_input(ev, voxel_size, min_confidence=cfg.fusion.min_confidence,
+                                     pixel_stride=fusion_config(cfg).pixel_stride)
+            seconds = time.perf_counter() - t0
+            out.parent.mkdir(parents=True, exist_ok=True)
+            with atomic_path(out) as tmp:
+                with open(tmp, "wb") as f:
+                    np.savez_compressed(f, features=feats.astype(np.float16), key=np.array(key),
+                                        seconds=np.array(seconds))
+            written += 1
+            spent += seconds
+            bar.advance(task)
+    return {"written": written, "skipped": skipped, "seconds_per_sample": spent / max(written, 1)}
+
+
+class CompletionDataset(Dataset):
+    """The cached samples of one split that have ground truth (module docstring)."""
+
+    def __init__(self, root: Path, split: str, cfg: CompletionData, seed: int = 0, train: bool | None = None):
+        self.root, self.split, self.cfg, self.seed = Path(root), split, cfg, seed
+        self.train = split == "train" if train is None else train
+        folder = self.root / CACHE_DIR / split
+        self.files = sorted(folder.glob("*.npz")) if folder.is_dir() else []
+        self.epoch = 0
+        self.dims = coarse_dims(cfg.voxel_size)
+        if cfg.crop is not None:
+            c = cfg.crop / cfg.voxel_size
+            if abs(c - round(c)) > 1e-6 or round(c) % 8 or round(c) > self.dims[0]:
+                raise InputError(f"data.crop: {cfg.crop} m is not a multiple of 8 cells of {cfg.voxel_size} m "
+                                 f"within the chunk")
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def _target(self, sample: str) -> tuple[torch.Tensor, torch.Tensor]:
+        path = self.root / self.split / sample / "voxels.npz"
+        if not path.is_file():
+            raise InputError(f"{path}: missing ground-truth voxels")
+        with np.load(path, allow_pickle=False) as z:
+            ijk, lab, vis, stored = z["coarse_ijk"], z["coarse_labels"], z["coarse_visible"], float(z["coarse_voxel_size"])
+        factor = int(round(self.cfg.voxel_size / stored))
+        if factor < 1 or abs(self.cfg.voxel_size / stored - factor) > 1e-6:
+            raise InputError(f"{path}: voxel size {self.cfg.voxel_size} m is not a whole multiple of the stored "
+                             f"{stored} m")
+        grid = LiftGrid(tuple(float(v) for v in CHUNK_CORNER), self.cfg.voxel_size, self.dims)
+        rel, labels, _ = grid_in_box(torch.from_numpy(ijk.astype(np.int64)), torch.from_numpy(lab.astype(np.int64)),
+                                     torch.from_numpy(vis), factor, stored, grid)
+        occ = torch.zeros(self.dims)
+        tl = torch.full(self.dims, -1, dtype=torch.int64)
+        occ[rel[:, 0], rel[:, 1], rel[:, 2]] = 1.0
+        tl[rel[:, 0], rel[:, 1], rel[:, 2]] = labels
+        return occ, tl
+
+    def __getitem__(self, index: int) -> dict:
+        path = self.files[index]
+        with np.load(path, allow_pickle=False) as z:
+            feats = torch.from_numpy(z["features"].astype(np.float32))
+            key = json_loads(str(z["key"]), str(path))
+        if abs(key.get("voxel_size", -1) - self.cfg.voxel_size) > 1e-9:
+            raise InputError(f"{path}: cached at {key.get('voxel_size')} m, data.voxel_size is {self.cfg.voxel_size} m "
+                             f"(rebuild: scube-sim worlds evidence)")
+        occ, labels = self._target(path.stem)
+        if self.train:
+            gen = item_generator(self.seed + 11, self.epoch, index)
+            if self.cfg.crop is not None:
+                c = int(round(self.cfg.crop / self.cfg.voxel_size))
+                x0, y0 = (int(torch.randint(0, (d - c) // 8 + 1, (1,), generator=gen)) * 8 for d in self.dims[:2])
+                feats, occ, labels = (t[..., x0:x0 + c, y0:y0 + c, :] for t in (feats, occ, labels))
+            if self.cfg.flip and bool(torch.randint(0, 2, (1,), generator=gen)):
+                feats, occ, labels = (t.flip(-2) for t in (feats, occ, labels))
+        return {"features": feats.contiguous(), "occupancy": occ.contiguous(), "labels": labels.contiguous(),
+                "sample": path.stem}

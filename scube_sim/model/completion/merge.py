@@ -1,0 +1,144 @@
+"""The completion's merge: the network's coarse occupancy and labels joined with the evidence
+VoxSplat, the observation winning wherever the two disagree.
+
+Per coarse cell (`features` grid) the network gives an occupancy probability p and a label:
+
+- **added**: a cell with p >= `add_threshold` that holds no observed voxel, whose free-space rays
+  are fewer than `free_veto_samples` (the cameras saw through it: it stays empty whatever the
+  network says), that borders a cell below the threshold (a surface, not the inside of a
+  building) and whose label is not a ground class (the height field already holds the ground
+  no camera saw) gets one round Gaussian at its centre whose 3-sigma sphere (`blob_radius`, a
+  share of the cell: 0.75, so that four neighbours' spheres close the gap between them at hard
+  opacity) stands for the cell (where in the cell the surface lies, nobody measured), labelled
+  by the network, `observed` 0, `confidence` p;
+- **removed**: an observed voxel whose fused probability is below `keep_confidence` (one view's
+  unsure stereo) in a cell with p < `remove_threshold` is dropped as noise; a voxel at or above
+  `keep_confidence` is never removed, whatever p (tests plant a confident wall and a network
+  that wants it gone);
+- **labelled**: an observed voxel in a cell with p >= `add_threshold` takes the network's label
+  there (the geometry alone knows only ground and not ground); the rest keep theirs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from ... import splat_params as sp
+from ...config import StrictModel
+from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
+from ...voxsplat import Channel, Gaussians, VoxSplat, voxel_keys
+from .features import FEATURES, FREE_RAYS_FULL
+
+__all__ = ["CompletionConfig", "merge_completion"]
+
+GROUND_IDS = np.array(sorted(LABEL_IDS[n] for n in GROUND_LABEL_NAMES), np.int64)
+_FREE_RAYS = FEATURES.index("free_rays")
+
+
+class CompletionConfig(StrictModel):
+    """A profile's `completion:` section (module docstring for the merge's rules)."""
+
+    checkpoint: str  # a shipped name or a path
+    add_threshold: float = Field(default=0.5, gt=0, lt=1)
+    remove_threshold: float = Field(default=0.1, ge=0, lt=1)
+    keep_confidence: float = Field(default=0.65, ge=0, le=1)
+    free_veto_samples: int = Field(default=3, ge=1, le=10_000)
+    blob_radius: float = Field(default=0.75, gt=0, le=2)  # an added cell's 3-sigma sphere, a share of the cell
+    relabel: bool = True
+
+
+def _free_samples(features: np.ndarray) -> np.ndarray:
+    """The ray samples per cell, back from the `free_rays` channel (features docstring)."""
+    v = features[_FREE_RAYS].astype(np.float64)
+    return np.where(v >= 1.0, np.inf, np.expm1(v * np.log1p(FREE_RAYS_FULL)))
+
+
+def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarray, labels: np.ndarray,
+                     corner: np.ndarray, voxel_size: float, cfg: CompletionConfig) -> tuple[VoxSplat, dict]:
+    """The evidence `scene` (chunk frame; channels `observed`, `confidence`) with the network's
+    `occupancy` (X, Y, Z) probabilities and `labels` (X, Y, Z) ids merged (module docstring), on the
+    coarse grid of `voxel_size` metres from `corner` (3,) whose input was `features` (C, X, Y, Z).
+    Returns (the scene, counts: cells added, observed voxels removed, relabelled, and the observed
+    voxels before)."""
+    dims = np.array(occupancy.shape)
+    vs = float(voxel_size)
+    observed = scene.channel("observed").astype(bool)
+    conf = scene.channel("confidence").astype(np.float32)  # compared as stored
+    centres = scene.origin + scene.voxel_centers()
+    cell = np.floor((centres - corner) / vs).astype(np.int64)
+    inside = np.all((cell >= 0) & (cell < dims), 1)
+    c = np.where(inside[:, None], cell, 0)
+    p_vox = np.where(inside, occupancy[c[:, 0], c[:, 1], c[:, 2]], 1.0)
+    lab_vox = labels[c[:, 0], c[:, 1], c[:, 2]]
+
+    # removed: unsure observations the network finds empty
+    drop = observed & (conf < np.float32(cfg.keep_confidence)) & (p_vox < cfg.remove_threshold) & inside
+    # labelled: observed voxels in cells the network holds occupied
+    relabel = observed & ~drop & inside & (p_vox >= cfg.add_threshold) if cfg.relabel else np.zeros_like(drop)
+    new_labels = scene.labels.copy()
+    new_labels[relabel] = lab_vox[relabel]
+
+    # added: confident cells nothing observed, not seen through, on a surface, not ground
+    occ = occupancy >= cfg.add_threshold
+    held = np.zeros(dims, bool)
+    oc = c[observed & inside]
+    held[oc[:, 0], oc[:, 1], oc[:, 2]] = True
+    pad = np.pad(occupancy, 1, constant_values=0.0)
+    border = np.zeros(dims, bool)
+    for axis in range(3):
+        for sign in (-1, 1):
+            sl = [slice(1, -1)] * 3
+            sl[axis] = slice(1 + sign, dims[axis] + 1 + sign)
+            border |= pad[tuple(sl)] < cfg.add_threshold
+    add = occ & ~held & border & (_free_samples(features) < cfg.free_veto_samples) & ~np.isin(labels, GROUND_IDS)
+    ai = np.argwhere(add)
+    a_centres = corner + (ai + 0.5) * vs
+    a_local = a_centres - scene.origin
+    a_keys = voxel_keys(np.floor(a_local / scene.voxel_size).astype(np.int64))
+    keys = voxel_keys(scene.ijk.astype(np.int64))
+    clash = np.isin(a_keys, keys[~drop])  # a fine voxel the scene holds (ground fill): keep the scene's
+    ai, a_local, a_keys = ai[~clash], a_local[~clash], a_keys[~clash]
+    p_add = occupancy[ai[:, 0], ai[:, 1], ai[:, 2]] if len(ai) else np.zeros(0)
+    l_add = labels[ai[:, 0], ai[:, 1], ai[:, 2]] if len(ai) else np.zeros(0, np.int64)
+
+    base = scene.select_voxels(~drop)
+    if len(ai):
+        m = scene.gaussians_per_voxel
+        sigma = cfg.blob_radius * vs / 3.0  # traced at hard opacity: the 3-sigma sphere
+        g = Gaussians(means=a_local, scales=np.full((len(ai), 3), sigma), quats=np.tile([1.0, 0, 0, 0], (len(ai), 1)),
+                      opacities=np.ones(len(ai)),
+                      sh_dc=np.zeros((len(ai), 3), np.float32), origin=scene.origin)
+        extra = VoxSplat.from_gaussians(g, scene.voxel_size, labels=l_add, offset_range=scene.offset_range,
+                                        origin=scene.origin)
+        # each added Gaussian has a fine voxel of its own (one per coarse cell, at its centre)
+        sorted_keys = np.sort(a_keys)
+        where = np.searchsorted(sorted_keys, voxel_keys(extra.ijk.astype(np.int64)))
+        p_extra = p_add[np.argsort(a_keys, kind="stable")][where]
+        params = np.zeros((extra.num_voxels, m, extra.params.shape[2]), np.float32)
+        params[:, :, 3] = sp.EMPTY_OPACITY_RAW
+        params[:, :, 7] = 1.0  # identity quaternion in the empty slots
+        params[:, :1] = extra.params[:, :1]
+        valid = np.zeros((extra.num_voxels, m), bool)
+        valid[:, 0] = True
+        channels = {}
+        for name, ch in base.channels.items():
+            if ch.per == "scene":
+                channels[name] = ch
+            elif name == "observed":
+                channels[name] = Channel(ch.per, np.concatenate([ch.data, np.zeros(extra.num_voxels, ch.data.dtype)]))
+            elif name == "confidence":
+                channels[name] = Channel(ch.per, np.concatenate([ch.data, p_extra.astype(ch.data.dtype)]))
+            else:
+                raise ValueError(f"merge_completion: no value for channel {name!r} on added voxels")
+        merged = VoxSplat(np.concatenate([base.ijk, extra.ijk]), np.concatenate([base.params, params]),
+                          base.voxel_size, base.origin, np.concatenate([base.valid, valid]),
+                          np.concatenate([new_labels[~drop], extra.labels]), None, base.offset_range,
+                          dict(base.metadata), channels)
+    else:
+        merged = base
+        merged.labels = new_labels[~drop].astype(np.int16)
+    merged = merged.select_voxels(np.argsort(voxel_keys(merged.ijk.astype(np.int64)), kind="stable"))
+    counts = {"added_cells": int(len(ai)), "removed_voxels": int(drop.sum()),
+              "relabelled_voxels": int(relabel.sum()), "observed_voxels": int(observed.sum())}
+    return merged, counts

@@ -1,0 +1,75 @@
+"""Stage `completion` as the trainer sees it: the completion network (`net`) on cached worlds
+evidence (`data`), its loss (occupancy BCE + label cross-entropy on occupied cells) and metrics
+(IoU, mIoU, and IoU over the cells the evidence holds nothing in)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.utils.data import Dataset
+
+from ...labels import NUM_LABELS
+from ..semantics.stage import semantic_metrics
+from ..stages import Stage, register_stage
+from .data import CompletionData, CompletionDataset
+from .features import FEATURES
+from .net import CompletionModel, CompletionNet
+
+_OCCUPIED, _FREE = FEATURES.index("occupied"), FEATURES.index("free_images")
+
+
+class CompletionStage(Stage):
+    name = "completion"
+    model_config = CompletionModel
+    data_config = CompletionData
+    primary_metric = "iou"
+    higher_is_better = True
+    epoch_aware = True
+
+    def build_model(self, model_cfg: CompletionModel) -> nn.Module:
+        return CompletionNet(model_cfg)
+
+    def dataset(self, data_dir: Path, data_cfg: CompletionData, split: str, seed: int) -> Dataset:
+        return CompletionDataset(Path(data_dir), split, data_cfg, seed)
+
+    def loss(self, model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
+        occ_logit, lab_logit = model(batch["features"])
+        occ, labels = batch["occupancy"], batch["labels"]
+        label_weight, pos_weight = model.cfg.label_weight, model.cfg.pos_weight
+        bce = F.binary_cross_entropy_with_logits(occ_logit, occ, pos_weight=torch.tensor(pos_weight),
+                                                 reduction="none").flatten(1).mean(1)
+        ce = F.cross_entropy(lab_logit, labels.clamp_min(0), reduction="none")
+        mask = (labels >= 0).float()
+        ce = (ce * mask).flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1)
+        loss = (bce + label_weight * ce).mean()
+        return loss, {"bce": float(bce.detach().mean()), "ce": float(ce.detach().mean())}
+
+    def evaluate(self, model: nn.Module, batches: Iterable[dict]) -> dict[str, float]:
+        tp = fp = fn = 0
+        utp = ufp = ufn = 0
+        conf = torch.zeros(NUM_LABELS, NUM_LABELS, dtype=torch.int64)
+        for batch in batches:
+            occ_logit, lab_logit = model(batch["features"])
+            pred, gt = occ_logit > 0, batch["occupancy"] > 0.5
+            # cells the evidence holds nothing in and no camera saw through: the completion's own
+            unseen = (batch["features"][:, _OCCUPIED] == 0) & (batch["features"][:, _FREE] == 0)
+            tp += int((pred & gt).sum())
+            fp += int((pred & ~gt).sum())
+            fn += int((~pred & gt).sum())
+            utp += int((pred & gt & unseen).sum())
+            ufp += int((pred & ~gt & unseen).sum())
+            ufn += int((~pred & gt & unseen).sum())
+            both = pred & gt
+            t, p = batch["labels"][both], lab_logit.argmax(1)[both]
+            conf += torch.bincount(t * NUM_LABELS + p, minlength=NUM_LABELS ** 2).reshape(NUM_LABELS, NUM_LABELS)
+        sem = semantic_metrics(conf)
+        return {"iou": tp / max(tp + fp + fn, 1), "iou_unseen": utp / max(utp + ufp + ufn, 1),
+                "precision": tp / max(tp + fp, 1), "recall": tp / max(tp + fn, 1),
+                "miou": sem["miou"], "label_accuracy": sem["accuracy"]}
+
+
+register_stage(CompletionStage())

@@ -1,0 +1,296 @@
+"""The learned completion (`model.completion`): its input summarises the evidence where the
+cameras saw surfaces and free space, the merge never lets the network remove a confident
+observation nor fill space a camera saw through, a tiny model overfits one sample, training
+resumes bit for bit, and a completion profile converts the corridor keeping every confident
+surface."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from scube_sim.errors import InputError
+from scube_sim.labels import LABEL_IDS
+from scube_sim.model.completion.data import CACHE_DIR, FEATURES_VERSION, CompletionData, CompletionDataset
+from scube_sim.model.completion.features import FEATURES, coarse_dims, completion_input
+from scube_sim.model.completion.merge import CompletionConfig, merge_completion
+from scube_sim.model.config import config_from_dict
+from scube_sim.model.evidence import measure_evidence
+from scube_sim.model.trainer import train
+from scube_sim.raytrace.tracer import Tracer
+from scube_sim.voxsplat import Gaussians, VoxSplat
+from scube_sim.worlds.groundtruth import CHUNK_CORNER
+from tests.model.test_evidence import CFG, _frames, _to_chunk
+
+CH = {name: i for i, name in enumerate(FEATURES)}
+
+
+# ----------------------------------------------------------------------------- the input
+@pytest.fixture(scope="module")
+def corridor_features():
+    ev = measure_evidence(_frames(), _to_chunk(), CFG)
+    return ev, completion_input(ev, 0.8, min_confidence=CFG.fusion.min_confidence)
+
+
+def _cell(p, vs=0.8):
+    return tuple(np.floor((np.asarray(p) - CHUNK_CORNER) / vs).astype(int))
+
+
+def test_the_input_holds_the_walls_and_the_free_space_before_them(corridor_features):
+    ev, f = corridor_features
+    assert f.shape == (len(FEATURES), *coarse_dims(0.8)) and f.dtype == np.float32
+    assert np.all(np.isfinite(f)) and f.min() >= -1 and f.max() <= 1
+    # the left wall's face (y = 3) at 8 m ahead, 1 m up: occupied, seen confidently, not ground
+    wall = _cell([8.0, 3.1, 1.0])
+    assert f[CH["occupied"]][wall] > 0 and f[CH["probability"]][wall] > 0.5
+    assert f[CH["ground"]][wall] < 0.5
+    # the air between the camera and that wall, 8 m ahead, 1.5 m left: rays crossed it
+    air = _cell([8.0, 1.5, 1.6])
+    assert f[CH["free_images"]][air] > 0 and f[CH["occupied"]][air] == 0
+    # behind the wall (y = 5): no camera saw through it, and nothing is there
+    behind = _cell([8.0, 5.0, 1.0])
+    assert f[CH["free_images"]][behind] == 0 and f[CH["occupied"]][behind] == 0
+    # the road 6 m ahead: ground, the height field measured there; 1.5 m below the camera
+    road = _cell([6.0, 0.0, -0.1])
+    assert f[CH["ground"]][road] > 0.5 and f[CH["ground_observed"]][road] == 1
+    above = _cell([6.0, 0.0, 2.0])
+    centre = CHUNK_CORNER + (np.array(above) + 0.5) * 0.8
+    ground = ev.field.height_at(centre[None, :2])[0]
+    assert abs(ground) < 0.1  # the road's surface, z = 0
+    assert f[CH["height"]][above] == pytest.approx((centre[2] - ground) / 4, abs=1e-3)
+
+
+# ----------------------------------------------------------------------------- the merge
+def _wall_scene(conf: float) -> VoxSplat:
+    """A wall at x = 10.1 (chunk frame), y in [-2, 2], z in [0, 2]: one flat Gaussian per 0.2 m
+    voxel, observed with fused probability `conf`."""
+    yy, zz = np.meshgrid(np.arange(-1.9, 2.0, 0.2), np.arange(0.1, 2.0, 0.2), indexing="ij")
+    means = np.column_stack([np.full(yy.size, 10.1), yy.ravel(), zz.ravel()])
+    n = len(means)
+    g = Gaussians(means=means, scales=np.tile([0.002, 0.06, 0.06], (n, 1)), quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                  opacities=np.ones(n), sh_dc=np.zeros((n, 3), np.float32))
+    scene = VoxSplat.from_gaussians(g, 0.2, origin=np.asarray(CHUNK_CORNER, float), max_per_voxel=4,
+                                    labels=np.full(n, LABEL_IDS["undefined"]))
+    scene.set_channel("observed", np.ones(scene.num_voxels, bool))
+    scene.set_channel("confidence", np.full(scene.num_voxels, conf, np.float32))
+    return scene
+
+
+def _grids(p: float):
+    dims = coarse_dims(0.8)
+    feats = np.zeros((len(FEATURES), *dims), np.float32)
+    return feats, np.full(dims, p), np.full(dims, LABEL_IDS["building"])
+
+
+CORNER = np.asarray(CHUNK_CORNER, float)
+
+
+def test_the_network_cannot_remove_a_confident_wall():
+    scene = _wall_scene(0.9)
+    feats, occ, lab = _grids(0.0)  # the network says: nothing anywhere
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    assert counts["removed_voxels"] == 0 and out.num_voxels == scene.num_voxels
+    assert np.array_equal(out.params, scene.params) and np.array_equal(out.ijk, scene.ijk)
+
+
+def test_an_unsure_observation_the_network_finds_empty_is_removed():
+    scene = _wall_scene(0.55)
+    feats, occ, lab = _grids(0.0)
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    assert counts["removed_voxels"] == scene.num_voxels and out.num_voxels == 0
+    # the same voxels at the keep threshold stay
+    scene = _wall_scene(0.65)
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    assert counts["removed_voxels"] == 0
+
+
+def _block(occ, lo, hi, p=0.95):
+    a, b = _cell(lo), _cell(hi)
+    occ[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = p
+
+
+def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
+    scene = _wall_scene(0.9)
+    feats, occ, lab = _grids(0.0)
+    _block(occ, [20.0, -2.0, 0.1], [23.0, 2.0, 1.5])  # a box nobody saw, 20.0-23.2 m ahead
+    # a second box in space the cameras saw through: never added
+    _block(occ, [20.0, 10.0, 0.1], [23.0, 12.0, 1.5])
+    a, b = _cell([20.0, 10.0, 0.1]), _cell([23.0, 12.0, 1.5])
+    feats[CH["free_rays"], a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 1.0
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    assert counts["added_cells"] > 0 and counts["removed_voxels"] == 0
+    centres = out.origin + out.voxel_centers()
+    added = ~out.channel("observed").astype(bool)
+    assert np.all(centres[added, 1] < 3.0)  # nothing in the seen-through box (y 10-12)
+    assert np.all(out.labels[added] == LABEL_IDS["building"])
+    assert np.allclose(out.channel("confidence")[added], 0.95)
+    # the box's near cells: x from CHUNK_CORNER + 0.8 i; a ray at a cell's centre height and width
+    # meets its sphere 0.75 x 0.4 m before the centre, one between cells within the cell
+    near = CHUNK_CORNER[0] + (_cell([20.0, 0, 0])[0] + 0.5) * 0.8
+    tracer = Tracer(out, mode="entry")
+    z0 = CHUNK_CORNER[2] + (_cell([0, 0, 0.1])[2] + 0.5) * 0.8
+    y0 = CHUNK_CORNER[1] + (_cell([0, 0.0, 0])[1] + 0.5) * 0.8
+    o = np.array([[15.0, y0, z0], [15.0, y0 + 0.4, z0], [15.0, y0, z0 + 0.4], [15.0, y0 + 0.4, z0 + 0.4]])
+    hits = tracer.trace_world(o, np.tile([1.0, 0.0, 0.0], (4, 1)))
+    assert np.all(hits.hit)
+    x = o[:, 0] + hits.t
+    assert x[0] == pytest.approx(near - 0.6, abs=0.02)
+    assert np.all((x >= near - 0.6 - 1e-3) & (x <= near + 0.4)), x
+    # the wall in front of it is hit first, unchanged, from the ego's side
+    hits = tracer.trace_world(np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    assert hits.hit[0] and abs(hits.t[0] - 10.1) < 0.05
+
+
+# ----------------------------------------------------------------------------- training
+VS = 3.2  # the tests' grid: 32 x 32 x 8 cells of 3.2 m
+
+
+def _write_sample(root: Path, split: str, name: str, rng: np.random.Generator):
+    """A cached sample: a building block and a car, the evidence seeing one face of each; the
+    ground truth at 0.8 m (the coarse grid the worlds store, coarsened 4x to VS)."""
+    dims = coarse_dims(VS)
+    occ = np.zeros(dims, bool)
+    lab = np.full(dims, -1)
+    x0, y0 = rng.integers(4, 20, 2)
+    occ[x0:x0 + 6, y0:y0 + 4, 1:4] = True
+    lab[x0:x0 + 6, y0:y0 + 4, 1:4] = LABEL_IDS["building"]
+    occ[:, :, 0] = True
+    lab[:, :, 0] = LABEL_IDS["road"]
+    feats = np.zeros((len(FEATURES), *dims), np.float32)
+    feats[CH["occupied"], x0, y0:y0 + 4, 1:4] = 1.0  # the face the cameras saw
+    feats[CH["probability"], x0, y0:y0 + 4, 1:4] = 0.9
+    feats[CH["free_images"], :x0, y0:y0 + 4, 1:4] = 1.0
+    feats[CH["z"]] = (np.arange(dims[2]) + 0.5) / dims[2]
+    ijk = np.argwhere(occ)
+    fine = (ijk[:, None, :] * 4 + np.stack(np.meshgrid(*[np.arange(4)] * 3, indexing="ij"), -1).reshape(1, -1, 3))
+    sample = root / split / name
+    sample.mkdir(parents=True)
+    labels = np.repeat(lab[occ], 64)
+    np.savez(sample / "voxels.npz", coarse_ijk=fine.reshape(-1, 3).astype(np.int16),
+             coarse_labels=labels.astype(np.uint8), coarse_visible=np.ones(len(labels), bool),
+             coarse_voxel_size=np.float64(0.8))
+    cache = root / CACHE_DIR / split
+    cache.mkdir(parents=True, exist_ok=True)
+    key = json.dumps({"voxel_size": VS, "version": FEATURES_VERSION})
+    np.savez(cache / f"{name}.npz", features=feats.astype(np.float16), key=np.array(key), seconds=np.array(1.0))
+
+
+@pytest.fixture(scope="module")
+def tiny_data(tmp_path_factory):
+    root = tmp_path_factory.mktemp("completion-data")
+    rng = np.random.default_rng(0)
+    for split, n in (("train", 2), ("val", 1)):
+        for i in range(n):
+            _write_sample(root, split, f"{i:06d}", rng)
+    return root
+
+
+def _run_config(steps: int, *, crop=None, flip=False, lr=1e-2, batch=1, validate_every=1):
+    return config_from_dict({
+        "stage": "completion",
+        "train": {"seed": 0, "steps": steps, "batch_size": batch, "lr": lr, "checkpoint_every": 5, "threads": 1,
+                  "validate_every": validate_every},
+        "model": {"widths": [8, 8], "blocks": 1, "groups": 2},
+        "data": {"voxel_size": VS, "crop": crop, "flip": flip},
+    }, "test")
+
+
+def test_the_dataset_reads_features_and_the_ground_truth_on_one_grid(tiny_data):
+    ds = CompletionDataset(tiny_data, "val", CompletionData(voxel_size=VS, crop=None))
+    item = ds[0]
+    assert item["features"].shape == (len(FEATURES), 32, 32, 8)
+    assert item["occupancy"].shape == (32, 32, 8) and item["labels"].shape == (32, 32, 8)
+    assert bool((item["occupancy"][:, :, 0] == 1).all())  # the road layer
+    assert int((item["labels"] == LABEL_IDS["building"]).sum()) == 6 * 4 * 3
+    with pytest.raises(InputError, match="cached at 3.2 m"):
+        CompletionDataset(tiny_data, "val", CompletionData(voxel_size=1.6, crop=None))[0]
+
+
+def test_a_tiny_model_overfits_one_sample(tiny_data, tmp_path):
+    root = tmp_path / "one"
+    for split in ("train", "val"):
+        (root / split).mkdir(parents=True)
+        (root / split / "000000").symlink_to(tiny_data / "val" / "000000")
+        (root / CACHE_DIR / split).mkdir(parents=True)
+        (root / CACHE_DIR / split / "000000.npz").symlink_to(tiny_data / CACHE_DIR / "val" / "000000.npz")
+    res = train("completion", _run_config(100, validate_every=1000), root, tmp_path / "run", progress=False)
+    loss = torch.load(res.last, weights_only=True)["history"]["train"]["loss"]
+    assert float(loss[-5:].mean()) < float(loss[:5].mean()) / 10
+    assert res.metrics["iou"] > 0.9
+
+
+def test_training_resumes_bit_for_bit(tiny_data, tmp_path):
+    cfg = _run_config(10, crop=51.2, flip=True, lr=1e-3)
+    whole = train("completion", cfg, tiny_data, tmp_path / "whole", progress=False)
+    half = train("completion", _run_config(5, crop=51.2, flip=True, lr=1e-3), tiny_data, tmp_path / "half",
+                 progress=False)
+    assert half.step == 5
+    resumed = train("completion", cfg, tiny_data, tmp_path / "half", resume=True, progress=False)
+    a = torch.load(whole.last, weights_only=True)["model"]
+    b = torch.load(resumed.last, weights_only=True)["model"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_training_items_draw_new_windows_each_epoch(tmp_path):
+    _write_sample(tmp_path, "train", "000000", np.random.default_rng(1))
+    path = tmp_path / CACHE_DIR / "train" / "000000.npz"
+    with np.load(path) as z:
+        cached = {k: z[k] for k in z.files}
+    dims = coarse_dims(VS)
+    ii, jj = np.meshgrid(np.arange(dims[0]), np.arange(dims[1]), indexing="ij")
+    cached["features"][CH["red"]] = ((ii * dims[1] + jj) / 2048.0)[..., None]  # each column its own value
+    np.savez(path, **cached)
+    ds = CompletionDataset(tmp_path, "train", CompletionData(voxel_size=VS, crop=25.6, flip=True))
+    windows = set()
+    for epoch in range(8):
+        ds.set_epoch(epoch)
+        item = ds[0]
+        red = item["features"][CH["red"], :, :, 0].numpy() * 2048
+        assert red.shape == (8, 8)
+        x0, y0 = divmod(int(round(red.min())), dims[1])
+        flipped = red[0, 0] > red[0, -1]
+        windows.add((x0, y0, flipped))
+        # the ground truth is cut and mirrored with the features
+        occ = item["occupancy"].numpy()
+        assert occ.shape == (8, 8, 8) and occ[:, :, 0].all()
+    assert len(windows) > 2
+
+
+# ----------------------------------------------------------------------------- the converter
+@pytest.fixture(scope="module")
+def completion_checkpoint(tiny_data, tmp_path_factory):
+    run = tmp_path_factory.mktemp("run")
+    return train("completion", _run_config(3), tiny_data, run / "r", progress=False).last
+
+
+def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint):
+    from scube_sim.model.converter import Converter, ConverterProfile
+
+    plain = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames())
+    comp = CompletionConfig(checkpoint=str(completion_checkpoint))
+    conv = Converter(ConverterProfile(name="corridor-c", route="evidence", evidence=CFG, completion=comp))
+    out = conv.convert(_frames())
+    meta = out.metadata["completion"]
+    assert meta["voxel_size"] == VS and len(meta["checkpoint_sha256"]) == 64
+    assert meta["observed_voxels"] == int(plain.channel("observed").sum())
+    assert "completion_s" in conv.timings
+    # every observed voxel at or above keep_confidence is there, with its Gaussians unchanged
+    keep = plain.channel("observed").astype(bool) & (plain.channel("confidence") >= comp.keep_confidence)
+    from scube_sim.voxsplat import voxel_keys
+
+    pos = np.searchsorted(voxel_keys(out.ijk), voxel_keys(plain.ijk[keep]))
+    assert np.array_equal(out.ijk[pos], plain.ijk[keep])
+    assert np.array_equal(out.params[pos], plain.params[keep])
+    assert out.channel("observed")[pos].all()
+
+
+def test_a_completion_key_on_the_paper_route_is_refused():
+    from scube_sim.model.converter import ConverterProfile
+
+    with pytest.raises(Exception, match="takes no evidence or completion key"):
+        ConverterProfile(name="x", route="scube", geometry={"checkpoint": "a", "focal_px": 100},
+                         appearance={"checkpoint": "b", "focal_px": 100}, completion={"checkpoint": "c"})
