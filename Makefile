@@ -7,7 +7,7 @@ STAMP := $(VENV)/.installed
 # The CPU wheel of torch lies on this machine's disk; a looser pin would pull a CUDA build.
 PIP_FLAGS ?= --disable-pip-version-check -q
 
-.PHONY: demo test bench check-wheel venv clean
+.PHONY: demo test bench check-wheel venv clean completion-data
 
 # The compiled tracer core builds on install: a change to its source reinstalls.
 $(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp
@@ -24,6 +24,19 @@ demo: $(STAMP)
 
 test: $(STAMP)
 	$(PY) -m pytest -q -p no:cacheprovider tests
+
+# The completion stage's training data (docs/converter.md, "The learned completion"): worlds
+# with +-4 context instants and the evidence the stereo pipeline measures in them, cached under
+# $(WORLDS)/evidence. Resumable: run it again to go on where it stopped (hours on 2 cores).
+WORLDS ?= data/worlds9
+WORLDS_OPTS := --rig waymo-5 --image-scale 0.25 --fine-voxel 0.1 --coarse-factor 4 --frame-offsets=-4,-3,-2,-1,0,1,2,3,4
+completion-data: $(STAMP)
+	test -f $(WORLDS)/dataset.json || $(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split val --count 8 $(WORLDS_OPTS)
+	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split val --count 8
+	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split train --count 200
+	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split test --count 40
+	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split val
+	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split train
 
 bench: $(STAMP)
 	$(PY) -m bench.run_all

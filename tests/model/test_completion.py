@@ -294,3 +294,43 @@ def test_a_completion_key_on_the_paper_route_is_refused():
     with pytest.raises(Exception, match="takes no evidence or completion key"):
         ConverterProfile(name="x", route="scube", geometry={"checkpoint": "a", "focal_px": 100},
                          appearance={"checkpoint": "b", "focal_px": 100}, completion={"checkpoint": "c"})
+
+
+# ----------------------------------------------------------------------------- the command
+def test_worlds_evidence_refuses_a_paper_route_profile_and_a_missing_split(tmp_path):
+    from typer.testing import CliRunner
+
+    from scube_sim.cli import app
+    from tests.conftest import one_line_error
+
+    runner = CliRunner()
+    res = runner.invoke(app, ["worlds", "evidence", str(tmp_path), "--profile", "cpu"])
+    one_line_error(res, "--profile", "'cpu' is route 'scube'", "evidence-route profile")
+    res = runner.invoke(app, ["worlds", "evidence", str(tmp_path), "--split", "bogus"])
+    one_line_error(res, "--split", "train, val or test")
+    res = runner.invoke(app, ["worlds", "evidence", str(tmp_path), "--count", "0"])
+    one_line_error(res, "--count")
+    assert not (tmp_path / CACHE_DIR).exists()
+
+
+def test_the_completion_grid_is_scored_against_the_coarsened_truth():
+    from scube_sim.model.eval.sensor_to_sensor import completion_grid_metrics
+
+    dims = coarse_dims(0.8)
+    # the truth at 0.4 m: a 4 x 4 x 2-cell block of 0.8 m cells (8 x 8 x 4 stored voxels), buildings
+    ijk = np.argwhere(np.ones((8, 8, 4), bool)) + [40, 60, 4]
+    voxels = {"coarse_ijk": ijk.astype(np.int16), "coarse_labels": np.full(len(ijk), LABEL_IDS["building"], np.uint8),
+              "coarse_visible": np.ones(len(ijk), bool), "coarse_voxel_size": np.float64(0.4)}
+    occ = np.zeros(dims)
+    lab = np.full(dims, LABEL_IDS["building"])
+    occ[20:24, 30:34, 2:4] = 0.9  # exactly the block
+    feats = np.zeros((len(FEATURES), *dims), np.float32)
+    feats[CH["occupied"], 20:22, 30:34, 2:4] = 1.0  # the evidence holds half of it
+    grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": CORNER, "voxel_size": 0.8}
+    m = completion_grid_metrics(grid, voxels)
+    assert m["completion_iou"] == 1.0 and m["completion_miou"] == 1.0 and m["evidence_iou"] == 0.5
+    occ[24:28, 30:34, 2:4] = 0.9  # as much again beside it: IoU 1/2
+    lab[20:22] = LABEL_IDS["car"]  # half the block's cells mislabelled
+    m = completion_grid_metrics(grid, voxels)
+    assert m["completion_iou"] == 0.5
+    assert m["completion_miou"] == pytest.approx((0.5 + 0.0) / 2)  # building 16 / 32 cells; car 0 / 16

@@ -33,7 +33,7 @@ class CompletionModel(StrictModel):
     blocks: int = Field(default=1, ge=1, le=4)
     groups: int = Field(default=4, ge=1, le=32)
     label_weight: float = Field(default=0.5, ge=0, le=100)
-    pos_weight: float = Field(default=2.0, gt=0, le=100)
+    pos_weight: float = Field(default=1.0, gt=0, le=100)
 
     @field_validator("widths")
     @classmethod
