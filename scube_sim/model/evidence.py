@@ -36,7 +36,6 @@ import time
 
 import numpy as np
 from pydantic import Field, field_validator
-from scipy.spatial import cKDTree
 
 from ..camera.frames import Frames
 from ..config import StrictModel, unique_names
@@ -44,7 +43,7 @@ from ..errors import InputError
 from ..labels import LABEL_IDS
 from ..memory import peak_mb, reset_peak
 from ..stereo import StereoConfig, moved_pixels, stereo_depth
-from ..voxsplat import VoxSplat, voxel_keys
+from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
 from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, SurfaceSamples, evidence_voxsplat,
                               fuse_depth)
@@ -81,15 +80,6 @@ class EvidenceConfig(StrictModel):
     # surface, and at hard opacity a thick surfel is hit early by 3 sigma / sin(incidence) (a
     # grazing ray along the road); the build flattens LiDAR surfels the same way
     max_normal_share: float = Field(default=0.1, gt=0)
-    # holes in an observed surface above the ground (stereo left part of a wall or a car unsure):
-    # a `hole_cell_m` cell whose confident points lie on a plane (at least `hole_min_points`, their
-    # spread across it at most `hole_max_thickness_m`, along it both ways at least an eighth of the
-    # cell) gets surface samples on that plane in the
-    # fine voxels that hold no point but lie within `hole_fill_m` of one (None: no filling)
-    hole_fill_m: float | None = Field(default=None, gt=0, le=5)
-    hole_cell_m: float = Field(default=0.8, gt=0, le=10)
-    hole_min_points: int = Field(default=8, ge=3, le=10_000)
-    hole_max_thickness_m: float = Field(default=0.05, gt=0, le=1)
 
 
 REAR_AXIS_X = -0.5  # a camera looks back when its optical axis' forward component (chunk frame) is below this
@@ -223,69 +213,6 @@ def fusion_config(cfg: EvidenceConfig) -> FusionConfig:
     return cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
 
 
-def _hole_samples(grid: FusedGrid, labels: np.ndarray, cfg: EvidenceConfig) -> SurfaceSamples | None:
-    """Points every half fine voxel on the plane of each planar `hole_cell_m` cell of observed
-    points above the ground, in the fine voxels that hold no observed point and lie within
-    `hole_fill_m` of one of the cell's points (`EvidenceConfig`); each stands for its square,
-    coloured by the cell's mean, labelled as the other observed points (not ground)."""
-    keep = labels != GROUND_LABEL
-    pts, cols = grid.points[keep], grid.colors[keep]
-    if len(pts) < cfg.hole_min_points:
-        return None
-    cell = cfg.hole_cell_m
-    cid = np.floor((pts - grid.origin) / cell).astype(np.int64)
-    uniq, inv, counts = np.unique(cid, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    n = len(uniq)
-    mean = np.zeros((n, 3))
-    np.add.at(mean, inv, pts)
-    mean /= counts[:, None]
-    d = pts - mean[inv]
-    cov = np.zeros((n, 3, 3))
-    np.add.at(cov, inv, d[:, :, None] * d[:, None, :])
-    cov /= counts[:, None, None]
-    colour = np.zeros((n, 3))
-    np.add.at(colour, inv, cols)
-    colour /= counts[:, None]
-    w, v = np.linalg.eigh(cov)  # ascending: v[..., 0] the normal, v[..., 1:] across the surface
-    # a plane, not a line: a strip of points leaves the plane's turn about it unknown
-    planar = ((counts >= cfg.hole_min_points) & (np.sqrt(np.maximum(w[:, 0], 0)) <= cfg.hole_max_thickness_m)
-              & (np.sqrt(np.maximum(w[:, 1], 0)) >= cell / 8))
-    if not planar.any():
-        return None
-    step = grid.voxel_size / 2
-    half = int(np.ceil(cell * np.sqrt(3) / 2 / step))
-    uv = np.stack(np.meshgrid(np.arange(-half, half + 1), np.arange(-half, half + 1), indexing="ij"), -1).reshape(-1, 2)
-    uv = uv * step
-    idx = np.flatnonzero(planar)
-    lattice = mean[idx, None, :] + uv[None, :, 0, None] * v[idx, None, :, 1] + uv[None, :, 1, None] * v[idx, None, :, 2]
-    owner = np.repeat(idx, len(uv))
-    lattice = lattice.reshape(-1, 3)
-    inside = np.all(np.floor((lattice - grid.origin) / cell).astype(np.int64) == uniq[owner], 1)
-    lattice, owner = lattice[inside], owner[inside]
-    fine = voxel_keys(np.floor((lattice - grid.origin) / grid.voxel_size).astype(np.int64))
-    held = np.unique(voxel_keys(np.floor((grid.points - grid.origin) / grid.voxel_size).astype(np.int64)))
-    empty = ~np.isin(fine, held)
-    near = np.isfinite(cKDTree(pts).query(lattice, k=1, distance_upper_bound=cfg.hole_fill_m)[0])
-    sel = empty & near
-    if not sel.any():
-        return None
-    lattice, owner = lattice[sel], owner[sel]
-    e1, e2 = v[owner, :, 1], v[owner, :, 2]
-    cov6 = np.stack([(e1[:, i] * e1[:, j] + e2[:, i] * e2[:, j]) * step ** 2 / 12.0
-                     for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))], 1)
-    return SurfaceSamples(lattice, cov6, colour[owner].astype(np.float32), np.full(len(lattice), OTHER_LABEL, np.int64),
-                          cfg.ground_confidence)
-
-
-def _join(a: SurfaceSamples | None, b: SurfaceSamples | None) -> SurfaceSamples | None:
-    """Two sample sets as one (the first's confidence)."""
-    if a is None or b is None:
-        return a if b is None else b
-    return SurfaceSamples(np.concatenate([a.points, b.points]), np.concatenate([a.patch, b.patch]),
-                          np.concatenate([a.colors, b.colors]), np.concatenate([a.labels, b.labels]), a.confidence)
-
-
 def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxSplat:
     """The evidence's VoxSplat in the chunk frame: surfels on the observed points, ground surfels
     under the columns no observed ground covers, channels `observed` and `confidence`, metadata
@@ -293,8 +220,6 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
     cfg = cfg or EvidenceConfig()
     field, grid, labels = ev.field, ev.grid, ev.labels
     samples = _ground_samples(field, grid, labels, cfg) if (field is not None and cfg.fill_ground) else None
-    if cfg.hole_fill_m is not None:
-        samples = _join(samples, _hole_samples(grid, labels, cfg))
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,
                               max_normal_scale=cfg.max_normal_share * cfg.fusion.voxel_size)
     scene.metadata.update({

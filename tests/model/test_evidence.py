@@ -302,39 +302,3 @@ def test_the_command_line_defaults_are_the_converters():
 
     assert ConvertSettings().profile == DEFAULT_PROFILE and ConvertSettings().context is None  # the profile's
 
-
-def test_a_hole_in_a_seen_wall_is_filled_on_the_walls_plane_and_nowhere_else():
-    import dataclasses
-
-    from scube_sim.model.evidence import _hole_samples, measure_evidence
-
-    ev = measure_evidence(_frames(), _to_chunk(), CFG)
-    p = ev.grid.points
-    wall = (np.abs(p[:, 1] - 3.0) < 0.15) & (p[:, 0] > 6) & (p[:, 0] < 12) & (p[:, 2] > 0.5) & (p[:, 2] < 3.5)
-    hole = (np.abs(p[:, 0] - 8.5) < 0.2) & (np.abs(p[:, 2] - 2.1) < 0.2)
-    keep = wall & ~hole
-    assert wall.sum() > 500 and (wall & hole).sum() > 5  # the stereo saw the wall there
-    grid = dataclasses.replace(ev.grid, points=p[keep], colors=ev.grid.colors[keep])
-    labels = ev.labels[keep]
-    cfg = CFG.model_copy(update={"hole_fill_m": 0.3})
-    fill = _hole_samples(grid, labels, cfg)
-    assert fill is not None and fill.confidence == cfg.ground_confidence
-    f = fill.points
-    # the hole's middle is covered, on the wall's plane (y = 3) as closely as stereo saw the wall
-    # around it; elsewhere each cell's plane follows its own points (stereo's error: here up to
-    # 0.12 m behind the wall), extended at most 0.3 m
-    in_hole = (np.abs(f[:, 0] - 8.5) < 0.15) & (np.abs(f[:, 2] - 2.1) < 0.15)
-    assert in_hole.any()
-    assert np.all(np.abs(f[in_hole, 1] - 3.0) < 0.05), np.abs(f[in_hole, 1] - 3.0)
-    seen_err = np.abs(grid.points[:, 1] - 3.0)
-    assert np.median(np.abs(f[:, 1] - 3.0)) < np.median(seen_err) + 0.02
-    assert np.all(np.abs(f[:, 1] - 3.0) < seen_err.max() + 0.1)
-    # nothing beyond 0.3 m of a seen point, and never in a fine voxel that holds one
-    from scipy.spatial import cKDTree
-
-    assert np.all(cKDTree(grid.points).query(f)[0] <= 0.3 + 1e-9)
-    held = {tuple(v) for v in np.floor((grid.points - grid.origin) / grid.voxel_size).astype(int)}
-    assert not any(tuple(v) in held for v in np.floor((f - grid.origin) / grid.voxel_size).astype(int))
-    assert np.all(fill.labels == LABEL_IDS["undefined"])
-    # off by default: the evidence profile's scene holds no filled hole
-    assert CFG.hole_fill_m is None

@@ -99,7 +99,7 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(held
     for name in shipped_profiles():
         prof = load_profile(name)
         assert prof.name == name
-        for stage in (prof.geometry, prof.appearance, prof.fine):
+        for stage in (prof.geometry, prof.appearance, prof.fine, prof.completion):
             assert stage is None or resolve_checkpoint(stage.checkpoint).is_file()
     conv = Converter("cpu")
     sample = open_dataset("worlds", held_out_world, split="test", eval_frames=False)[0]
