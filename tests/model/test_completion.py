@@ -106,6 +106,11 @@ def test_an_unsure_observation_the_network_finds_empty_is_removed():
     scene = _wall_scene(0.65)
     out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == 0
+    # and unsure ground voxels stay whatever the network says (the height field's business)
+    scene = _wall_scene(0.55)
+    scene.labels[:] = LABEL_IDS["road"]
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    assert counts["removed_voxels"] == 0 and out.num_voxels == scene.num_voxels
 
 
 def _block(occ, lo, hi, p=0.95):

@@ -11,8 +11,10 @@ Per coarse cell (`features` grid) the network gives an occupancy probability p a
   share of the cell: 0.75, so that four neighbours' spheres close the gap between them at hard
   opacity) stands for the cell (where in the cell the surface lies, nobody measured), labelled
   by the network, `observed` 0, `confidence` p;
-- **removed**: an observed voxel whose fused probability is below `keep_confidence` (one view's
-  unsure stereo) in a cell with p < `remove_threshold` is dropped as noise; a voxel at or above
+- **removed**: an observed voxel above the ground (not labelled a ground class) whose fused
+  probability is below `keep_confidence` (one view's unsure stereo) in a cell with p <
+  `remove_threshold` is dropped as noise (worlds test 0-9 before ground voxels were spared: 2.2 %
+  of the observed voxels, ground rays returning 99.7 -> 97.1 %); a voxel at or above
   `keep_confidence` is never removed, whatever p (tests plant a confident wall and a network
   that wants it gone);
 - **labelled**: an observed voxel in a cell with p >= `add_threshold` takes the network's label
@@ -72,8 +74,11 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
     p_vox = np.where(inside, occupancy[c[:, 0], c[:, 1], c[:, 2]], 1.0)
     lab_vox = labels[c[:, 0], c[:, 1], c[:, 2]]
 
-    # removed: unsure observations the network finds empty
-    drop = observed & (conf < np.float32(cfg.keep_confidence)) & (p_vox < cfg.remove_threshold) & inside
+    # removed: unsure observations above the ground the network finds empty (the ground's voxels
+    # stay: the road lies a few cm from a coarse cell's floor, and a cell the network holds empty
+    # under it would open holes the height field does not fill, as those columns hold observed ground)
+    ground = np.isin(scene.labels.astype(np.int64), GROUND_IDS)
+    drop = observed & ~ground & (conf < np.float32(cfg.keep_confidence)) & (p_vox < cfg.remove_threshold) & inside
     # labelled: observed voxels in cells the network holds occupied
     relabel = observed & ~drop & inside & (p_vox >= cfg.add_threshold) if cfg.relabel else np.zeros_like(drop)
     new_labels = scene.labels.copy()
