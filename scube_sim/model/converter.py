@@ -251,6 +251,16 @@ def chunk_to_world(frames: Frames) -> np.ndarray:
     return np.asarray(frames.ego_pose, np.float64) @ down
 
 
+def ego_poses_in_chunk(frames: Frames) -> np.ndarray:
+    """(K, 4, 4) float64 the ego's pose on the road in the chunk frame at each instant of `frames`:
+    the reference first (identity), then its context in offset order (each instant's ego frame
+    moved down by the reference's ``ego_height_m``: one car, one height)."""
+    c2w = chunk_to_world(frames)
+    down = invert_pose(np.asarray(frames.ego_pose, np.float64)) @ c2w
+    to_chunk = invert_pose(c2w)
+    return np.stack([to_chunk @ np.asarray(f.ego_pose, np.float64) @ down for f in [frames, *frames.context]])
+
+
 def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
     """The item a stage's network reads, from `frames` (module docstring): ``images`` (N, 3, H, W)
     float32 in [0, 1], zero-padded to the largest; ``intrinsics`` (N, 3, 3) of the resized
@@ -543,7 +553,7 @@ class Converter:
             self.completion_grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": ev.corner,
                                     "voxel_size": self.completion_voxel_size}
             scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
-                                                self.profile.completion)
+                                                self.profile.completion, ego_poses=ego_poses_in_chunk(frames))
             parts["completion_s"] = time.perf_counter() - t1
         if max_range is not None:
             centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
@@ -603,5 +613,5 @@ def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_
                                max_range=max_range, fit_steps=fit_steps)
 
 
-__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "PAPER_PROFILE", "convert", "frames_item", "is_loaded", "load_profile",
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "PAPER_PROFILE", "convert", "ego_poses_in_chunk", "frames_item", "is_loaded", "load_profile",
            "open_frames", "shipped_profiles"]

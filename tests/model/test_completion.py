@@ -17,7 +17,7 @@ from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.completion.data import CACHE_DIR, FEATURES_VERSION, CompletionData, CompletionDataset
 from scube_sim.model.completion.features import FEATURES, coarse_dims, completion_input
-from scube_sim.model.completion.merge import CompletionConfig, merge_completion
+from scube_sim.model.completion.merge import CompletionConfig, in_ego_box, merge_completion
 from scube_sim.model.config import config_from_dict
 from scube_sim.model.evidence import measure_evidence
 from scube_sim.model.trainer import train
@@ -148,6 +148,48 @@ def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
     # the wall in front of it is hit first, unchanged, from the ego's side
     hits = tracer.trace_world(np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
     assert hits.hit[0] and abs(hits.t[0] - 10.1) < 0.05
+
+
+def test_nothing_is_added_into_the_ego_car_at_any_instant():
+    """A network that puts cars across the ego's lane 6 and 12 m ahead, the first inside the space
+    the ego fills 5 m further on (the context instant): no added Gaussian's 3-sigma sphere reaches
+    into the ego's box at either pose, and a ray ahead at 1 m height first meets the second car;
+    given the reference instant alone, the first."""
+    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))  # no evidence
+    feats, occ, lab = _grids(0.0)
+    lab[:] = LABEL_IDS["car"]
+    _block(occ, [6.0, -3.0, 0.1], [6.0, 3.0, 1.5])
+    _block(occ, [12.0, -3.0, 0.1], [12.0, 3.0, 1.5])
+    poses = np.stack([np.eye(4), np.eye(4)])
+    poses[1, 0, 3] = 5.0
+    cfg = CompletionConfig(checkpoint="x")
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg, ego_poses=poses)
+    centres = out.origin + out.gaussians().means
+    assert counts["added_cells"] > 0 and counts["ego_box_cells"] > 0
+    assert not in_ego_box(centres, poses, cfg, grow=cfg.blob_radius * 0.8).any()
+    near12 = CHUNK_CORNER[0] + _cell([12.0, 0, 0])[0] * 0.8  # the second car's cells' near side
+    ray = (np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    hits = Tracer(out, mode="entry").trace_world(*ray)
+    assert hits.hit[0] and near12 - 0.3 <= hits.t[0] <= near12 + 0.8
+    out1, counts1 = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    assert counts1["added_cells"] > counts["added_cells"]
+    hits = Tracer(out1, mode="entry").trace_world(*ray)
+    assert hits.hit[0] and 4.6 <= hits.t[0] <= 6.8
+
+
+def test_the_ego_poses_of_a_frame_set_are_on_the_road_in_the_chunk_frame():
+    from scube_sim.camera.frames import Frames
+    from scube_sim.model.converter import ego_poses_in_chunk
+
+    ref = np.eye(4)
+    ref[:3, 3] = [100.0, 50.0, 1.73]  # a KITTI-like ego frame, 1.73 m above the road
+    later = ref.copy()
+    later[0, 3] += 5.0
+    frames = Frames([], ref, 0.0, metadata={"ego_height_m": 1.73}, context=[Frames([], later, 0.5, offset=1)])
+    poses = ego_poses_in_chunk(frames)
+    assert poses.shape == (2, 4, 4)
+    assert np.allclose(poses[0], np.eye(4))
+    assert np.allclose(poses[1][:3, 3], [5.0, 0.0, 0.0]) and np.allclose(poses[1][:3, :3], np.eye(3))
 
 
 # ----------------------------------------------------------------------------- training
