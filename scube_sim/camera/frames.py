@@ -5,7 +5,9 @@ its own camera-to-world pose and timestamp; the set has one reference ego pose a
 reference set may carry `context`: the frame sets of other instants of the same log (each with its
 own ego pose, time and `offset` in the source's instants), which define nothing of the chunk.
 Frames: cameras are OpenCV (x right, y down, z forward); poses are (4, 4) float64 camera-to-world
-(``T_world_cam``); times are seconds (float64).
+(``T_world_cam``); times are seconds (float64). The chunk frame of a set (`chunk_to_world`: its
+ego frame moved down to the road) and the ego's poses in it at each instant (`ego_poses_in_chunk`)
+are defined here, once, for every route of the converter and its training data.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import numpy as np
 
 from ..boxes import Box
 from ..errors import InputError, NotFoundError
-from ..transforms import check_pose
+from ..transforms import check_pose, invert_pose
 from .model import Intrinsics
 
 
@@ -122,3 +124,28 @@ class Frames:
             if im.name == name:
                 return im
         raise NotFoundError(f"no camera {name!r}; have {', '.join(self.names)}")
+
+
+def chunk_to_world(frames: Frames) -> np.ndarray:
+    """(4, 4) float64 the chunk frame of `frames`: their ego frame moved down to the road by the
+    metadata's ``ego_height_m`` (0 where absent), so the box's z range sits where it was trained."""
+    h = frames.metadata.get("ego_height_m", 0.0)
+    try:
+        h = float(h)
+    except (TypeError, ValueError):
+        h = float("nan")
+    if not np.isfinite(h):
+        raise InputError(f"frames.metadata ego_height_m: expected a finite number of metres, got {frames.metadata.get('ego_height_m')!r}")
+    down = np.eye(4)
+    down[2, 3] = -h
+    return np.asarray(frames.ego_pose, np.float64) @ down
+
+
+def ego_poses_in_chunk(frames: Frames) -> np.ndarray:
+    """(K, 4, 4) float64 the ego's pose on the road in the chunk frame at each instant of `frames`:
+    the reference first (identity), then its context in offset order (each instant's ego frame
+    moved down by the reference's ``ego_height_m``: one car, one height)."""
+    c2w = chunk_to_world(frames)
+    down = invert_pose(np.asarray(frames.ego_pose, np.float64)) @ c2w
+    to_chunk = invert_pose(c2w)
+    return np.stack([to_chunk @ np.asarray(f.ego_pose, np.float64) @ down for f in [frames, *frames.context]])

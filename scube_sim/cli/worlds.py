@@ -98,9 +98,10 @@ def worlds_evidence_cmd(
     """Measure the evidence of worlds samples with the real stereo pipeline and cache it for the completion
     stage (DATA/evidence/<split>/<sample>.npz); resumable: cached samples with the same settings are skipped."""
     from ..model.completion.data import cache_evidence
+    from ..model.converter import load_profile
 
     if split not in ("train", "val", "test"):
         raise CliError(f"--split: expected train, val or test, got {split!r}")
-    res = cache_evidence(data, split, count=count, start=start, profile=profile)
+    res = cache_evidence(data, split, load_profile(profile), count=count, start=start)
     typer.echo(f"{split}: measured {res['written']}, skipped {res['skipped']} cached; "
                f"{res['seconds_per_sample']:.1f} s per sample -> {data / 'evidence' / split}")

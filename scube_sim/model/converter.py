@@ -35,7 +35,7 @@ import torch.nn.functional as F
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from ..camera.frames import Frames
+from ..camera.frames import Frames, chunk_to_world, ego_poses_in_chunk
 from ..config import CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, StrictModel, format_validation_error, load_yaml
 from ..datasets import open_dataset
 from ..datasets.base import frames_with_context
@@ -234,31 +234,6 @@ def _sha256(path: Path) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
-
-
-def chunk_to_world(frames: Frames) -> np.ndarray:
-    """(4, 4) float64 the chunk frame of `frames`: their ego frame moved down to the road by the
-    metadata's ``ego_height_m`` (0 where absent), so the box's z range sits where it was trained."""
-    h = frames.metadata.get("ego_height_m", 0.0)
-    try:
-        h = float(h)
-    except (TypeError, ValueError):
-        h = float("nan")
-    if not np.isfinite(h):
-        raise InputError(f"frames.metadata ego_height_m: expected a finite number of metres, got {frames.metadata.get('ego_height_m')!r}")
-    down = np.eye(4)
-    down[2, 3] = -h
-    return np.asarray(frames.ego_pose, np.float64) @ down
-
-
-def ego_poses_in_chunk(frames: Frames) -> np.ndarray:
-    """(K, 4, 4) float64 the ego's pose on the road in the chunk frame at each instant of `frames`:
-    the reference first (identity), then its context in offset order (each instant's ego frame
-    moved down by the reference's ``ego_height_m``: one car, one height)."""
-    c2w = chunk_to_world(frames)
-    down = invert_pose(np.asarray(frames.ego_pose, np.float64)) @ c2w
-    to_chunk = invert_pose(c2w)
-    return np.stack([to_chunk @ np.asarray(f.ego_pose, np.float64) @ down for f in [frames, *frames.context]])
 
 
 def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
@@ -613,5 +588,5 @@ def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_
                                max_range=max_range, fit_steps=fit_steps)
 
 
-__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "PAPER_PROFILE", "convert", "ego_poses_in_chunk", "frames_item", "is_loaded", "load_profile",
+__all__ = ["Converter", "ConverterProfile", "DEFAULT_PROFILE", "FineProfile", "PAPER_PROFILE", "convert", "frames_item", "is_loaded", "load_profile",
            "open_frames", "shipped_profiles"]

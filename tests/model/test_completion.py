@@ -179,7 +179,7 @@ def test_nothing_is_added_into_the_ego_car_at_any_instant():
 
 def test_the_ego_poses_of_a_frame_set_are_on_the_road_in_the_chunk_frame():
     from scube_sim.camera.frames import Frames
-    from scube_sim.model.converter import ego_poses_in_chunk
+    from scube_sim.camera.frames import ego_poses_in_chunk
 
     ref = np.eye(4)
     ref[:3, 3] = [100.0, 50.0, 1.73]  # a KITTI-like ego frame, 1.73 m above the road

@@ -23,10 +23,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from pydantic import Field
-from rich.progress import Progress
+from rich.progress import MofNCompleteColumn, Progress
 from torch.utils.data import Dataset
 
 from ...atomic import atomic_path
+from ...camera.frames import chunk_to_world
 from ...config import StrictModel, json_loads
 from ...datasets import open_dataset
 from ...datasets.base import frames_with_context
@@ -34,8 +35,6 @@ from ...errors import InputError
 from ...transforms import invert_pose
 from ...worlds.groundtruth import CHUNK_CORNER
 from ..data.worlds import item_generator
-from ..converter import chunk_to_world, load_profile
-from ..eval.evaluate import bar_columns
 from ..evidence import fusion_config, measure_evidence
 from ..geometry.data import grid_in_box
 from ..nn.lifting import LiftGrid
@@ -75,13 +74,12 @@ def _cached_key(path: Path) -> str | None:
         return None  # damaged or from an interrupted writer: measured again
 
 
-def cache_evidence(data_dir: Path, split: str, *, count: int | None = None, start: int = 0,
-                   profile: str = "evidence", voxel_size: float = 0.8, progress: bool = True) -> dict:
+def cache_evidence(data_dir: Path, split: str, prof, *, count: int | None = None, start: int = 0,
+                   voxel_size: float = 0.8, progress: bool = True) -> dict:
     """Measure and cache the evidence features of samples [start, start + count) of a worlds
-    split (all from `start` when count is None) with the evidence route of `profile`; samples
-    already cached with the same key are skipped (resumable). Returns {written, skipped,
-    seconds_per_sample}."""
-    prof = load_profile(profile)
+    split (all from `start` when count is None) with the evidence route of the converter profile
+    `prof` (a `ConverterProfile`, e.g. `load_profile("evidence")`); samples already cached with
+    the same key are skipped (resumable). Returns {written, skipped, seconds_per_sample}."""
     if prof.route != "evidence":
         raise InputError(f"--profile: {prof.name!r} is route {prof.route!r}; the completion's evidence needs "
                          f"an evidence-route profile")
@@ -95,7 +93,7 @@ def cache_evidence(data_dir: Path, split: str, *, count: int | None = None, star
     cfg = prof.evidence
     written = skipped = 0
     spent = 0.0
-    with Progress(*bar_columns(), disable=not progress) as bar:
+    with Progress(*Progress.get_default_columns(), MofNCompleteColumn(), disable=not progress) as bar:
         task = bar.add_task(f"evidence {split}", total=stop - start)
         for i in range(start, stop):
             out = cache_path(data_dir, split, names[i])
