@@ -28,11 +28,14 @@ Per coarse cell (`features` grid) the network gives an occupancy probability p a
 from __future__ import annotations
 
 import numpy as np
+from typing import Literal
+
 from pydantic import Field, model_validator
 
 from ... import splat_params as sp
 from ...config import StrictModel
 from ...labels import GROUND_LABEL_NAMES, LABEL_IDS
+from ...transforms import rotmat_to_quat
 from ...voxsplat import Channel, Gaussians, VoxSplat, voxel_keys
 from .features import FEATURES, FREE_RAYS_FULL
 
@@ -51,6 +54,11 @@ class CompletionConfig(StrictModel):
     keep_confidence: float = Field(default=0.65, ge=0, le=1)
     free_veto_samples: int = Field(default=3, ge=1, le=10_000)
     blob_radius: float = Field(default=0.75, gt=0, le=2)  # an added cell's 3-sigma sphere, a share of the cell
+    # "sphere": round; "disc": on a face cell (its empty neighbours all on one side) flat (3 sigma
+    # = 3 cm thick) across the centre, facing them, so a ray meets it at the centre rather than
+    # `blob_radius` before it; edges and corners stay round (tilted discs there leave gaps between
+    # rows)
+    blob_shape: Literal["sphere", "disc"] = "sphere"
     relabel: bool = True
     # the ego car's body, ego frame on the road (x forward, metres): wide enough for a frame whose
     # origin is the rear axle (nuScenes, Waymo: about 1 m of car behind it and 4 ahead) and for one
@@ -83,6 +91,28 @@ def in_ego_box(points: np.ndarray, ego_poses: np.ndarray, cfg: CompletionConfig,
         local = (points - pose[:3, 3]) @ pose[:3, :3]  # chunk -> that instant's ego frame
         inside |= np.all((local >= lo) & (local <= hi), axis=1)
     return inside
+
+
+DISC_SIGMA_M = 0.01  # a disc's thickness, 3 sigma = 3 cm
+
+
+def _discs(facing: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """Scales (N, 3) and wxyz quaternions (N, 4) of flat Gaussians whose first axis (DISC_SIGMA_M)
+    is along `facing` (N, 3), the other two `sigma`, where `facing` lies along one axis (a face
+    cell); round (all `sigma`) elsewhere."""
+    n = len(facing)
+    norm = np.linalg.norm(facing, axis=1)
+    flat = np.count_nonzero(facing, axis=1) == 1
+    normal = np.where(flat[:, None], facing / np.maximum(norm, 1e-12)[:, None], [1.0, 0.0, 0.0])
+    # a second axis: the world axis least aligned with the normal, made orthogonal
+    helper = np.eye(3)[np.argmin(np.abs(normal), axis=1)]
+    t1 = np.cross(normal, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(normal, t1)
+    quats = rotmat_to_quat(np.stack([normal, t1, t2], axis=2))  # columns: the Gaussian's axes
+    scales = np.full((n, 3), sigma)
+    scales[flat, 0] = DISC_SIGMA_M
+    return scales, quats
 
 
 def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarray, labels: np.ndarray,
@@ -123,11 +153,14 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
     held[oc[:, 0], oc[:, 1], oc[:, 2]] = True
     pad = np.pad(occupancy, 1, constant_values=0.0)
     border = np.zeros(dims, bool)
+    facing = np.zeros((3, *dims), np.int8)  # the sum of the directions to the empty neighbours
     for axis in range(3):
         for sign in (-1, 1):
             sl = [slice(1, -1)] * 3
             sl[axis] = slice(1 + sign, dims[axis] + 1 + sign)
-            border |= pad[tuple(sl)] < cfg.add_threshold
+            empty = pad[tuple(sl)] < cfg.add_threshold
+            border |= empty
+            facing[axis] += sign * empty.astype(np.int8)
     add = occ & ~held & border & (_free_samples(features) < cfg.free_veto_samples) & ~np.isin(labels, GROUND_IDS)
     ai = np.argwhere(add)
     a_centres = corner + (ai + 0.5) * vs
@@ -145,7 +178,11 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
     if len(ai):
         m = scene.gaussians_per_voxel
         sigma = cfg.blob_radius * vs / 3.0  # traced at hard opacity: the 3-sigma sphere
-        g = Gaussians(means=a_local, scales=np.full((len(ai), 3), sigma), quats=np.tile([1.0, 0, 0, 0], (len(ai), 1)),
+        scales = np.full((len(ai), 3), sigma)
+        quats = np.tile([1.0, 0, 0, 0], (len(ai), 1))
+        if cfg.blob_shape == "disc":
+            scales, quats = _discs(facing[:, ai[:, 0], ai[:, 1], ai[:, 2]].T.astype(np.float64), sigma)
+        g = Gaussians(means=a_local, scales=scales, quats=quats,
                       opacities=np.ones(len(ai)),
                       sh_dc=np.zeros((len(ai), 3), np.float32), origin=scene.origin)
         extra = VoxSplat.from_gaussians(g, scene.voxel_size, labels=l_add, offset_range=scene.offset_range,
