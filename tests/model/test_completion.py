@@ -150,26 +150,6 @@ def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
     assert hits.hit[0] and abs(hits.t[0] - 10.1) < 0.05
 
 
-def test_a_completed_box_of_discs_is_met_at_its_cells_centres():
-    """blob_shape disc: the box's near face is a wall of flat Gaussians across its cells' centres:
-    a ray head-on meets it at the centre (not 0.6 m before it), between two cells and between four
-    as well (the discs, 1.2 m across at 3 sigma, overlap); its bottom edge stays round."""
-    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))
-    feats, occ, lab = _grids(0.0)
-    _block(occ, [20.0, -2.0, 0.1], [23.0, 2.0, 3.0])  # four cells high: the middle two are face cells
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x", blob_shape="disc"))
-    assert counts["added_cells"] > 0
-    centre_x = CHUNK_CORNER[0] + (_cell([20.0, 0, 0])[0] + 0.5) * 0.8
-    bottom = CHUNK_CORNER[2] + (_cell([0, 0, 0.1])[2] + 0.5) * 0.8
-    z1, y0 = bottom + 0.8, CHUNK_CORNER[1] + (_cell([0, 0.0, 0])[1] + 0.5) * 0.8
-    o = np.array([[15.0, y0, z1], [15.0, y0 + 0.4, z1], [15.0, y0 + 0.4, z1 + 0.4], [15.0, y0, bottom]])
-    hits = Tracer(out, mode="entry").trace_world(o, np.tile([1.0, 0.0, 0.0], (4, 1)))
-    assert np.all(hits.hit)
-    x = o[:, 0] + hits.t
-    assert np.allclose(x[:3], centre_x, atol=0.04), x
-    assert x[3] == pytest.approx(centre_x - 0.6, abs=0.02)  # the edge's sphere
-
-
 def test_nothing_is_added_into_the_ego_car_at_any_instant():
     """A network that puts cars across the ego's lane 6 and 12 m ahead, the first inside the space
     the ego fills 5 m further on (the context instant): no added Gaussian's 3-sigma sphere reaches
@@ -195,6 +175,26 @@ def test_nothing_is_added_into_the_ego_car_at_any_instant():
     assert counts1["added_cells"] > counts["added_cells"]
     hits = Tracer(out1, mode="entry").trace_world(*ray)
     assert hits.hit[0] and 4.6 <= hits.t[0] <= 6.8
+
+
+def test_a_car_the_network_puts_around_the_ego_goes_whole_and_its_neighbour_stays():
+    """A car-shaped block wider than the ego's box, around the ego (x -3..5 m, y -2.5..2.5 m, where
+    the cameras leave a hole in the road): none of its cells is added, not even those whose
+    spheres stay outside the box; a car 4 m to the side of it, apart, is added."""
+    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))
+    feats, occ, lab = _grids(0.0)
+    lab[:] = LABEL_IDS["car"]
+    _block(occ, [-3.0, -2.5, 0.1], [5.0, 2.5, 1.5])
+    _block(occ, [-3.0, 6.5, 0.1], [5.0, 8.5, 1.5])  # two cells apart from the first
+    cfg = CompletionConfig(checkpoint="x")
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    centres = out.origin + out.gaussians().means
+    assert counts["ego_box_cells"] > 0 and counts["added_cells"] > 0
+    assert np.all(centres[:, 1] > 6.0), "a cell of the car around the ego was added"
+    # the LiDAR's near rays, down to the road 4 m beside and ahead of the ego, meet nothing
+    dirs = np.array([[0.0, 1.0, -0.45], [0.0, -1.0, -0.45], [1.0, 0.0, -0.45], [0.7, 0.7, -0.45]])
+    hits = Tracer(out, mode="entry").trace_world(np.tile([0.0, 0.0, 1.8], (4, 1)), dirs)
+    assert not hits.hit.any()
 
 
 def test_the_ego_poses_of_a_frame_set_are_on_the_road_in_the_chunk_frame():
