@@ -12,6 +12,10 @@ its report.json. Removed share: the observed voxels the merge dropped over those
 
     python -m experiments.completion_real_logs [--profile evidence-complete] [--logs k360-10,kitti-1] [-o DIR]
 
+A profile without a completion (`--profile evidence`) scores its scene alone, into
+results/real_logs_<profile>.{json,md}; logs other than the default set add their names to the file's
+(`--logs tri-2`: results/real_logs_evidence_tri-2).
+
 Logs (`LOGS`): KITTI-360 frames 3004 / 3010 / 3015 of the excerpt (context 4), KITTI raw frame 1
 (context 1), the nuScenes demo keyframe (no context); TRI (538 s and 4.4 GB a conversion) only when
 named. Data: ../shared/data next to the repository.
@@ -74,8 +78,7 @@ def main(argv=None) -> None:
     ap.add_argument("-o", "--output", type=Path, default=ROOT / "experiments" / ".cache" / "completion_real")
     args = ap.parse_args(argv)
     conv = Converter(args.profile)
-    if conv.profile.completion is None:
-        raise SystemExit(f"--profile {args.profile}: names no completion")
+    completes = conv.profile.completion is not None
     rows = []
     for name in [n.strip() for n in args.logs.split(",") if n.strip()]:
         folder, dataset, sample, context, more = LOGS[name]
@@ -88,12 +91,19 @@ def main(argv=None) -> None:
         t0 = time.perf_counter()
         scene = conv.convert(open_frames(path, dataset, sample, context=context))
         seconds = time.perf_counter() - t0
-        scene.save(out / "completed.npz")
-        conv.uncompleted.save(out / "evidence.npz")
-        done = scene.metadata["completion"]
-        for which, file in (("evidence alone", "evidence.npz"), ("completed", "completed.npz")):
+        if completes:
+            scene.save(out / "completed.npz")
+            conv.uncompleted.save(out / "evidence.npz")
+            done = scene.metadata["completion"]
+            scenes = (("evidence alone", "evidence.npz"), ("completed", "completed.npz"))
+        else:
+            scene.save(out / "scene.npz")
+            scenes = ((conv.profile.name, "scene.npz"),)
+        for which, file in scenes:
             row = _row(name, which, _fidelity(path, dataset, sample, out / file, out / f"fid_{file[:-4]}", more))
-            if which == "completed":
+            if not completes:
+                row["convert_s"] = seconds
+            elif which == "completed":
                 row.update({"added_cells": done["added_cells"], "removed_voxels": done["removed_voxels"],
                             "observed_voxels": done["observed_voxels"],
                             "removed_share": done["removed_voxels"] / max(done["observed_voxels"], 1),
@@ -104,7 +114,10 @@ def main(argv=None) -> None:
               "ground_hits", "removed_share", "added_cells", "convert_s"]
     notes = (f"python -m experiments.completion_real_logs --profile {args.profile} --logs {args.logs}; replayed real "
              f"rays inside the cameras' view within 40 m (fidelity --regions), above ground and on the ground")
-    write_results("completion_real_logs", rows, header, notes)
+    # other logs than the default set go to their own file, beside the default set's table
+    suffix = "" if args.logs == ",".join(DEFAULT_LOGS) else "_" + args.logs.replace(",", "_")
+    write_results(("completion_real_logs" if completes else f"real_logs_{conv.profile.name}") + suffix, rows, header,
+                  notes)
 
 
 if __name__ == "__main__":

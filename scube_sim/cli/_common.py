@@ -126,3 +126,21 @@ def name_list(items: list, flag: str) -> list:
     if msg:
         raise CliError(f"{flag}: {msg}")
     return items
+
+
+def track(items, description: str):
+    """Iterate `items` (a sized sequence) with progress: rich's bar on a terminal; elsewhere (a log
+    file, CI) one line per finished item on stderr with the elapsed time, where rich would print
+    nothing until the end."""
+    import sys
+    import time
+
+    if sys.stderr.isatty():
+        from rich.progress import track as rich_track
+
+        yield from rich_track(items, description=description)
+        return
+    n, t0 = len(items), time.perf_counter()
+    for i, item in enumerate(items, 1):
+        yield item
+        typer.echo(f"{description}: {i}/{n} done, {time.perf_counter() - t0:.0f} s", err=True)

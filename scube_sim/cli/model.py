@@ -167,10 +167,9 @@ def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, li
                            seed: int, output: Path | None, progress: bool, context: int | None = None) -> None:
     import json
 
-    from rich.progress import track
-
     from ..atomic import atomic_path
     from ..model.eval.sensor_to_sensor import evaluate_split, format_table
+    from ._common import track
 
     if not gt_voxel > 0:
         raise CliError(f"--gt-voxel: expected a positive voxel size in metres, got {gt_voxel}")
@@ -190,10 +189,9 @@ def _eval_depth(data: Path, dataset: str | None, split: str, limit: int | None, 
                 checkpoint: str | None, output: Path | None, progress: bool, context: int = 0) -> None:
     import json
 
-    from rich.progress import track
-
     from ..atomic import atomic_path
     from ..datasets import open_dataset
+    from ._common import track
     from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
     from ..model.eval.depth import depth_method, evaluate_depth, format_table, json_ready
 

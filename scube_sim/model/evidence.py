@@ -49,7 +49,7 @@ from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, Surface
                               fuse_depth)
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
-__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "measure_evidence", "scene_from_evidence"]
+__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "fuse_evidence", "measure_evidence", "scene_from_evidence"]
 
 TRACE_MODE = "entry"
 GROUND_LABEL = LABEL_IDS["road"]
@@ -180,9 +180,20 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
             moved = dataclasses.replace(im, cam_to_world=to_chunk @ im.cam_to_world)
             observations.append(DepthObservation(moved, res.depth, conf))
     t1 = time.perf_counter()
+    ev = fuse_evidence(observations, grid_corner(frames, to_chunk), to_chunk, cfg)
+    if timings is not None:
+        timings.update({"stereo_s": t1 - t0, "fusion_s": time.perf_counter() - t1})
+    return ev
+
+
+def fuse_evidence(observations: list[DepthObservation], corner: np.ndarray, to_chunk: np.ndarray,
+                  cfg: EvidenceConfig | None = None) -> Evidence:
+    """The depth maps (cam_to_world in the chunk frame) -> the `Evidence`: fusion on the chunk whose
+    corner is `corner` (3,) metres, the ground height field and the points' labels (the part of
+    `measure_evidence` after stereo: fusion settings can be compared on the same depth maps)."""
+    cfg = cfg or EvidenceConfig()
     # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
     fusion = fusion_config(cfg)
-    corner = grid_corner(frames, to_chunk)
     grid = fuse_depth(observations, fusion, origin=corner)
     lo, hi = _chunk_bounds(cfg.fusion.voxel_size)
     inside = np.all((grid.ijk >= lo) & (grid.ijk < hi), 1)
@@ -202,9 +213,7 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
         labels = np.where(near & flat, GROUND_LABEL, OTHER_LABEL).astype(np.int64)
     else:
         labels = np.full(len(grid.points), OTHER_LABEL, np.int64)
-    if timings is not None:
-        timings.update({"stereo_s": t1 - t0, "fusion_s": time.perf_counter() - t1})
-    return Evidence(grid, labels, field, measured, observations, corner, to_chunk)
+    return Evidence(grid, labels, field, measured, observations, corner, np.asarray(to_chunk, np.float64))
 
 
 def fusion_config(cfg: EvidenceConfig) -> FusionConfig:

@@ -120,3 +120,14 @@ def test_truncated_ply_is_an_error(shared_data, tmp_path):
     cut.write_bytes(src.read_bytes()[:-1000])
     one_line_error(run("lidar", cut, "--sensor", "vlp16", "-o", tmp_path / "a.pcd"), "cut.ply")
     one_line_error(run("export", cut, "--to", "usd"), "cut.ply")
+
+
+def test_progress_off_a_terminal_is_one_line_per_item(capsys):
+    """Off a terminal (a log file, CI) rich's bar prints nothing until the end; `track` then
+    writes one line per finished item on stderr instead."""
+    from scube_sim.cli._common import track
+
+    seen = list(track(["a", "b", "c"], "sensor to sensor"))
+    assert seen == ["a", "b", "c"]
+    err = capsys.readouterr().err.splitlines()
+    assert [line.split(",")[0] for line in err] == [f"sensor to sensor: {i}/3 done" for i in (1, 2, 3)]

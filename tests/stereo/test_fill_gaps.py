@@ -85,3 +85,21 @@ def test_stereo_fills_a_textureless_stripe_on_the_plane(monkeypatch):
     assert np.nanmedian(rel) < 0.005 and np.nanmax(rel) < 0.025, (np.nanmedian(rel), np.nanmax(rel))
     sure = plain_res.confidence > 0
     assert np.array_equal(res.depth[sure], plain_res.depth[sure])  # confident pixels keep theirs
+
+
+def test_weak_pixels_in_a_band_are_filled_and_are_no_ends():
+    """With weak pixels (`StereoConfig.weak_agreement`), a pixel at or below `sure_above` is unsure:
+    it neither ends a run nor keeps its own depth where confident ends agree around it."""
+    truth = plane_depth([0.3, -0.2, 1.0], 12.0)
+    conf = np.ones((H, W), np.float32)
+    conf[10:18, 20:30] = 0
+    conf[12:14, 24:26] = 0.4  # weak pixels inside the band, their depth a wrong match
+    depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
+    depth[12:14, 24:26] = 40.0
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5, sure_above=0.45)
+    hole = conf < 1
+    np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
+    assert np.all(c[hole] == np.float32(0.5))
+    # the default (sure_above 0): the weak pixels are ends and keep their wrong depth
+    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5)
+    assert np.all(d0[12:14, 24:26] == 40.0)

@@ -234,6 +234,23 @@ def test_a_moving_object_without_a_box_is_not_confidently_wrong():
     assert _confident_wrong(res, gt, on_box) <= 0.005 * on_box.sum(), _confident_wrong(res, gt, on_box)
 
 
+def test_weak_pixels_stay_below_the_fusion_threshold_and_leave_the_confident_ones_alone():
+    """`weak_agreement`: the moving object's low-agreement pixels get at most `weak_cap` (the fusion
+    then needs a second view hitting the same voxel), never the confidence that would make them a
+    surface alone; pixels confident without it keep their depth and confidence."""
+    frames, gt, on_box = _moving_scene({-2: (0.3, -0.8, BOX_Z), -1: (-0.2, 0.7, BOX_Z), 1: (0.4, -0.6, BOX_Z)},
+                                       with_boxes=False)
+    plain = stereo_depth(frames, 0, CFG)
+    weak = stereo_depth(frames, 0, CFG.model_copy(update={"weak_agreement": 0.25, "weak_cap": 0.45}))
+    added = (weak.confidence > 0) & (plain.confidence == 0)
+    assert added.sum() > 0.05 * on_box.sum()  # the object's disagreeing pixels are now weak ...
+    assert np.all(weak.confidence[added] <= 0.45)  # ... and weak only
+    assert _confident_wrong(weak, gt, on_box) == _confident_wrong(plain, gt, on_box)
+    sure = plain.confidence >= 0.5
+    assert np.array_equal(weak.confidence[sure], plain.confidence[sure])
+    assert np.array_equal(weak.depth[sure], plain.depth[sure])
+
+
 def test_the_bytes_do_not_depend_on_the_thread_count():
     cfg = CFG.model_copy(update={"hypotheses": 16, "near_m": 5.0, "far_m": 20.0})  # small: 2 threads may be slow
     ref, _ = _shot("ref", _pose(), 0.0, (0.0, 0.0, BOX_Z))

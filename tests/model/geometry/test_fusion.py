@@ -1,6 +1,7 @@
 """Evidence fusion (`model.geometry.fusion`): exact depth of an analytic plane lands in the voxels
 on it; a later confident view carves a surface it sees through; low confidence gives no evidence;
-bad input names the image."""
+unsure pixels make a surface only where two views agree, and carve nothing; bad input names the
+image."""
 
 from __future__ import annotations
 
@@ -71,6 +72,40 @@ def test_a_later_confident_view_carves_a_surface_it_sees_through():
 def test_pixels_below_the_confidence_floor_give_no_evidence():
     grid = fuse_depth([_wall(5.0, 0.49)], FusionConfig(voxel_size=VS, min_confidence=0.5))
     assert len(grid.ijk) == 0 and len(grid.points) == 0
+
+
+def test_unsure_pixels_make_a_surface_only_where_two_views_agree():
+    cfg = FusionConfig(voxel_size=VS, weak_confidence=0.2, weak_views=2)
+    one = fuse_depth([_wall(5.0, 0.3)], cfg)
+    assert len(one.ijk) == 0  # one unsure view alone: no surface
+    two = fuse_depth([_wall(5.0, 0.3), _wall(5.0, 0.3, centre=(0.3, 0.0, 0.0))], cfg)
+    z = _centres(two)[:, 2]
+    # the two views overlap over about 89 % of the first one's wall (its 5.3 m x 4 m at 5 m is
+    # shifted 0.3 m): only the voxels both hit are occupied, all on the wall's layer
+    assert len(two.ijk) > 0.8 * len(fuse_depth([_wall(5.0, 0.9)], FusionConfig(voxel_size=VS)).ijk)
+    assert np.all(np.abs(z - 5.1) < 1e-9)
+    assert np.all(two.hits >= 2)
+    # two views that disagree by a metre (a wrong match lands elsewhere in each) make nothing
+    apart = fuse_depth([_wall(5.0, 0.3), _wall(6.0, 0.3, centre=(0.3, 0.0, 0.0))], cfg)
+    assert len(apart.ijk) == 0
+    # off (the default): the same two views give no evidence
+    assert len(fuse_depth([_wall(5.0, 0.3), _wall(5.0, 0.3, centre=(0.3, 0.0, 0.0))],
+                          FusionConfig(voxel_size=VS)).ijk) == 0
+
+
+def test_unsure_pixels_carve_nothing():
+    cfg = FusionConfig(voxel_size=VS, weak_confidence=0.2)
+    sure = _wall(5.0, 0.6)
+    # two unsure views agreeing on a wall behind the confident one: their rays cross it, yet it stays
+    grid = fuse_depth([sure, _wall(10.0, 0.3, centre=(0.3, 0.0, 0.0)), _wall(10.0, 0.3, centre=(0.6, 0.0, 0.0))], cfg)
+    alone = fuse_depth([sure], cfg)
+    z = _centres(grid)[:, 2]
+    assert (np.abs(z - 5.1) < 1e-9).sum() == len(alone.ijk)
+    assert not np.any(grid.carved[:, 2] == 25)  # none of the wall's layer [5, 5.2) is carved
+    assert (np.abs(z - 10.1) < 1e-9).sum() > 100  # and the wall behind, where both unsure views hit it
+    # a confident view at 10 m through the same wall does carve it (as without unsure pixels)
+    carved = fuse_depth([sure, _wall(10.0, 0.9, centre=(0.3, 0.0, 0.0))], cfg)
+    assert len(carved.carved) > 0.8 * len(alone.ijk)
 
 
 def test_bad_maps_are_refused_naming_the_image():
