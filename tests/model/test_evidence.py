@@ -200,11 +200,13 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     shipped = load_profile("evidence")
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
     # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in the profiles) and,
-    # in `evidence` alone, the weak pixels (the completion keeps the evidence it was trained on)
+    # in `evidence` alone, the weak pixels, T+3 as a third reference and thinner surfels (the
+    # completion keeps the evidence it was trained on)
     filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
     weak = EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
-                          fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1})
-    assert shipped.evidence == weak and shipped.evidence.references == [0, -3]
+                          fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
+                          references=[0, -3, 3], max_normal_share=0.03)
+    assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]
     fast = load_profile("evidence-fast")  # T alone as the reference
     assert fast.route == "evidence" and fast.context == 4
     assert fast.evidence == filled.model_copy(update={"references": [0]})
