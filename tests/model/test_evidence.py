@@ -200,8 +200,8 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     shipped = load_profile("evidence")
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
     # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in the profiles) and,
-    # in `evidence` alone, the weak pixels, T+3 as a third reference and thinner surfels (the
-    # completion keeps the evidence it was trained on)
+    # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference and thinner
+    # surfels (in `evidence` alone; the completion keeps the evidence it was trained on)
     filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
     weak = EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
@@ -209,7 +209,8 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]
     fast = load_profile("evidence-fast")  # T alone as the reference
     assert fast.route == "evidence" and fast.context == 4
-    assert fast.evidence == filled.model_copy(update={"references": [0]})
+    assert fast.evidence == EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
+                                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0])
     assert load_profile("evidence-complete").evidence == filled
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
