@@ -200,10 +200,11 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     shipped = load_profile("evidence")
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
     # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in the profiles) and,
-    # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference and thinner
-    # surfels (in `evidence` alone; the completion keeps the evidence it was trained on)
+    # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference, thinner
+    # surfels and runs up to 28 degrees filled where in line (in `evidence` alone; the completion
+    # keeps the evidence it was trained on)
     filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
-    weak = EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
+    weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
                           references=[0, -3, 3], max_normal_share=0.03)
     assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]

@@ -103,3 +103,34 @@ def test_weak_pixels_in_a_band_are_filled_and_are_no_ends():
     # the default (sure_above 0): the weak pixels are ends and keep their wrong depth
     d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5)
     assert np.all(d0[12:14, 24:26] == 40.0)
+
+
+def test_an_oblique_plane_s_band_fills_only_where_its_ends_lie_in_line():
+    """A band on a plane seen obliquely: its ends' depths differ by more than the tolerance (6.6 %
+    along rows, 3.6 % along columns, against 3 %), so the ends alone leave it a hole; with
+    `coplanar` the line through the ends also meets the confident pixels beyond them, and the band
+    takes the plane's depth. Across a depth step (a pole before a wall) the line misses the pixels
+    beyond the ends, and the band stays a hole."""
+    truth = plane_depth([0.3, -0.2, 1.0], 12.0)
+    conf = np.ones((H, W), np.float32)
+    conf[10:18, 20:30] = 0
+    depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
+    hole = conf == 0
+    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5)
+    assert np.isnan(d0[hole]).all()
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5, coplanar=0.5)
+    np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
+    assert np.all(c[hole] == np.float32(0.5))
+    assert np.array_equal(d[~hole], depth[~hole]) and np.array_equal(c[~hole], conf[~hole])
+    # the line must reach sure pixels beyond both ends: a band from top to bottom (no column
+    # gaps) 2 pixels from the image's left edge has none 5 pixels beyond its left end
+    edge = np.ones((H, W), np.float32)
+    edge[:, 2:12] = 0
+    de, _ = fill_gaps(np.where(edge > 0, truth, np.nan).astype(np.float32), edge, 12, 0.03, 0.5, coplanar=0.5)
+    assert np.isnan(de[:, 2:12]).all()
+    # a pole's edge at column 25 before a wall: 5 m ends left, 30 m right, nothing in line
+    step = np.where(np.arange(W) < 25, plane_depth([0, 0, 1], 5.0), plane_depth([0, 0, 1], 30.0))
+    cs = np.ones((H, W), np.float32)
+    cs[:, 20:30] = 0
+    ds, _ = fill_gaps(np.where(cs > 0, step, np.nan).astype(np.float32), cs, 12, 0.03, 0.5, coplanar=0.5)
+    assert np.isnan(ds[:, 20:30]).all()
