@@ -7,8 +7,10 @@ carved (`geometry.fusion`), surfels fitted to what the cameras saw, and a ground
 Labels come from the geometry: a point within `ground_band_m` of the height field on a surface
 tilted at most `ground_max_slope_deg` (its pixel's footprint normal) is `road` (the
 surface a drive sees most; its reflectance default), any other `undefined` (whose reflectance
-default is the measured mean of unlabelled returns above the ground). The scene traces at hard
-opacity (`entry`): its Gaussians are flat surfels on measured surfaces.
+default is the measured mean of unlabelled returns above the ground). With `ground_snap_m`, the
+road's points within it of the height field are moved onto it (`snap_ground`) and the field's
+samples laid under them too. The scene traces at hard opacity (`entry`): its Gaussians are flat
+surfels on measured surfaces.
 
 References (`references`, offsets from T; default T and T-3): each instant's images are stereo
 references in turn (`Frames.around`), each against all the other images, and every depth map
@@ -55,7 +57,8 @@ from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, Surface
                               fuse_depth)
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
-__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "fuse_evidence", "measure_evidence", "scene_from_evidence"]
+__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "fuse_evidence", "measure_evidence", "scene_from_evidence",
+           "snap_ground"]
 
 TRACE_MODE = "entry"
 GROUND_LABEL = LABEL_IDS["road"]
@@ -89,6 +92,11 @@ class EvidenceConfig(StrictModel):
     # worlds val 0-7, references [0, -3, 3]: 0.1 / 0.03 / 0.01 -> seen ground median 0.328 / 0.298
     # / 0.283 m, seen-object rays p90 2.80 / 2.90 / 2.99 m; the `evidence` profile takes 0.03)
     max_normal_share: float = Field(default=0.1, gt=0)
+    # an observed ground point within this of the height field is moved onto it, its footprint laid
+    # flat (None: left where stereo put it). Stereo scatters the road's points about the surface
+    # (worlds: seen ground median |dr| 0.3 m at hard opacity); the field, a median over 1 m cells,
+    # is steadier. A step taller than this (a kerb) keeps its points (`snap_ground`)
+    ground_snap_m: float | None = Field(default=None, gt=0, le=1)
 
 
 REAR_AXIS_X = -0.5  # a camera looks back when its optical axis' forward component (chunk frame) is below this
@@ -111,9 +119,13 @@ def _chunk_bounds(voxel_size: float) -> tuple[np.ndarray, np.ndarray]:
     return np.zeros(3, np.int64), np.floor(size / voxel_size + 1e-9).astype(np.int64)
 
 
-def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceConfig) -> SurfaceSamples:
+def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceConfig,
+                    snapped: np.ndarray | None = None) -> SurfaceSamples:
     """Points on the height field every half voxel, in the voxel columns whose ground no observed
-    voxel holds, each standing for its half-voxel square; coloured by the observed ground's mean."""
+    voxel holds, each standing for its half-voxel square; coloured by the observed ground's mean.
+    snapped: (N,) bool, the ground points moved onto the field (`snap_ground`): their columns take
+    samples too, on the same surface, closing the holes between their surfels (flat at the same
+    height, they leave none of the overlap that noisy heights gave a grazing ray)."""
     vs = grid.voxel_size
     step = vs / 2
     lo, hi = _chunk_bounds(vs)
@@ -126,6 +138,8 @@ def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceC
     covered = np.zeros(tuple(hi[:2]), bool)
     if len(grid.points):
         g = labels == GROUND_LABEL
+        if snapped is not None:
+            g &= ~snapped
         gij = np.floor((grid.points[g, :2] - grid.origin[:2]) / vs).astype(np.int64)
         ok = np.all((gij >= 0) & (gij < hi[:2]), 1)
         covered[gij[ok, 0], gij[ok, 1]] = True
@@ -237,7 +251,11 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
     `trace_mode` entry (module docstring)."""
     cfg = cfg or EvidenceConfig()
     field, grid, labels = ev.field, ev.grid, ev.labels
-    samples = _ground_samples(field, grid, labels, cfg) if (field is not None and cfg.fill_ground) else None
+    snapped = None
+    if field is not None and cfg.ground_snap_m is not None:
+        grid, snapped = snap_ground(grid, labels, field, cfg.ground_snap_m)
+    samples = (_ground_samples(field, grid, labels, cfg, snapped) if (field is not None and cfg.fill_ground)
+               else None)
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,
                               max_normal_scale=cfg.max_normal_share * cfg.fusion.voxel_size)
     scene.metadata.update({
@@ -270,6 +288,29 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
         timings.update({"stereo_s": parts["stereo_s"], "fusion_s": time.perf_counter() - t0 - parts["stereo_s"],
                         "peak_mb": peak_mb()})
     return scene
+
+
+def snap_ground(grid: FusedGrid, labels: np.ndarray, field: HeightField,
+                band_m: float) -> tuple[FusedGrid, np.ndarray]:
+    """The grid with its ground points (`labels` (N,) == road) within `band_m` metres of the height
+    field moved onto it (z := the field's height at their x, y) and their footprints laid flat
+    (no z in the covariance: a horizontal patch of the same trace); the voxels, their evidence and the other points
+    unchanged, and the (N,) bool of the points moved. A moved point may leave its voxel:
+    `evidence_voxsplat` places each point by its position."""
+    z = field.height_at(grid.points[:, :2])
+    move = (labels == GROUND_LABEL) & (np.abs(grid.points[:, 2] - z) <= band_m)
+    points = grid.points.copy()
+    points[move, 2] = z[move]
+    patch = grid.patch.astype(np.float64)
+    # laid flat keeping its size: the noise tilting a footprint shortened its horizontal extent,
+    # and at hard opacity a surfel too small leaves a hole a ray slips through
+    m = patch[move]
+    flat = m[:, 0] + m[:, 3]
+    scale = np.where(flat > 0, (flat + m[:, 5]) / np.where(flat > 0, flat, 1.0), 1.0)
+    m[:, [0, 1, 3]] *= scale[:, None]
+    m[:, [2, 4, 5]] = 0  # xz, yz, zz
+    patch[move] = m
+    return dataclasses.replace(grid, points=points, patch=patch.astype(grid.patch.dtype)), move
 
 
 def _select(grid, keep: np.ndarray):

@@ -371,9 +371,14 @@ def evidence_voxsplat(grid: FusedGrid, *, gaussians_per_voxel: int = 4, max_norm
     keys = voxel_keys(out.ijk)
     observed = np.zeros(out.num_voxels, bool)
     conf = np.full(out.num_voxels, np.nan if unobserved is None else unobserved.confidence, np.float32)
-    pos = np.searchsorted(keys, voxel_keys(grid.ijk))  # every occupied voxel holds a point: it is there
-    observed[pos] = True
-    conf[pos] = grid.probability
+    if len(grid.points):
+        # a voxel is observed where an observed point lies, with the most probable occupancy among
+        # its points' voxels (a point moved onto a fitted surface may have left its own)
+        pos = np.searchsorted(keys, voxel_keys(_voxel_of(grid.points, grid.origin, grid.voxel_size)))
+        best = np.full(out.num_voxels, -np.inf)
+        np.maximum.at(best, pos, grid.probability[grid.voxel])
+        observed[pos] = True
+        conf[observed] = best[observed]
     out.set_channel("observed", observed)
     out.set_channel("confidence", conf)
     return out

@@ -136,3 +136,53 @@ def test_the_surfels_of_a_fused_plane_trace_in_entry_mode_at_its_range():
     # along the normal, sigma at its floor of 1 % of a voxel) sits at most 6 mm before the plane
     err = hits.t - expected
     assert np.all((err > -0.006 / np.cos(ang) - 1e-6) & (err <= 0)), err
+
+
+def test_ground_points_snapped_onto_the_height_field_trace_at_the_plane_and_a_kerb_keeps_its_step():
+    from scube_sim.model.evidence import GROUND_LABEL, snap_ground
+    from scube_sim.model.geometry.fusion import evidence_voxsplat
+    from scube_sim.model.geometry.ground import flat_height_field
+    from scube_sim.raytrace.tracer import Tracer
+
+    im, depth = _shot("cam", _pose(), 0.0)
+    h, w = depth.shape
+    # stereo-like noise, +-12 cm at 10 m, over the plane; the image's left quarter a step 0.35 m
+    # beyond it (a kerb in this frame, whose "up" is the camera's z), measured exactly. The voxels
+    # start 0.1 m off the plane: it lies mid-layer, the noise reaching the layers either side
+    noisy = depth * (1 + np.random.default_rng(0).uniform(-0.012, 0.012, depth.shape)).astype(np.float32)
+    kerb = np.zeros((h, w), bool)
+    kerb[:, : w // 4] = True
+    noisy[kerb] = depth[kerb] * (PLANE_Z + 0.35) / PLANE_Z
+    grid = fuse_depth([DepthObservation(im, noisy, np.full_like(depth, 0.8))], FusionConfig(voxel_size=VS),
+                      origin=np.array([0.0, 0.0, 0.1]))
+    layers = set(np.round(_centres(grid)[:, 2], 6))
+    assert {PLANE_Z - VS, PLANE_Z, PLANE_Z + VS} <= layers  # the noise spread the plane over 3 layers
+    field = flat_height_field((-20.0, 20.0, -20.0, 20.0), cell=1.0, z=PLANE_Z)
+    snapped, moved = snap_ground(grid, np.full(len(grid.points), GROUND_LABEL), field, 0.2)
+    on_kerb = grid.points[:, 2] > PLANE_Z + 0.25
+    np.testing.assert_array_equal(moved, ~on_kerb)
+    assert 0.2 < on_kerb.mean() < 0.3
+    np.testing.assert_allclose(snapped.points[~on_kerb, 2], PLANE_Z, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(snapped.points[on_kerb], grid.points[on_kerb])
+    np.testing.assert_array_equal(snapped.points[:, :2], grid.points[:, :2])
+    assert np.all(snapped.patch[~on_kerb][:, [2, 4, 5]] == 0)
+    trace = lambda p: p[:, 0] + p[:, 3] + p[:, 5]  # noqa: E731
+    np.testing.assert_allclose(trace(snapped.patch[~on_kerb]), trace(grid.patch[~on_kerb]), rtol=1e-5)
+    # points that left their voxels are still observed, with their voxels' confidence
+    vs = evidence_voxsplat(snapped)
+    centres_z = 0.1 + (vs.ijk[:, 2] + 0.5) * VS
+    assert set(np.round(centres_z, 6)) == {PLANE_Z, PLANE_Z + 0.4}
+    assert vs.channels["observed"].data.all()
+    np.testing.assert_allclose(vs.channels["confidence"].data, 1 / (1 + np.exp(-0.85 * 0.8)), rtol=1e-6)
+    # rays over the plane hit it within the entry shell (as exact depth does), not the noise's
+    # +-12 cm; rays into the kerb hit its step
+    ang = np.deg2rad(np.array([-24.0, -22.0, -5.0, 0.0, 10.0, 20.0]))
+    dirs = np.stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)], 1)
+    expected = np.where(ang < np.deg2rad(-16), PLANE_Z + 0.35, PLANE_Z) / np.cos(ang)
+    hits = Tracer(vs, mode="entry").trace_world(np.zeros((len(ang), 3)), dirs)
+    assert hits.hit.all()
+    err = hits.t - expected
+    assert np.all((err > -0.006 / np.cos(ang) - 1e-6) & (err <= 1e-6)), err
+    # unsnapped, the noise shows: ranges centimetres off, or a ray slipping between tilted surfels
+    raw = Tracer(evidence_voxsplat(grid), mode="entry").trace_world(np.zeros((len(ang), 3)), dirs)
+    assert not raw.hit[2:].all() or np.abs(raw.t - expected)[2:].max() > 0.02, raw.t - expected
