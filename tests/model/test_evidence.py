@@ -237,8 +237,9 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     assert shipped.route == "evidence" and shipped.context == 4 and shipped.geometry is None
     # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in the profiles) and,
     # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference, thinner
-    # surfels, runs up to 28 degrees filled where in line and the road snapped onto the height field
-    # (in `evidence` alone; the completion keeps the evidence it was trained on)
+    # surfels and runs up to 28 degrees filled where in line (in `evidence` alone), the road snapped
+    # onto the height field (in `evidence` and `evidence-fast`; the completion keeps the evidence it
+    # was trained on)
     filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
     weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
@@ -247,7 +248,8 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     fast = load_profile("evidence-fast")  # T alone as the reference
     assert fast.route == "evidence" and fast.context == 4
     assert fast.evidence == EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
-                                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0])
+                                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0],
+                                           ground_snap_m=0.15)
     assert load_profile("evidence-complete").evidence == filled
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
