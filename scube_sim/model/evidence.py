@@ -293,10 +293,10 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
 def snap_ground(grid: FusedGrid, labels: np.ndarray, field: HeightField,
                 band_m: float) -> tuple[FusedGrid, np.ndarray]:
     """The grid with its ground points (`labels` (N,) == road) within `band_m` metres of the height
-    field moved onto it (z := the field's height at their x, y) and their footprints laid flat
-    (no z in the covariance: a horizontal patch of the same trace); the voxels, their evidence and the other points
-    unchanged, and the (N,) bool of the points moved. A moved point may leave its voxel:
-    `evidence_voxsplat` places each point by its position."""
+    field moved onto it (z := the field's height at their x, y) and their footprints laid flat (no
+    z in the covariance: a horizontal patch of the same trace); the voxels, their evidence and the
+    other points unchanged; and the (N,) bool of the points moved. A moved point may leave its
+    voxel: `evidence_voxsplat` places each point by its position."""
     z = field.height_at(grid.points[:, :2])
     move = (labels == GROUND_LABEL) & (np.abs(grid.points[:, 2] - z) <= band_m)
     points = grid.points.copy()
