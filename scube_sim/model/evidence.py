@@ -58,7 +58,7 @@ from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, Surface
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
 __all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "fuse_evidence", "measure_evidence", "scene_from_evidence",
-           "snap_ground"]
+           "snap_ground", "widen_surfels"]
 
 TRACE_MODE = "entry"
 GROUND_LABEL = LABEL_IDS["road"]
@@ -97,6 +97,16 @@ class EvidenceConfig(StrictModel):
     # (worlds: seen ground median |dr| 0.3 m at hard opacity); the field, a median over 1 m cells,
     # is steadier. A step taller than this (a kerb) keeps its points (`snap_ground`)
     ground_snap_m: float | None = Field(default=None, gt=0, le=1)
+    # an observed surfel off the road, its centre more than `min_width_above_m` over the height
+    # field, is at least this share of the voxel wide (standard deviation along both tangents;
+    # None: as fitted). Stereo is confident at texture edges, so a voxel of a car's door holds
+    # points on a few centimetres of it, its surfels as small, and a ray through the rest of the
+    # voxel slips between them to what lies behind; a voxel the fusion holds occupied is crossed by
+    # its surface. 0.144 = 1 / (2 sqrt 12): each of the 2 x 2 Gaussians of a voxel spans its quarter
+    # of the face (`widen_surfels`). Surfels near the ground keep their size: a wall's widened foot
+    # meets the rays to the road before it (the `evidence` profile's comment has the trade)
+    min_width_share: float | None = Field(default=None, gt=0, le=1)
+    min_width_above_m: float = Field(default=0.3, ge=0, le=100)
 
 
 REAR_AXIS_X = -0.5  # a camera looks back when its optical axis' forward component (chunk frame) is below this
@@ -258,12 +268,15 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
                else None)
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,
                               max_normal_scale=cfg.max_normal_share * cfg.fusion.voxel_size)
+    widened = (widen_surfels(scene, field, cfg.min_width_share, cfg.min_width_above_m)
+               if cfg.min_width_share is not None else 0)
     scene.metadata.update({
         "source": "scube_sim.evidence",
         "frame": "chunk",
         "chunk_to_world": np.linalg.inv(ev.to_chunk).tolist(),
         "trace_mode": TRACE_MODE,
         "confidence_kind": "fused occupancy probability (unobserved ground: a constant)",
+        "widened_surfels": widened,
         "ground_field": None if field is None else {"cell_m": field.cell, "measured": ev.measured,
                                                     "observed_share": float(field.observed.mean())},
     })
@@ -288,6 +301,30 @@ def evidence_scene(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | N
         timings.update({"stereo_s": parts["stereo_s"], "fusion_s": time.perf_counter() - t0 - parts["stereo_s"],
                         "peak_mb": peak_mb()})
     return scene
+
+
+def widen_surfels(scene: VoxSplat, field: HeightField | None, share: float, above_m: float) -> int:
+    """Raise, in place, both tangent standard deviations of the observed Gaussians off the road whose
+    centre lies more than `above_m` metres over `field` (all of them where there is no field) to at
+    least `share` of the voxel (`EvidenceConfig.min_width_share`); the normal's is kept, so a surfel
+    stays as flat. Returns the number of Gaussians widened."""
+    from ..splat_params import SCALE
+
+    vi, si = np.nonzero(scene.valid)
+    off_road = scene.channels["observed"].data[vi] & (scene.labels[vi] != GROUND_LABEL)
+    vi, si = vi[off_road], si[off_road]
+    if field is not None and len(vi):
+        mean = scene.means()[vi, si] + scene.origin
+        up = mean[:, 2] - field.height_at(mean[:, :2]) > above_m
+        vi, si = vi[up], si[up]
+    # scales are stored as logs, the normal's first (`fit.fit_voxsplat`: ascending spread)
+    log_scale = scene.params[vi, si, SCALE]
+    floor = np.float32(np.log(share * scene.voxel_size))
+    widened = np.maximum(log_scale[:, 1:], floor)
+    changed = np.any(widened != log_scale[:, 1:], axis=1)
+    log_scale[:, 1:] = widened
+    scene.params[vi, si, SCALE] = log_scale
+    return int(changed.sum())
 
 
 def snap_ground(grid: FusedGrid, labels: np.ndarray, field: HeightField,

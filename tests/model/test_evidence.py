@@ -238,18 +238,18 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     # the defaults but for stereo's gap filling (off in StereoConfig, 14 degrees in the profiles) and,
     # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference, thinner
     # surfels and runs up to 28 degrees filled where in line (in `evidence` alone), the road snapped
-    # onto the height field (in `evidence` and `evidence-fast`; the completion keeps the evidence it
-    # was trained on)
+    # onto the height field and the surfels off the road widened (in `evidence` and `evidence-fast`;
+    # the completion keeps the evidence it was trained on)
     filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
     weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
-                          references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15)
+                          references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15, min_width_share=0.144)
     assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]
     fast = load_profile("evidence-fast")  # T alone as the reference
     assert fast.route == "evidence" and fast.context == 4
     assert fast.evidence == EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
                                            fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0],
-                                           ground_snap_m=0.15)
+                                           ground_snap_m=0.15, min_width_share=0.144)
     assert load_profile("evidence-complete").evidence == filled
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
@@ -348,3 +348,61 @@ def test_the_command_line_defaults_are_the_converters():
 
     assert ConvertSettings().profile == DEFAULT_PROFILE and ConvertSettings().context is None  # the profile's
 
+
+
+def _sparse_wall(z_lo: float, label: int):
+    """A wall in the plane x = 5.05 (y 0..2 m, z from `z_lo`, 1 m tall) measured only along one
+    vertical texture edge per 0.2 m voxel (at its centre, y = 0.1 m + k 0.2 m), as stereo measures a
+    plain door at its few edges: the fitted VoxSplat, all voxels observed and labelled `label`."""
+    from scube_sim.fit import fit_voxsplat
+
+    vs = 0.2
+    y = (np.arange(10) + 0.5) * vs
+    z = z_lo + (np.arange(60) + 0.5) * (1.0 / 60)
+    yy, zz = np.meshgrid(y, z, indexing="ij")
+    pts = np.column_stack([np.full(yy.size, 5.05), yy.ravel(), zz.ravel()])
+    scene = fit_voxsplat(pts, vs, gaussians_per_voxel=4, max_normal_scale=0.006)
+    scene.labels[:] = label
+    scene.set_channel("observed", np.ones(scene.num_voxels, bool))
+    return scene
+
+
+def _wall_hits(scene, z_lo: float, beside: float) -> np.ndarray:
+    """Level rays from x = 0 along +x, `beside` metres to the side of each measured edge, at heights
+    over the wall's face -> their ranges (inf: no hit)."""
+    y, z = np.meshgrid((np.arange(10) + 0.5) * 0.2 + beside, np.linspace(z_lo + 0.05, z_lo + 0.95, 10), indexing="ij")
+    o = np.column_stack([np.zeros(y.size), y.ravel(), z.ravel()])
+    d = np.tile([1.0, 0.0, 0.0], (len(o), 1))
+    hits = Tracer(scene, mode="entry").trace(o - scene.origin, d)
+    return np.where(hits.hit, hits.t, np.inf)
+
+
+def test_widened_surfels_close_a_sparsely_measured_wall_and_leave_the_road_and_its_rims_alone():
+    """`widen_surfels` (`EvidenceConfig.min_width_share`): a wall measured along one edge per voxel
+    lets a ray 6 cm beside the edges through; with each surfel at least 0.144 of the voxel wide
+    (3 sigma: 8.6 cm to either side), it stops at the wall's plane, the surfels as flat as fitted.
+    Surfels on the road, or lower than `above_m` over the ground field, keep their size."""
+    from scube_sim.model.evidence import widen_surfels
+    from scube_sim.model.geometry.ground import flat_height_field
+
+    field = flat_height_field((-10.0, 10.0, -10.0, 10.0), z=0.0)
+    wall = _sparse_wall(1.0, LABEL_IDS["undefined"])
+    on_edge, beside = _wall_hits(wall, 1.0, 0.0), _wall_hits(wall, 1.0, 0.06)
+    thickness = wall.scales()[..., 0].copy()
+    assert np.isfinite(on_edge).all() and not np.isfinite(beside).any()
+    n = widen_surfels(wall, field, 0.144, 0.3)
+    assert n == wall.valid.sum() == 4 * 50
+    beside = _wall_hits(wall, 1.0, 0.06)
+    # flat surfels 6 mm thick: entered within 3 sigma (1.8 cm) of the plane
+    assert np.isfinite(beside).all()
+    np.testing.assert_allclose(beside, 5.05, atol=0.02)
+    np.testing.assert_allclose(_wall_hits(wall, 1.0, 0.0), 5.05, atol=0.02)
+    np.testing.assert_array_equal(wall.scales()[..., 0], thickness)
+    # 10 cm beside them (half-way to the next edge): past the widened discs' 8.6 cm
+    assert not np.isfinite(_wall_hits(wall, 1.0, 0.099)).any()
+    # the same wall as road, or standing on the ground below 0.3 m: untouched
+    for z_lo, label in ((1.0, LABEL_IDS["road"]), (-0.9, LABEL_IDS["undefined"])):
+        other = _sparse_wall(z_lo, label)
+        params = other.params.copy()
+        assert widen_surfels(other, field, 0.144, 0.3) == 0
+        np.testing.assert_array_equal(other.params, params)
