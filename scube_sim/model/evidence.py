@@ -9,8 +9,9 @@ tilted at most `ground_max_slope_deg` (its pixel's footprint normal) is `road` (
 surface a drive sees most; its reflectance default), any other `undefined` (whose reflectance
 default is the measured mean of unlabelled returns above the ground). With `ground_snap_m`, the
 road's points within it of the height field are moved onto it (`snap_ground`) and the field's
-samples laid under them too. The scene traces at hard opacity (`entry`): its Gaussians are flat
-surfels on measured surfaces.
+samples laid under them too. With `min_width_share`, the observed surfels off the road and above
+the ground are at least that share of a voxel wide (`widen_surfels`). The scene traces at hard
+opacity (`entry`): its Gaussians are flat surfels on measured surfaces.
 
 References (`references`, offsets from T; default T and T-3): each instant's images are stereo
 references in turn (`Frames.around`), each against all the other images, and every depth map
