@@ -51,6 +51,7 @@ from ..config import StrictModel, unique_names
 from ..errors import InputError
 from ..labels import LABEL_IDS
 from ..memory import peak_mb, reset_peak
+from ..splat_params import SCALE
 from ..stereo import StereoConfig, moved_pixels, stereo_depth
 from ..voxsplat import VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
@@ -309,8 +310,6 @@ def widen_surfels(scene: VoxSplat, field: HeightField | None, share: float, abov
     centre lies more than `above_m` metres over `field` (all of them where there is no field) to at
     least `share` of the voxel (`EvidenceConfig.min_width_share`); the normal's is kept, so a surfel
     stays as flat. Returns the number of Gaussians widened."""
-    from ..splat_params import SCALE
-
     vi, si = np.nonzero(scene.valid)
     off_road = scene.channels["observed"].data[vi] & (scene.labels[vi] != GROUND_LABEL)
     vi, si = vi[off_road], si[off_road]
