@@ -519,7 +519,7 @@ class Converter:
         if self.completion is not None:
             self.uncompleted = scene  # the evidence alone (`eval sensor-to-sensor` scores both)
             feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                     pixel_stride=fusion_config(cfg).pixel_stride)
+                                     pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
             with _one_torch_thread():
                 occ_logit, lab_logit = self.completion(torch.from_numpy(feats)[None])
             occ = torch.sigmoid(occ_logit[0]).double().numpy()

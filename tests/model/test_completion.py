@@ -6,6 +6,7 @@ surface."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -16,7 +17,9 @@ import torch
 from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.completion.data import CACHE_DIR, FEATURES_VERSION, CompletionData, CompletionDataset
-from scube_sim.model.completion.features import FEATURES, coarse_dims, completion_input
+from scube_sim.model.completion.features import FEATURES, INPUTS_V1, coarse_dims, completion_input
+from scube_sim.model.completion.net import CompletionModel, CompletionNet
+from scube_sim.model.geometry.fusion import DepthObservation
 from scube_sim.model.completion.merge import CompletionConfig, in_ego_box, merge_completion
 from scube_sim.model.config import config_from_dict
 from scube_sim.model.evidence import measure_evidence
@@ -62,6 +65,51 @@ def test_the_input_holds_the_walls_and_the_free_space_before_them(corridor_featu
     ground = ev.field.height_at(centre[None, :2])[0]
     assert abs(ground) < 0.1  # the road's surface, z = 0
     assert f[CH["height"]][above] == pytest.approx((centre[2] - ground) / 4, abs=1e-3)
+
+
+def test_looked_counts_the_images_that_saw_a_cell_on_a_pixel_stereo_left_empty(corridor_features):
+    """One camera of the corridor, its depth map replaced: no depth on the left half of the image,
+    a confident surface 10 m along the axis on the right half. A cell 20 degrees left of the axis
+    within range is looked at (1 image of 4); the same on the right, before or behind the surface,
+    is not (its pixel holds a depth); one beyond the range or behind the camera is not either."""
+    ev, _ = corridor_features
+    image = ev.observations[0].image
+    h, w = image.intrinsics.height, image.intrinsics.width
+    depth = np.full((h, w), 10.0, np.float32)
+    depth[:, : w // 2] = np.nan
+    conf = np.where(np.isnan(depth), 0.0, 1.0).astype(np.float32)
+    ev2 = dataclasses.replace(ev, observations=[DepthObservation(image, depth, conf)])
+    f = completion_input(ev2, 0.8, min_confidence=0.5, max_depth_m=40.0)[CH["looked"]]
+    pose = image.cam_to_world
+
+    def at(side: float, z: float) -> float:  # camera frame: x right, z along the axis
+        p = pose[:3, 3] + pose[:3, :3] @ np.array([side * np.tan(np.radians(20)) * z, 0.0, z])
+        return float(f[_cell(p)])
+
+    assert at(-1, 6.0) == 0.25 and at(-1, 30.0) == 0.25  # left: looked, nothing measured
+    assert at(+1, 6.0) == 0 and at(+1, 16.0) == 0  # right: a depth, before or behind it
+    assert at(-1, 60.0) == 0  # beyond the 40 m range
+    assert f.max() == 0.25 and f.min() == 0
+    behind = pose[:3, 3] - 4.0 * pose[:3, 2]
+    if np.all(np.asarray(_cell(behind)) >= 0):
+        assert f[_cell(behind)] == 0
+
+
+def test_the_network_reads_only_the_channels_it_names():
+    """A network of the first checkpoint's inputs ignores `looked`; one that names it reads it; an
+    unknown name is refused."""
+    torch.manual_seed(0)
+    x = torch.rand(1, len(FEATURES), 8, 8, 8)
+    y = x.clone()
+    y[:, CH["looked"]] = 1 - y[:, CH["looked"]]
+    v1 = CompletionNet(CompletionModel(widths=[4, 4], groups=2)).eval()
+    assert v1.cfg.features == list(INPUTS_V1) and "looked" not in v1.cfg.features
+    with torch.no_grad():
+        assert torch.equal(v1(x)[0], v1(y)[0])
+        v2 = CompletionNet(CompletionModel(widths=[4, 4], groups=2, features=list(FEATURES))).eval()
+        assert not torch.equal(v2(x)[0], v2(y)[0])
+    with pytest.raises(ValueError, match="features: each once"):
+        CompletionModel(features=["occupied", "colour"])
 
 
 # ----------------------------------------------------------------------------- the merge
@@ -415,7 +463,8 @@ def test_the_shipped_completion_completes_a_held_out_world_from_its_evidence():
 
     z = np.load(Path(__file__).resolve().parents[1] / "data" / "completion" / "worlds_val_000003.npz")
     dims = tuple(int(d) for d in z["dims"])
-    feats = z["features"].astype(np.float32)
+    feats = z["features"].astype(np.float32)  # the 11 channels measured then (`INPUTS_V1`) ...
+    feats = np.concatenate([feats, np.zeros((len(FEATURES) - len(feats), *dims), np.float32)])  # ... none read since
     truth = np.unpackbits(z["occupied"])[:np.prod(dims)].reshape(dims).astype(bool)
     labels = z["labels"].astype(np.int64)
 
@@ -429,6 +478,7 @@ def test_the_shipped_completion_completes_a_held_out_world_from_its_evidence():
                 semantic_metrics(torch.from_numpy(conf.reshape(NUM_LABELS, NUM_LABELS)))["miou"])
 
     net, _ = load_model("completion", resolve_checkpoint("completion-cpu"))
+    assert net.cfg.features == list(INPUTS_V1)
     torch.manual_seed(0)
     iou, miou = scores(net)
     untrained = scores(CompletionNet(net.cfg).eval())

@@ -42,7 +42,7 @@ from .features import FEATURES, coarse_dims, completion_input
 
 __all__ = ["CompletionData", "CompletionDataset", "cache_evidence", "cache_path"]
 
-FEATURES_VERSION = 1
+FEATURES_VERSION = 2  # 2: the `looked` channel
 CACHE_DIR = "evidence"
 
 
@@ -105,7 +105,7 @@ def cache_evidence(data_dir: Path, split: str, prof, *, count: int | None = None
             frames = frames_with_context(ds, i, prof.context) if prof.context else ds[i].frames
             ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg)
             feats = completion_input(ev, voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                     pixel_stride=fusion_config(cfg).pixel_stride)
+                                     pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
             seconds = time.perf_counter() - t0
             out.parent.mkdir(parents=True, exist_ok=True)
             with atomic_path(out) as tmp:
@@ -164,6 +164,9 @@ class CompletionDataset(Dataset):
         with np.load(path, allow_pickle=False) as z:
             feats = torch.from_numpy(z["features"].astype(np.float32))
             key = json_loads(str(z["key"]), str(path))
+        if feats.shape[0] != len(FEATURES):
+            raise InputError(f"{path}: {feats.shape[0]} feature channels, this version reads {len(FEATURES)} "
+                             f"(rebuild: scube-sim worlds evidence)")
         if abs(key.get("voxel_size", -1) - self.cfg.voxel_size) > 1e-9:
             raise InputError(f"{path}: cached at {key.get('voxel_size')} m, data.voxel_size is {self.cfg.voxel_size} m "
                              f"(rebuild: scube-sim worlds evidence)")

@@ -18,6 +18,14 @@ Channels, each in [0, 1] (or [-1, 1]) so that no scale is learned from one log:
 - ``height``: (cell centre z - ground height field there) / 4 m, clipped to [-1, 1]
 - ``ground_observed``: 1 where the height field's cell was measured, 0 where it was filled
 - ``z``: the cell's height in the box, (k + 0.5) / Z
+- ``looked``: images in which the cell's centre, in front of the camera and within
+  `max_depth_m` along its axis, falls on a pixel with no confident depth (sky, a blank wall, the direction
+  of travel seen by a camera moving along it), over 4, clipped: the camera looked, stereo measured
+  nothing. A cell no camera looked at (outside every image, or beyond the range) holds 0 here and
+  in ``free_images``; one a camera saw through holds ``free_images``; a confident surface in front
+  of the cell hides it, and the cell counts in neither (its pixel holds a depth)
+
+`INPUTS_V1`: the channels the first checkpoint (`completion-cpu`) reads, all but ``looked``.
 
 Free-space rays: every confident pixel of a grid spaced `ray_spacing_rad` apart in each reference
 image (its depth finite, confidence at least the fusion's `min_confidence`), sampled every half
@@ -28,13 +36,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...camera.depth import project_to_pixels
 from ...worlds.groundtruth import CHUNK_SIZE
 from ..evidence import CHUNK_HEIGHT_SHARE, GROUND_LABEL, Evidence
 
-__all__ = ["FEATURES", "completion_input", "coarse_dims"]
+__all__ = ["FEATURES", "INPUTS_V1", "completion_input", "coarse_dims"]
 
 FEATURES = ("occupied", "probability", "ground", "free_images", "free_rays", "red", "green", "blue", "height",
-            "ground_observed", "z")
+            "ground_observed", "z", "looked")
+INPUTS_V1 = FEATURES[:11]
 OCCUPIED_FULL = 16.0  # fine voxels of a flat surface through a 4 x 4 x 4 block
 FREE_IMAGES_FULL = 4.0
 FREE_RAYS_FULL = 64.0
@@ -91,8 +101,23 @@ def _free_space(ev: Evidence, vs: float, dims, min_confidence: float, spacing: f
     return images, samples
 
 
+def _looked(ev: Evidence, centres: np.ndarray, min_confidence: float, max_depth_m: float) -> np.ndarray:
+    """(X*Y*Z,) float64: per cell centre (chunk frame), the images in which it lies in front of
+    the camera, at most `max_depth_m` along its axis (the fusion's limit), on a pixel without a
+    confident depth."""
+    looked = np.zeros(len(centres))
+    for obs in ev.observations:
+        kept, flat, z = project_to_pixels(centres, obs.image)
+        d = np.asarray(obs.depth, np.float64).reshape(-1)[flat]
+        c = np.asarray(obs.confidence, np.float32).reshape(-1)[flat]
+        with np.errstate(invalid="ignore"):
+            measured = np.isfinite(d) & (d > 0) & (c >= min_confidence) & (c > 0)
+        looked[kept[~measured & (z <= max_depth_m)]] += 1
+    return looked
+
+
 def completion_input(ev: Evidence, voxel_size: float = 0.8, *, min_confidence: float = 0.5,
-                     ray_spacing_rad: float = 0.012, pixel_stride: int = 1) -> np.ndarray:
+                     ray_spacing_rad: float = 0.012, pixel_stride: int = 1, max_depth_m: float = 80.0) -> np.ndarray:
     """(len(FEATURES), X, Y, Z) float32 (module docstring) of the evidence `ev`."""
     vs = float(voxel_size)
     dims = coarse_dims(vs)
@@ -130,4 +155,5 @@ def completion_input(ev: Evidence, voxel_size: float = 0.8, *, min_confidence: f
     else:
         out[8] = np.clip((centres[:, 2]) / HEIGHT_SCALE_M, -1.0, 1.0)
     out[10] = (kk.reshape(-1) + 0.5) / dims[2]
+    out[11] = np.minimum(_looked(ev, centres, min_confidence, max_depth_m) / FREE_IMAGES_FULL, 1.0)
     return out.reshape(len(FEATURES), *dims)

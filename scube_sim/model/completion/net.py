@@ -18,22 +18,33 @@ from torch.nn import functional as F
 from ...config import StrictModel
 from ...labels import NUM_LABELS
 from ..geometry.dense_nets import ResBlock3d
-from .features import FEATURES
+from .features import FEATURES, INPUTS_V1
 
 __all__ = ["CompletionModel", "CompletionNet"]
 
 
 class CompletionModel(StrictModel):
-    """widths: channels per level (the first at the grid's resolution; each next one halves the
-    box); blocks: residual blocks per level and side; groups: GroupNorm groups. The loss
+    """features: the input channels the network reads, names from `features.FEATURES` (default:
+    the first checkpoint's, `INPUTS_V1`); widths: channels per level (the first at the grid's
+    resolution; each next one halves the box); blocks: residual blocks per level and side; groups:
+    GroupNorm groups. The loss
     (`stage`): `label_weight` times the label cross-entropy on the occupied cells is added to the
     occupancy BCE, whose occupied cells weigh `pos_weight`."""
 
+    features: list[str] = Field(default_factory=lambda: list(INPUTS_V1), min_length=1)
     widths: list[int] = Field(default_factory=lambda: [12, 24, 48, 64], min_length=1, max_length=6)
     blocks: int = Field(default=1, ge=1, le=4)
     groups: int = Field(default=4, ge=1, le=32)
     label_weight: float = Field(default=0.5, ge=0, le=100)
     pos_weight: float = Field(default=1.0, gt=0, le=100)
+
+    @field_validator("features")
+    @classmethod
+    def _known(cls, v):
+        unknown = [f for f in v if f not in FEATURES]
+        if unknown or len(set(v)) != len(v):
+            raise ValueError(f"features: each once, from {list(FEATURES)}, got {v}")
+        return v
 
     @field_validator("widths")
     @classmethod
@@ -45,13 +56,14 @@ class CompletionModel(StrictModel):
 
 class CompletionNet(nn.Module):
     """(B, len(FEATURES), X, Y, Z) -> (occupancy logits (B, X, Y, Z), label logits (B, NUM_LABELS,
-    X, Y, Z)); X, Y, Z divisible by 2 ** (levels - 1)."""
+    X, Y, Z)); X, Y, Z divisible by 2 ** (levels - 1). Reads the channels `cfg.features` names."""
 
     def __init__(self, cfg: CompletionModel):
         super().__init__()
         self.cfg = cfg
         w, g = cfg.widths, cfg.groups
-        self.stem = nn.Conv3d(len(FEATURES), w[0], 3, padding=1)
+        self.inputs = [FEATURES.index(f) for f in cfg.features]
+        self.stem = nn.Conv3d(len(self.inputs), w[0], 3, padding=1)
         self.down = nn.ModuleList()
         self.enc = nn.ModuleList()
         for lvl, width in enumerate(w):
@@ -75,7 +87,7 @@ class CompletionNet(nn.Module):
             raise ValueError(f"CompletionNet: expected (B, {len(FEATURES)}, X, Y, Z), got {tuple(x.shape)}")
         if any(s % self.multiple for s in x.shape[2:]):
             raise ValueError(f"CompletionNet: box {tuple(x.shape[2:])} not divisible by {self.multiple}")
-        h = self.stem(x)
+        h = self.stem(x[:, self.inputs])
         skips = []
         for down, enc in zip(self.down, self.enc):
             h = enc(down(h))
