@@ -51,6 +51,7 @@ from .appearance.fit import fit_input_views
 from .appearance.net import AppearanceNet, first_hit_voxels
 from .checkpoint import load_model, resolve_checkpoint
 from .data.worlds import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
+from .completion.diffusion import CompletionDiffusionNet
 from .completion.features import completion_input
 from .completion.merge import CompletionConfig, merge_completion
 from .completion.net import CompletionNet
@@ -305,7 +306,7 @@ class Converter:
             if p.completion is not None:
                 self._paths["completion"] = resolve_checkpoint(p.completion.checkpoint)
                 self.completion, run = load_model("completion", self._paths["completion"])
-                if not isinstance(self.completion, CompletionNet):
+                if not isinstance(self.completion, (CompletionNet, CompletionDiffusionNet)):
                     raise InputError(f"{self._paths['completion']}: not a completion checkpoint")
                 self.completion_voxel_size = float(run.data.get("voxel_size", 0.8))
             return

@@ -18,7 +18,9 @@ from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.completion.data import CACHE_DIR, FEATURES_VERSION, CompletionData, CompletionDataset
 from scube_sim.model.completion.features import FEATURES, INPUTS_V1, coarse_dims, completion_input
+from scube_sim.model.completion.diffusion import CompletionDiffusion, CompletionDiffusionNet
 from scube_sim.model.completion.net import CompletionModel, CompletionNet
+from scube_sim.model.geometry.stage import frozen_vae
 from scube_sim.model.geometry.fusion import DepthObservation
 from scube_sim.model.completion.merge import CompletionConfig, in_ego_box, merge_completion
 from scube_sim.model.config import config_from_dict
@@ -304,12 +306,17 @@ def tiny_data(tmp_path_factory):
     return root
 
 
-def _run_config(steps: int, *, crop=None, flip=False, lr=1e-2, batch=1, validate_every=1):
+TINY_DIFFUSION = {"cond_channels": 8, "widths": [8], "groups": 2, "sample_steps": 2}
+
+
+def _run_config(steps: int, *, crop=None, flip=False, lr=1e-2, batch=1, validate_every=1, diffusion=False):
+    model = ({"features": list(FEATURES), "diffusion": TINY_DIFFUSION} if diffusion else
+             {"widths": [8, 8], "blocks": 1, "groups": 2})
     return config_from_dict({
         "stage": "completion",
         "train": {"seed": 0, "steps": steps, "batch_size": batch, "lr": lr, "checkpoint_every": 5, "threads": 1,
                   "validate_every": validate_every},
-        "model": {"widths": [8, 8], "blocks": 1, "groups": 2},
+        "model": model,
         "data": {"voxel_size": VS, "crop": crop, "flip": flip},
     }, "test")
 
@@ -338,11 +345,12 @@ def test_a_tiny_model_overfits_one_sample(tiny_data, tmp_path):
     assert res.metrics["iou"] > 0.9
 
 
-def test_training_resumes_bit_for_bit(tiny_data, tmp_path):
-    cfg = _run_config(10, crop=51.2, flip=True, lr=1e-3)
+@pytest.mark.parametrize("diffusion", [False, True], ids=["direct", "diffusion"])
+def test_training_resumes_bit_for_bit(tiny_data, tmp_path, diffusion):
+    cfg = _run_config(10, crop=51.2, flip=True, lr=1e-3, diffusion=diffusion)
     whole = train("completion", cfg, tiny_data, tmp_path / "whole", progress=False)
-    half = train("completion", _run_config(5, crop=51.2, flip=True, lr=1e-3), tiny_data, tmp_path / "half",
-                 progress=False)
+    half = train("completion", _run_config(5, crop=51.2, flip=True, lr=1e-3, diffusion=diffusion), tiny_data,
+                 tmp_path / "half", progress=False)
     assert half.step == 5
     resumed = train("completion", cfg, tiny_data, tmp_path / "half", resume=True, progress=False)
     a = torch.load(whole.last, weights_only=True)["model"]
@@ -375,11 +383,71 @@ def test_training_items_draw_new_windows_each_epoch(tmp_path):
     assert len(windows) > 2
 
 
+def _diffusion_net(**update) -> CompletionDiffusionNet:
+    torch.manual_seed(0)
+    cfg = CompletionModel(features=list(FEATURES),
+                          diffusion=CompletionDiffusion(cond_channels=8, widths=(16,), groups=4, **update))
+    return CompletionDiffusionNet(cfg, load_vae=frozen_vae)
+
+
+def _block_world(dims=(16, 16, 8)):
+    """A road layer and a building block on the 0.8 m grid: (occupancy, labels, features with the
+    block's face and the road as the evidence)."""
+    occ, lab = torch.zeros(dims), torch.full(dims, -1)
+    occ[:, :, 0], lab[:, :, 0] = 1, LABEL_IDS["road"]
+    occ[4:10, 6:9, 1:5], lab[4:10, 6:9, 1:5] = 1, LABEL_IDS["building"]
+    feats = torch.zeros(1, len(FEATURES), *dims)
+    feats[0, CH["occupied"], :, :, 0] = 1.0
+    feats[0, CH["occupied"], 4, 6:9, 1:5] = 1.0
+    return occ, lab, feats
+
+
+def test_the_diffusion_option_learns_the_latent_of_one_sample():
+    """The paper's prior on the evidence: the shipped coarse VAE frozen (it reconstructs a world's
+    0.8 m grid at IoU 0.935, worlds val 1), its latent of one block world learnt by the denoiser
+    from the evidence: the v-loss falls more than twofold in 300 steps."""
+    net = _diffusion_net()
+    assert net.vae_loaded and not any(p.requires_grad for p in net.vae.parameters())
+    occ, lab, feats = _block_world()
+    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=3e-3)
+    losses = []
+    for _ in range(300):
+        loss = net.loss(feats, occ[None], lab[None])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    # measured 2026-12-06: 0.72 over the first 20 steps, 0.24 over the last 20
+    assert np.mean(losses[-20:]) < np.mean(losses[:20]) / 2, (np.mean(losses[:20]), np.mean(losses[-20:]))
+
+
+def test_the_diffusion_option_gives_one_grid_per_evidence_and_seed():
+    """The same evidence and seed give the same grid bit for bit, another seed another; a box the
+    latent cannot tile and a VAE that is not there are refused."""
+    net = _diffusion_net(sample_steps=3).eval()
+    _, _, feats = _block_world()
+    with torch.no_grad():
+        a, la = net(feats)
+        b, lb = net(feats)
+        other, _ = _diffusion_net(sample_steps=3, seed=1).eval()(feats)
+    assert a.shape == (1, 16, 16, 8) and la.shape[2:] == (16, 16, 8)
+    assert torch.equal(a, b) and torch.equal(la, lb)
+    assert not torch.equal(a, other)
+    assert torch.isfinite(a).all() and float(torch.sigmoid(a).max()) <= 1.0
+    with pytest.raises(ValueError, match="not divisible by 4"):
+        net(torch.zeros(1, len(FEATURES), 16, 16, 6))
+    occ, lab, feats = _block_world()
+    untrained = CompletionDiffusionNet(CompletionModel(diffusion=CompletionDiffusion(
+        vae_checkpoint="no-such-vae", cond_channels=8, widths=(16,), groups=4)), load_vae=frozen_vae)
+    with pytest.raises(InputError, match="vae_checkpoint 'no-such-vae': not found"):
+        untrained.loss(feats, occ[None], lab[None])
+
+
 # ----------------------------------------------------------------------------- the converter
-@pytest.fixture(scope="module")
-def completion_checkpoint(tiny_data, tmp_path_factory):
+@pytest.fixture(scope="module", params=[False, True], ids=["direct", "diffusion"])
+def completion_checkpoint(tiny_data, tmp_path_factory, request):
     run = tmp_path_factory.mktemp("run")
-    return train("completion", _run_config(3), tiny_data, run / "r", progress=False).last
+    return train("completion", _run_config(3, diffusion=request.param), tiny_data, run / "r", progress=False).last
 
 
 def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint):

@@ -18,6 +18,7 @@ from torch.nn import functional as F
 from ...config import StrictModel
 from ...labels import NUM_LABELS
 from ..geometry.dense_nets import ResBlock3d
+from .diffusion import CompletionDiffusion
 from .features import FEATURES, INPUTS_V1
 
 __all__ = ["CompletionModel", "CompletionNet"]
@@ -27,7 +28,9 @@ class CompletionModel(StrictModel):
     """features: the input channels the network reads, names from `features.FEATURES` (default:
     the first checkpoint's, `INPUTS_V1`); widths: channels per level (the first at the grid's
     resolution; each next one halves the box); blocks: residual blocks per level and side; groups:
-    GroupNorm groups. The loss
+    GroupNorm groups (of this deterministic network); diffusion: instead of it, the paper's prior
+    (`diffusion.CompletionDiffusionNet`: latent diffusion over the frozen coarse VAE, conditioned
+    on the same channels; None: the deterministic network). The deterministic loss
     (`stage`): `label_weight` times the label cross-entropy on the occupied cells is added to the
     occupancy BCE, whose occupied cells weigh `pos_weight`."""
 
@@ -37,6 +40,7 @@ class CompletionModel(StrictModel):
     groups: int = Field(default=4, ge=1, le=32)
     label_weight: float = Field(default=0.5, ge=0, le=100)
     pos_weight: float = Field(default=1.0, gt=0, le=100)
+    diffusion: CompletionDiffusion | None = None
 
     @field_validator("features")
     @classmethod
