@@ -33,10 +33,10 @@ WORLDS_OPTS := --rig waymo-5 --image-scale 0.25 --fine-voxel 0.1 --coarse-factor
 completion-data: $(STAMP)
 	test -f $(WORLDS)/dataset.json || $(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split val --count 8 $(WORLDS_OPTS)
 	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split val --count 8
-	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split train --count 200
-	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split test --count 40
-	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split val
-	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split train
+	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split train --count 200 -j 2
+	$(VENV)/bin/scube-sim worlds generate -o $(WORLDS) --split test --count 40 -j 2
+	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split val -j 2
+	$(VENV)/bin/scube-sim worlds evidence $(WORLDS) --split train -j 2
 
 bench: $(STAMP)
 	$(PY) -m bench.run_all

@@ -87,13 +87,15 @@ def worlds_preview_cmd(
 
 @worlds_app.command("evidence")
 @handle_errors
-@bounded(count=Range(ge=1, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True))
+@bounded(count=Range(ge=1, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True), jobs=WORKERS)
 def worlds_evidence_cmd(
     data: Path = typer.Argument(..., help="worlds dataset folder (generated with context instants)"),
     split: str = typer.Option("train", "--split", help="train | val | test"),
     count: Optional[int] = typer.Option(None, "--count", help="number of samples (default: all from --start)"),
     start: int = typer.Option(0, "--start", help="index of the first sample"),
     profile: str = typer.Option("evidence", "--profile", help="the evidence-route profile that measures"),
+    jobs: int = typer.Option(1, "--jobs", "-j", help="worker processes (one thread each; the cache does not "
+                             "depend on it)"),
 ) -> None:
     """Measure the evidence of worlds samples with the real stereo pipeline and cache it for the completion
     stage (DATA/evidence/<split>/<sample>.npz); resumable: cached samples with the same settings are skipped."""
@@ -102,6 +104,6 @@ def worlds_evidence_cmd(
 
     if split not in ("train", "val", "test"):
         raise CliError(f"--split: expected train, val or test, got {split!r}")
-    res = cache_evidence(data, split, load_profile(profile), count=count, start=start)
+    res = cache_evidence(data, split, load_profile(profile), count=count, start=start, jobs=jobs)
     typer.echo(f"{split}: measured {res['written']}, skipped {res['skipped']} cached; "
                f"{res['seconds_per_sample']:.1f} s per sample -> {data / 'evidence' / split}")

@@ -43,7 +43,9 @@ class Job:
 
     name = ""
     keep: tuple[str, ...] = ()  # folders in a task's folder that survive a redo (caches with own keys)
-    own_manifest = False  # True: `run` prepares and finishes the task folder's run manifest itself
+    # True: `run` prepares and finishes the task folder's run manifest itself, or keeps no task
+    # folder at all (its outputs carry their own key; the record then lists no outputs)
+    own_manifest = False
 
     def tasks(self, inputs: list[str], out: Path) -> list[Task]:
         """The tasks for the user's inputs (`expand_inputs` applied); raise `BatchError` naming a bad one."""
@@ -95,7 +97,8 @@ def execute(job: Job, task: Task, out: str, attempt: int) -> dict:
     t0 = time.perf_counter()
     try:
         stats = _run_task(job, task, folder, out)
-        rec.update(status="complete", stats=stats, outputs=read_manifest(folder).outputs)
+        manifest = read_manifest(folder)
+        rec.update(status="complete", stats=stats, outputs=manifest.outputs if manifest is not None else {})
     except Exception as exc:
         rec.update(status="failed", error=one_line(exc))
     rec.update(seconds=time.perf_counter() - t0, peak_mb=peak_mb())

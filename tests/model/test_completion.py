@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -494,6 +495,33 @@ def test_worlds_evidence_refuses_a_paper_route_profile_and_a_missing_split(tmp_p
     res = runner.invoke(app, ["worlds", "evidence", str(tmp_path), "--count", "0"])
     one_line_error(res, "--count")
     assert not (tmp_path / CACHE_DIR).exists()
+
+
+def test_worlds_evidence_caches_the_same_features_in_one_process_or_two(tmp_path):
+    """Two tiny worlds with an instant either side, their evidence measured and cached in this
+    process and in two worker processes: the same features and keys; a second run measures
+    nothing (resumable)."""
+    from scube_sim.model.completion.data import cache_evidence, cache_path
+    from scube_sim.model.converter import load_profile
+    from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
+
+    tiny = DatasetConfig(image_scale=0.05, visibility_scale=0.05, fine_voxel_m=0.4, coarse_factor=2,
+                         frame_offsets=[-1, 0, 1], lidar="vlp16")
+    one, two = tmp_path / "one", tmp_path / "two"
+    generate_dataset(one, "val", 2, tiny, progress=False)
+    shutil.copytree(one, two)
+    prof = load_profile("evidence")
+    a = cache_evidence(one, "val", prof, progress=False)
+    b = cache_evidence(two, "val", prof, jobs=2, progress=False)
+    assert a["written"] == b["written"] == 2 and a["skipped"] == 0
+    for name in ("000000", "000001"):
+        with np.load(cache_path(one, "val", name)) as x, np.load(cache_path(two, "val", name)) as y:
+            assert x["features"].shape == (len(FEATURES), *coarse_dims(0.8))
+            assert np.array_equal(x["features"], y["features"]) and str(x["key"]) == str(y["key"])
+            # stereo measured surfaces and free space there (2026-12-06: 328 / 342 occupied cells)
+            assert all(np.count_nonzero(x["features"][CH[f]]) > 100 for f in ("occupied", "free_images", "looked"))
+    again = cache_evidence(two, "val", prof, jobs=2, progress=False)
+    assert again["written"] == 0 and again["skipped"] == 2
 
 
 def test_the_completion_grid_is_scored_against_the_coarsened_truth():

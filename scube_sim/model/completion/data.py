@@ -5,7 +5,9 @@ Cache: DATA/evidence/<split>/<sample>.npz, one per sample, written atomically:
 ``features`` (len(FEATURES), X, Y, Z) float16 (`features.completion_input`), ``key`` (JSON: the
 evidence settings, the profile's context, the grid's voxel size and the features' version; a
 sample whose key differs is measured again), ``seconds`` (the measurement's time). The cache is
-rebuilt by the same command, never edited.
+rebuilt by the same command, never edited; `-j N` measures in N worker processes
+(`EvidenceJob`, the batch runner: its batch.json and .batch/ beside the files), the same features
+and keys whatever N.
 
 Items (`CompletionDataset`): ``features`` (C, X, Y, Z) float32, ``occupancy`` (X, Y, Z) float32
 and ``labels`` (X, Y, Z) int64 (-1 where empty): the ground truth's coarse voxels coarsened to
@@ -23,7 +25,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from pydantic import Field
-from rich.progress import MofNCompleteColumn, Progress
 from torch.utils.data import Dataset
 
 from ...atomic import atomic_path
@@ -32,6 +33,8 @@ from ...config import StrictModel, json_loads
 from ...datasets import open_dataset
 from ...datasets.base import frames_with_context
 from ...errors import InputError
+from ...parallel.runner import run_batch
+from ...parallel.tasks import Job, Task
 from ...transforms import invert_pose
 from ...worlds.groundtruth import CHUNK_CORNER
 from ..data.worlds import item_generator
@@ -74,12 +77,57 @@ def _cached_key(path: Path) -> str | None:
         return None  # damaged or from an interrupted writer: measured again
 
 
+class EvidenceJob(Job):
+    """`cache_evidence`'s batch job (`scube_sim.parallel`): one task per sample, keyed by its name.
+    The cache file carries its own key, so the job keeps no task folder (`own_manifest`): the
+    driver hands it only samples not cached with this key."""
+
+    name = "evidence"
+    own_manifest = True
+
+    def __init__(self, data_dir: Path, split: str, prof, voxel_size: float, key: str):
+        self.data_dir, self.split, self.prof, self.voxel_size, self.key = str(data_dir), split, prof, voxel_size, key
+
+    def tasks(self, inputs: list[str], out: Path) -> list[Task]:
+        return [Task(name, name, {"index": int(i)}) for name, i in (item.split("@") for item in inputs)]
+
+    def run(self, task: Task, folder: Path, out: Path) -> dict:
+        ds = _open_split(self.data_dir, self.split)
+        i, cfg = task.params["index"], self.prof.evidence
+        t0 = time.perf_counter()
+        frames = frames_with_context(ds, i, self.prof.context) if self.prof.context else ds[i].frames
+        ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg)
+        feats = completion_input(ev, self.voxel_size, min_confidence=cfg.fusion.min_confidence,
+                                 pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
+        seconds = time.perf_counter() - t0
+        path = cache_path(Path(self.data_dir), self.split, task.key)
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as f:
+                np.savez_compressed(f, features=feats.astype(np.float16), key=np.array(self.key),
+                                    seconds=np.array(seconds))
+        return {"seconds": seconds}
+
+    def describe(self) -> dict:
+        return {"profile": self.prof.name, "voxel_size": self.voxel_size}
+
+
+_SPLITS: dict = {}  # (folder, split) -> the opened worlds split, once per worker process
+
+
+def _open_split(data_dir: str, split: str):
+    if (data_dir, split) not in _SPLITS:
+        _SPLITS[(data_dir, split)] = open_dataset("worlds", Path(data_dir), split=split, eval_frames=False)
+    return _SPLITS[(data_dir, split)]
+
+
 def cache_evidence(data_dir: Path, split: str, prof, *, count: int | None = None, start: int = 0,
-                   voxel_size: float = 0.8, progress: bool = True) -> dict:
+                   voxel_size: float = 0.8, jobs: int = 1, progress: bool = True) -> dict:
     """Measure and cache the evidence features of samples [start, start + count) of a worlds
     split (all from `start` when count is None) with the evidence route of the converter profile
-    `prof` (a `ConverterProfile`, e.g. `load_profile("evidence")`); samples already cached with
-    the same key are skipped (resumable). Returns {written, skipped, seconds_per_sample}."""
+    `prof` (a `ConverterProfile`, e.g. `load_profile("evidence")`), in this process (jobs 1) or
+    `jobs` worker processes of one thread each (the files do not depend on it); samples already
+    cached with the same key are skipped (resumable). Returns {written, skipped,
+    seconds_per_sample} (a sample's measurement, not the wall time)."""
     if prof.route != "evidence":
         raise InputError(f"--profile: {prof.name!r} is route {prof.route!r}; the completion's evidence needs "
                          f"an evidence-route profile")
@@ -90,32 +138,17 @@ def cache_evidence(data_dir: Path, split: str, prof, *, count: int | None = None
     if start >= stop:
         raise InputError(f"{data_dir / split}: no samples from {start} ({len(names)} in the split)")
     key = _key(prof, voxel_size)
-    cfg = prof.evidence
-    written = skipped = 0
-    spent = 0.0
-    with Progress(*Progress.get_default_columns(), MofNCompleteColumn(), disable=not progress) as bar:
-        task = bar.add_task(f"evidence {split}", total=stop - start)
-        for i in range(start, stop):
-            out = cache_path(data_dir, split, names[i])
-            if out.is_file() and _cached_key(out) == key:
-                skipped += 1
-                bar.advance(task)
-                continue
-            t0 = time.perf_counter()
-            frames = frames_with_context(ds, i, prof.context) if prof.context else ds[i].frames
-            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg)
-            feats = completion_input(ev, voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                     pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
-            seconds = time.perf_counter() - t0
-            out.parent.mkdir(parents=True, exist_ok=True)
-            with atomic_path(out) as tmp:
-                with open(tmp, "wb") as f:
-                    np.savez_compressed(f, features=feats.astype(np.float16), key=np.array(key),
-                                        seconds=np.array(seconds))
-            written += 1
-            spent += seconds
-            bar.advance(task)
-    return {"written": written, "skipped": skipped, "seconds_per_sample": spent / max(written, 1)}
+    todo = [f"{names[i]}@{i}" for i in range(start, stop)
+            if _cached_key(cache_path(data_dir, split, names[i])) != key]
+    out = data_dir / CACHE_DIR / split
+    rep = run_batch(EvidenceJob(data_dir, split, prof, voxel_size, key), [",".join(todo)] if todo else [], out,
+                    executor="local" if jobs > 1 else "inline", workers=jobs, retries=0, progress=progress)
+    if rep.failed:
+        first = next(r for r in rep.records.values() if r["status"] == "failed")
+        raise RuntimeError(f"{out}: {rep.failed} of {rep.total} samples failed; {first['input']}: {first['error']}")
+    spent = [r["stats"]["seconds"] for r in rep.records.values() if r.get("stats", {}).get("seconds") is not None]
+    return {"written": rep.completed, "skipped": stop - start - len(todo),
+            "seconds_per_sample": float(np.mean(spent)) if spent else 0.0}
 
 
 class CompletionDataset(Dataset):
