@@ -55,7 +55,7 @@ from .completion.diffusion import CompletionDiffusionNet
 from .completion.features import completion_input
 from .completion.merge import CompletionConfig, merge_completion
 from .completion.net import CompletionNet
-from .evidence import EvidenceConfig, fusion_config, measure_evidence, scene_from_evidence
+from .evidence import Evidence, EvidenceConfig, fusion_config, measure_evidence, scene_from_evidence
 from .geometry.data import GeometryDataConfig
 from .geometry.net import GeometryNet, flat_keys, observed_voxels
 
@@ -430,7 +430,7 @@ class Converter:
     @torch.no_grad()
     def convert(self, frames: Frames, *, steps: int | None = None, seed: int = 0, confidence: bool = False,
                 k: int | None = None, sky: bool = True, max_range: float | None = None,
-                fit_steps: int | None = None, progress=None) -> VoxSplat:
+                fit_steps: int | None = None, progress=None, evidence: Evidence | None = None) -> VoxSplat:
         """Frames -> VoxSplat (chunk frame, module docstring) with labels, reflectance, the sky
         panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
         camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
@@ -442,6 +442,9 @@ class Converter:
         appearance stage (a LiDAR's range: the appearance stage's cost grows with the voxels).
         fit_steps: a test-time fit of the appearance on the input views (default: the
         profile's `appearance.fit_steps`); progress(step, total) after each of its steps.
+        evidence (the evidence route): these frames' `Evidence`, measured with this profile's
+        settings (`model.evidence.measure_evidence`), used instead of measuring it again (several
+        completions compared on one measurement); the scene is the one `convert` would build.
         Same frames and seed, same bytes."""
         if fit_steps is not None and (isinstance(fit_steps, bool) or not isinstance(fit_steps, (int, np.integer))
                                          or fit_steps < 0):
@@ -449,7 +452,10 @@ class Converter:
         if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
             raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
         if self.profile.route == "evidence":
-            return self._convert_evidence(frames, max_range)
+            return self._convert_evidence(frames, max_range, evidence)
+        if evidence is not None:
+            raise InputError(f"evidence: profile {self.profile.name!r} is route {self.profile.route!r}, which "
+                             f"measures none")
         with _one_torch_thread():
             return self._convert_networks(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
                                           max_range=max_range, fit_steps=fit_steps, progress=progress)
@@ -503,14 +509,16 @@ class Converter:
         return scene
 
 
-    def _convert_evidence(self, frames: Frames, max_range: float | None) -> VoxSplat:
+    def _convert_evidence(self, frames: Frames, max_range: float | None, ev: Evidence | None = None) -> VoxSplat:
         """The evidence route (`model.evidence`), with the completion where the profile names one:
-        steps, seed, K, sky and fit steps do not apply."""
+        steps, seed, K, sky and fit steps do not apply. `ev`: the frames' evidence, measured before
+        (stereo_s then 0)."""
         reset_peak()
         t0 = time.perf_counter()
-        parts: dict[str, float] = {}
+        parts: dict[str, float] = {"stereo_s": 0.0}
         cfg = self.profile.evidence
-        ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts)
+        if ev is None:
+            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts)
         scene = scene_from_evidence(ev, cfg)
         scene.metadata.update({"cameras": list(frames.names), "timestamp": float(frames.timestamp)})
         t1 = time.perf_counter()

@@ -270,6 +270,25 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
             load_profile(bad)
 
 
+def test_a_measured_evidence_converts_to_the_same_bytes_as_the_frames(scene):
+    """`convert(frames, evidence=ev)` builds from the given measurement the scene `convert` builds
+    (several completions compared on one measurement); a paper-route profile refuses one."""
+    from scube_sim.camera.frames import chunk_to_world
+    from scube_sim.model.converter import Converter, ConverterProfile, load_profile
+    from scube_sim.model.evidence import measure_evidence
+    from scube_sim.transforms import invert_pose
+
+    frames = _frames()
+    ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), CFG)
+    conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
+    again = conv.convert(frames, max_range=30.0, evidence=ev)
+    assert conv.timings["stereo_s"] == 0.0
+    assert np.array_equal(again.ijk, scene.ijk) and np.array_equal(again.params, scene.params)
+    assert again.metadata == scene.metadata
+    with pytest.raises(InputError, match="evidence: profile 'cpu' is route 'scube'"):
+        Converter(load_profile("cpu")).convert(frames, evidence=ev)
+
+
 def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):
     """references [0, -2] (instants -4..2): the camera 1.6 m back sees the walls from 4.0 m ahead
     of T's camera on (T's own view starts at 5.6 m: a 28 degree half-angle, the walls 3 m aside),

@@ -1,0 +1,118 @@
+"""Learned completions compared on one measurement per sample (issue 45: the deterministic network
+against the latent diffusion at the same budget, a new checkpoint against the shipped one).
+
+Per worlds sample: the evidence is measured once with the profile's settings
+(`model.evidence.measure_evidence`), then each checkpoint's converter builds its scene from that
+measurement (`Converter.convert(..., evidence=)`) and `eval sensor-to-sensor`'s `evaluate_sample`
+scores it (HDL-64E at the input pose, 20 m and 60 m ahead, against the mesh; the ground-truth
+sweeps regenerated once). The evidence alone is scored once: it is the same scene for every
+checkpoint. Stereo, the costly part, runs once a sample instead of once per checkpoint.
+
+    python -m experiments.completion_compare --data DIR [--split test] [--limit 40] [--profile evidence] \\
+        --checkpoint shipped=completion-cpu --checkpoint direct=runs/completion-v2/last.pt [--name NAME]
+
+Writes experiments/results/<NAME>.{json,md} (default completion_compare): per checkpoint and
+distance ahead the ray-weighted rows of `eval sensor-to-sensor` (median |dr|, p90, share of the
+mesh's returns returned) and the completion grid's IoU / mIoU against the truth at 0.8 m.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+from rich.progress import track
+
+from experiments.common import RESULTS
+from scube_sim.atomic import atomic_path
+from scube_sim.camera.frames import chunk_to_world
+from scube_sim.model.completion.merge import CompletionConfig
+from scube_sim.model.converter import Converter, load_profile, open_frames
+from scube_sim.model.eval import sensor_to_sensor as s2s
+from scube_sim.model.evidence import measure_evidence
+from scube_sim.transforms import invert_pose
+
+ALONE = s2s.SCENES[1]
+GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "completion_removed_share",
+             "completion_s")
+
+
+def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints: dict[str, str]) -> dict:
+    """-> {"rows": summarised over the samples (scenes: the truth, the evidence alone, each
+    checkpoint by name), "grid": per checkpoint the stages' means, "samples": per sample}."""
+    base = load_profile(profile)
+    convs = {name: Converter(base.model_copy(update={"name": f"{base.name}+{name}",
+                                                      "completion": CompletionConfig(checkpoint=ck)}))
+             for name, ck in checkpoints.items()}
+    lidar = s2s.geometric_lidar("hdl64e")
+    dirs = sorted(d for d in (Path(data) / split).iterdir() if (d / "meta.json").is_file())[:limit]
+    cache: dict = {}
+    samples, stages = [], {name: [] for name in checkpoints}
+    for d in track(dirs, description=f"{split} samples"):
+        frames = open_frames(d, context=base.context)
+        t0 = time.perf_counter()
+        ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), base.evidence)
+        rows, measure_s = [], time.perf_counter() - t0
+        for k, (name, conv) in enumerate(convs.items()):
+            res = s2s.evaluate_sample(conv, d, lidar, gt_cache=cache, convert_options={"evidence": ev},
+                                      with_psnr=False)
+            for r in res["rows"]:
+                if r["scene"] == "converted":
+                    rows.append({**r, "scene": name})
+                elif k == 0:  # the truth and the evidence alone: the same for every checkpoint
+                    rows.append(r)
+            stages[name].append({key: res["stages"].get(key, np.nan) for key in GRID_KEYS})
+        samples.append({"sample": d.name, "measure_s": measure_s, "rows": rows})
+    grid = {name: {key: float(np.nanmean([s[key] for s in st])) for key in GRID_KEYS} for name, st in stages.items()}
+    return {"split": split, "profile": profile, "checkpoints": checkpoints, "samples_n": len(samples),
+            "rows": s2s.summarise_rows(samples), "grid": grid, "samples": samples}
+
+
+def table(res: dict) -> list[str]:
+    names = [ALONE, *res["checkpoints"]]
+    lines = [f"# Completions on one measurement: {res['samples_n']} {res['split']} worlds, profile {res['profile']}",
+             "", "HDL-64E against the mesh; median |dr| m / p90 m / share of the mesh's returns returned.", "",
+             "| ahead | rays | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    by = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["rows"]}
+    for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in res["rows"]):
+        cells = []
+        for n in names:
+            r = by.get((ahead, split, n))
+            cells.append("-" if r is None else f"{r['median_m']:.3f} / {r['p90_m']:.2f} / {100 * r['hit_agreement']:.1f} %")
+        lines.append(f"| {ahead:.0f} m {split} | {by.get((ahead, split, ALONE), {}).get('rays', '-')} | "
+                     + " | ".join(cells) + " |")
+    lines += ["", "| checkpoint | " + " | ".join(GRID_KEYS) + " |", "|---|" + "---|" * len(GRID_KEYS)]
+    for name, g in res["grid"].items():
+        lines.append(f"| {name} ({res['checkpoints'][name]}) | " + " | ".join(f"{g[k]:.4g}" for k in GRID_KEYS) + " |")
+    return lines
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, required=True)
+    ap.add_argument("--split", default="test")
+    ap.add_argument("--limit", type=int, default=None)
+    ap.add_argument("--profile", default="evidence", help="the evidence settings measured with")
+    ap.add_argument("--checkpoint", action="append", required=True, metavar="NAME=CHECKPOINT",
+                    help="a completion checkpoint (path or shipped name) and its name in the table; repeatable")
+    ap.add_argument("--name", default="completion_compare")
+    args = ap.parse_args(argv)
+    checkpoints = {}
+    for item in args.checkpoint:
+        name, sep, ck = item.partition("=")
+        if not sep or not name or not ck or name in checkpoints or name == ALONE:
+            ap.error(f"--checkpoint: expected NAME=CHECKPOINT with a new NAME, got {item!r}")
+        checkpoints[name] = ck
+    res = compare(args.data, args.split, args.limit, args.profile, checkpoints)
+    RESULTS.mkdir(exist_ok=True)
+    for suffix, text in ((".json", json.dumps(res, indent=1)), (".md", "\n".join(table(res)) + "\n")):
+        with atomic_path(RESULTS / f"{args.name}{suffix}") as tmp:
+            Path(tmp).write_text(text, encoding="utf-8")
+    print("\n".join(table(res)))
+
+
+if __name__ == "__main__":
+    main()
