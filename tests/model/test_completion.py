@@ -451,10 +451,17 @@ def completion_checkpoint(tiny_data, tmp_path_factory, request):
     return train("completion", _run_config(3, diffusion=request.param), tiny_data, run / "r", progress=False).last
 
 
-def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint):
+@pytest.fixture(scope="module")
+def plain_corridor():
     from scube_sim.model.converter import Converter, ConverterProfile
 
-    plain = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames())
+    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames())
+
+
+def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint, plain_corridor):
+    from scube_sim.model.converter import Converter, ConverterProfile
+
+    plain = plain_corridor
     comp = CompletionConfig(checkpoint=str(completion_checkpoint))
     conv = Converter(ConverterProfile(name="corridor-c", route="evidence", evidence=CFG, completion=comp))
     out = conv.convert(_frames())
