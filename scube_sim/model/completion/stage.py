@@ -14,9 +14,9 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from ...labels import NUM_LABELS
+from ..geometry.stage import frozen_vae
 from ..semantics.stage import semantic_metrics
 from ..stages import Stage, register_stage
-from ..geometry.stage import frozen_vae
 from .data import CompletionData, CompletionDataset
 from .diffusion import CompletionDiffusionNet
 from .features import FEATURES
