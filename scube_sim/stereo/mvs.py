@@ -108,8 +108,8 @@ Steps (`stereo_depth`):
    2.10 / 95.8 %; 28 degrees 0.144 / 2.02 / 95.9 %; seen ground unchanged (0.30 m median) (the
    14-degree depth maps filled again by the rule; through stereo itself on the 40 held-out worlds
    0.152 / 2.59 / 94.8 % -> 0.151 / 2.43 / 94.9 %, docs/converter.md). Off by
-   default here (the stereo evaluation's figures); `evidence-fast` and `evidence-complete` set 14
-   degrees, ends agreeing; `evidence` 28 degrees, `fill_coplanar` 0.5.
+   default here (the stereo evaluation's figures); `evidence-fast` sets 14
+   degrees, ends agreeing; `evidence` and `evidence-complete` 28 degrees, `fill_coplanar` 0.5.
 
 Depth: metres along the reference camera's optical axis. Deterministic: the bytes do not depend on
 the thread count (`sweep`'s operations, a fixed summation order over sources).

@@ -239,8 +239,7 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference, thinner
     # surfels and runs up to 28 degrees filled where in line (in `evidence` alone), the road snapped
     # onto the height field and the surfels off the road widened (in `evidence` and `evidence-fast`;
-    # the completion keeps the evidence it was trained on)
-    filled = EvidenceConfig(stereo={"fill_gap_deg": 14})
+    # `evidence-complete` keeps the evidence its checkpoint was trained on: today's `evidence`)
     weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
                           references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15, min_width_share=0.144)
@@ -250,7 +249,7 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     assert fast.evidence == EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
                                            fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0],
                                            ground_snap_m=0.15, min_width_share=0.144)
-    assert load_profile("evidence-complete").evidence == filled
+    assert load_profile("evidence-complete").evidence == shipped.evidence  # what completion-v2-cpu learnt from
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
     assert scene.metadata["instants_used"].startswith("all")
