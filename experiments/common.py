@@ -9,6 +9,7 @@ from bench.common import write_results as _write_results
 
 EXPERIMENTS_DIR = Path(__file__).resolve().parent
 RESULTS = EXPERIMENTS_DIR / "results"
+RUNS = EXPERIMENTS_DIR.parent / "runs"  # work files, not committed (.gitignore)
 
 
 def write_results(name: str, rows: list[dict], header: list[str], notes: str = "") -> Path:

@@ -9,11 +9,18 @@ sweeps regenerated once). The evidence alone is scored once: it is the same scen
 checkpoint. Stereo, the costly part, runs once a sample instead of once per checkpoint.
 
     python -m experiments.completion_compare --data DIR [--split test] [--limit 40] [--profile evidence] \\
-        --checkpoint shipped=completion-cpu --checkpoint direct=runs/completion-v2/last.pt [--name NAME]
+        --checkpoint shipped=completion-cpu --checkpoint direct=runs/completion-v2/last.pt [--name NAME] \\
+        [--shard I/N]
 
 Writes experiments/results/<NAME>.{json,md} (default completion_compare): per checkpoint and
 distance ahead the ray-weighted rows of `eval sensor-to-sensor` (median |dr|, p90, share of the
 mesh's returns returned) and the completion grid's IoU / mIoU against the truth at 0.8 m.
+
+Each sample's result is kept in runs/compare/<NAME>/<sample>.json as soon as it is measured (with
+the checkpoints it was measured for; a file for other checkpoints is measured again), so an
+interrupted run resumes, and `--shard I/N` measures every N-th sample from the I-th: N processes
+with the same NAME share the samples, and each writes the table from every sample measured so far
+(the one that finishes last writes the whole; the table says how many of the samples it holds).
 """
 
 from __future__ import annotations
@@ -26,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from rich.progress import track
 
-from experiments.common import RESULTS
+from experiments.common import RESULTS, RUNS
 from scube_sim.atomic import atomic_path
 from scube_sim.camera.frames import chunk_to_world
 from scube_sim.model.completion.merge import CompletionConfig
@@ -40,40 +47,62 @@ GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "com
              "completion_s")
 
 
-def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints: dict[str, str]) -> dict:
-    """-> {"rows": summarised over the samples (scenes: the truth, the evidence alone, each
-    checkpoint by name), "grid": per checkpoint the stages' means, "samples": per sample}."""
+def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
+    """One sample's rows (the truth, the evidence alone, each checkpoint by name) and grid stages."""
+    frames = open_frames(d, context=base.context)
+    t0 = time.perf_counter()
+    ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), base.evidence)
+    rows, measure_s, stages = [], time.perf_counter() - t0, {}
+    for k, (name, conv) in enumerate(convs.items()):
+        res = s2s.evaluate_sample(conv, d, lidar, gt_cache=cache, convert_options={"evidence": ev},
+                                  with_psnr=False)
+        for r in res["rows"]:
+            if r["scene"] == "converted":
+                rows.append({**r, "scene": name})
+            elif k == 0:  # the truth and the evidence alone: the same for every checkpoint
+                rows.append(r)
+        stages[name] = {key: float(res["stages"].get(key, np.nan)) for key in GRID_KEYS}
+    return {"sample": d.name, "measure_s": measure_s, "rows": rows, "stages": stages}
+
+
+def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints: dict[str, str],
+            work: Path, shard: tuple[int, int] = (0, 1)) -> dict:
+    """-> {"rows": summarised over the samples measured so far (scenes: the truth, the evidence
+    alone, each checkpoint by name), "grid": per checkpoint the stages' means, "samples": per
+    sample}; this process measures the samples of its `shard` (I, N) not yet in `work`."""
     base = load_profile(profile)
     convs = {name: Converter(base.model_copy(update={"name": f"{base.name}+{name}",
                                                       "completion": CompletionConfig(checkpoint=ck)}))
              for name, ck in checkpoints.items()}
     lidar = s2s.geometric_lidar("hdl64e")
     dirs = sorted(d for d in (Path(data) / split).iterdir() if (d / "meta.json").is_file())[:limit]
+    key = {"data": str(Path(data).resolve()), "split": split, "profile": profile, "checkpoints": checkpoints}
+    work.mkdir(parents=True, exist_ok=True)
+
+    def done(d: Path) -> dict | None:
+        f = work / f"{d.name}.json"
+        if not f.is_file():
+            return None
+        got = json.loads(f.read_text(encoding="utf-8"))
+        return got if got.get("key") == key else None
+
     cache: dict = {}
-    samples, stages = [], {name: [] for name in checkpoints}
-    for d in track(dirs, description=f"{split} samples"):
-        frames = open_frames(d, context=base.context)
-        t0 = time.perf_counter()
-        ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), base.evidence)
-        rows, measure_s = [], time.perf_counter() - t0
-        for k, (name, conv) in enumerate(convs.items()):
-            res = s2s.evaluate_sample(conv, d, lidar, gt_cache=cache, convert_options={"evidence": ev},
-                                      with_psnr=False)
-            for r in res["rows"]:
-                if r["scene"] == "converted":
-                    rows.append({**r, "scene": name})
-                elif k == 0:  # the truth and the evidence alone: the same for every checkpoint
-                    rows.append(r)
-            stages[name].append({key: res["stages"].get(key, np.nan) for key in GRID_KEYS})
-        samples.append({"sample": d.name, "measure_s": measure_s, "rows": rows})
-    grid = {name: {key: float(np.nanmean([s[key] for s in st])) for key in GRID_KEYS} for name, st in stages.items()}
+    mine = [d for d in dirs[shard[0]::shard[1]] if done(d) is None]
+    for d in track(mine, description=f"{split} samples, shard {shard[0]}/{shard[1]}"):
+        res = {"key": key, **measure_sample(d, base, convs, lidar, cache)}
+        with atomic_path(work / f"{d.name}.json") as tmp:
+            Path(tmp).write_text(json.dumps(res), encoding="utf-8")
+    samples = [s for s in (done(d) for d in dirs) if s is not None]
+    grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
+            for name in checkpoints}
     return {"split": split, "profile": profile, "checkpoints": checkpoints, "samples_n": len(samples),
-            "rows": s2s.summarise_rows(samples), "grid": grid, "samples": samples}
+            "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid, "samples": samples}
 
 
 def table(res: dict) -> list[str]:
     names = [ALONE, *res["checkpoints"]]
-    lines = [f"# Completions on one measurement: {res['samples_n']} {res['split']} worlds, profile {res['profile']}",
+    lines = [f"# Completions on one measurement: {res['samples_n']} {res['split']} worlds"
+             f" (of {res.get('samples_of', res['samples_n'])}), profile {res['profile']}",
              "", "HDL-64E against the mesh; median |dr| m / p90 m / share of the mesh's returns returned.", "",
              "| ahead | rays | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     by = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["rows"]}
@@ -99,14 +128,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--checkpoint", action="append", required=True, metavar="NAME=CHECKPOINT",
                     help="a completion checkpoint (path or shipped name) and its name in the table; repeatable")
     ap.add_argument("--name", default="completion_compare")
+    ap.add_argument("--shard", default="0/1", metavar="I/N", help="measure every N-th sample from the I-th")
     args = ap.parse_args(argv)
+    i, sep, n = args.shard.partition("/")
+    if not (sep and i.isdigit() and n.isdigit() and 0 <= int(i) < int(n)):
+        ap.error(f"--shard: expected I/N with 0 <= I < N, got {args.shard!r}")
     checkpoints = {}
     for item in args.checkpoint:
         name, sep, ck = item.partition("=")
         if not sep or not name or not ck or name in checkpoints or name == ALONE:
             ap.error(f"--checkpoint: expected NAME=CHECKPOINT with a new NAME, got {item!r}")
         checkpoints[name] = ck
-    res = compare(args.data, args.split, args.limit, args.profile, checkpoints)
+    res = compare(args.data, args.split, args.limit, args.profile, checkpoints, RUNS / "compare" / args.name,
+                  (int(i), int(n)))
     RESULTS.mkdir(exist_ok=True)
     for suffix, text in ((".json", json.dumps(res, indent=1)), (".md", "\n".join(table(res)) + "\n")):
         with atomic_path(RESULTS / f"{args.name}{suffix}") as tmp:
