@@ -249,7 +249,7 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     assert fast.evidence == EvidenceConfig(stereo={"fill_gap_deg": 14, "weak_agreement": 0.25},
                                            fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1}, references=[0],
                                            ground_snap_m=0.15, min_width_share=0.144)
-    assert load_profile("evidence-complete").evidence == shipped.evidence  # what completion-v2-cpu learnt from
+    assert load_profile("evidence-complete").evidence == shipped.evidence  # what its checkpoint learnt from
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
     assert scene.metadata["route"] == "evidence" and scene.metadata["trace_mode"] == "entry"
     assert scene.metadata["instants_used"].startswith("all")
