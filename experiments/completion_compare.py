@@ -10,7 +10,11 @@ checkpoint. Stereo, the costly part, runs once a sample instead of once per chec
 
     python -m experiments.completion_compare --data DIR [--split test] [--limit 40] [--profile evidence] \\
         --checkpoint shipped=completion-cpu --checkpoint direct=runs/completion-v2/last.pt [--name NAME] \\
-        [--shard I/N]
+        [--shard I/N] [--merge direct.footprint_height_m=0]
+
+`--merge NAME.FIELD=VALUE` sets one of the merge's settings (`completion.merge.CompletionConfig`;
+VALUE read as JSON) for the checkpoint of that NAME: the same network under two merges is two
+NAMEs of one checkpoint.
 
 Writes experiments/results/<NAME>.{json,md} (default completion_compare): per checkpoint and
 distance ahead the ray-weighted rows of `eval sensor-to-sensor` (median |dr|, p90, share of the
@@ -66,17 +70,20 @@ def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
 
 
 def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints: dict[str, str],
-            work: Path, shard: tuple[int, int] = (0, 1)) -> dict:
+            work: Path, shard: tuple[int, int] = (0, 1), merges: dict[str, dict] | None = None) -> dict:
     """-> {"rows": summarised over the samples measured so far (scenes: the truth, the evidence
     alone, each checkpoint by name), "grid": per checkpoint the stages' means, "samples": per
-    sample}; this process measures the samples of its `shard` (I, N) not yet in `work`."""
+    sample}; this process measures the samples of its `shard` (I, N) not yet in `work`; `merges`: per
+    checkpoint name, merge settings other than the defaults."""
     base = load_profile(profile)
-    convs = {name: Converter(base.model_copy(update={"name": f"{base.name}+{name}",
-                                                      "completion": CompletionConfig(checkpoint=ck)}))
+    merges = merges or {}
+    convs = {name: Converter(base.model_copy(update={"name": f"{base.name}+{name}", "completion": CompletionConfig(
+                 checkpoint=ck, **merges.get(name, {}))}))
              for name, ck in checkpoints.items()}
     lidar = s2s.geometric_lidar("hdl64e")
     dirs = sorted(d for d in (Path(data) / split).iterdir() if (d / "meta.json").is_file())[:limit]
-    key = {"data": str(Path(data).resolve()), "split": split, "profile": profile, "checkpoints": checkpoints}
+    key = {"data": str(Path(data).resolve()), "split": split, "profile": profile, "checkpoints": checkpoints,
+           **({"merges": merges} if merges else {})}
     work.mkdir(parents=True, exist_ok=True)
 
     def done(d: Path) -> dict | None:
@@ -95,7 +102,7 @@ def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints
     samples = [s for s in (done(d) for d in dirs) if s is not None]
     grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
             for name in checkpoints}
-    return {"split": split, "profile": profile, "checkpoints": checkpoints, "samples_n": len(samples),
+    return {"split": split, "profile": profile, "checkpoints": checkpoints, "merges": merges, "samples_n": len(samples),
             "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid, "samples": samples}
 
 
@@ -115,7 +122,8 @@ def table(res: dict) -> list[str]:
                      + " | ".join(cells) + " |")
     lines += ["", "| checkpoint | " + " | ".join(GRID_KEYS) + " |", "|---|" + "---|" * len(GRID_KEYS)]
     for name, g in res["grid"].items():
-        lines.append(f"| {name} ({res['checkpoints'][name]}) | " + " | ".join(f"{g[k]:.4g}" for k in GRID_KEYS) + " |")
+        merge = "".join(f", {k} {v}" for k, v in res.get("merges", {}).get(name, {}).items())
+        lines.append(f"| {name} ({res['checkpoints'][name]}{merge}) | " + " | ".join(f"{g[k]:.4g}" for k in GRID_KEYS) + " |")
     return lines
 
 
@@ -129,6 +137,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="a completion checkpoint (path or shipped name) and its name in the table; repeatable")
     ap.add_argument("--name", default="completion_compare")
     ap.add_argument("--shard", default="0/1", metavar="I/N", help="measure every N-th sample from the I-th")
+    ap.add_argument("--merge", action="append", default=[], metavar="NAME.FIELD=VALUE",
+                    help="a merge setting for the checkpoint NAME (VALUE as JSON); repeatable")
     args = ap.parse_args(argv)
     i, sep, n = args.shard.partition("/")
     if not (sep and i.isdigit() and n.isdigit() and 0 <= int(i) < int(n)):
@@ -139,8 +149,24 @@ def main(argv: list[str] | None = None) -> None:
         if not sep or not name or not ck or name in checkpoints or name == ALONE:
             ap.error(f"--checkpoint: expected NAME=CHECKPOINT with a new NAME, got {item!r}")
         checkpoints[name] = ck
+    merges: dict[str, dict] = {}
+    for item in args.merge:
+        target, sep, value = item.partition("=")
+        name, dot, field = target.partition(".")
+        if not (sep and dot and name in checkpoints and field in CompletionConfig.model_fields):
+            ap.error(f"--merge: expected NAME.FIELD=VALUE with a --checkpoint NAME and a field of "
+                     f"CompletionConfig, got {item!r}")
+        try:
+            merges.setdefault(name, {})[field] = json.loads(value)
+        except json.JSONDecodeError:
+            merges.setdefault(name, {})[field] = value
+    for name, fields in merges.items():
+        try:
+            CompletionConfig(checkpoint=checkpoints[name], **fields)
+        except ValueError as e:
+            ap.error(f"--merge for {name!r}: {e}")
     res = compare(args.data, args.split, args.limit, args.profile, checkpoints, RUNS / "compare" / args.name,
-                  (int(i), int(n)))
+                  (int(i), int(n)), merges)
     RESULTS.mkdir(exist_ok=True)
     for suffix, text in ((".json", json.dumps(res, indent=1)), (".md", "\n".join(table(res)) + "\n")):
         with atomic_path(RESULTS / f"{args.name}{suffix}") as tmp:

@@ -21,9 +21,9 @@ def convert_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
     dataset: Optional[str] = typer.Option(None, "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | waymo | folder | worlds (DIR/<split>)"),
     sample: int = typer.Option(0, "--sample", help="sample index in the dataset"),
-    profile: str = typer.Option("evidence", "--profile", help="a shipped converter profile's name or a profile "
-                                "YAML's path (evidence: stereo depth fused, for LiDAR; cpu: the paper's route, "
-                                "with camera views)"),
+    profile: str = typer.Option("evidence-complete", "--profile", help="a shipped converter profile's name or a profile "
+                                "YAML's path (evidence-complete: stereo depth fused, what no camera saw completed, "
+                                "for LiDAR; evidence: without the completion; cpu: the paper's route, with camera views)"),
     steps: Optional[int] = typer.Option(None, "--steps", help="DDIM steps of the geometry stage (default: the profile's)"),
     seed: int = typer.Option(0, "--seed", help="the geometry sampler's seed"),
     confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),

@@ -81,7 +81,7 @@ def eval_cmd(
                                           "config to change from the checkpoint's (repeatable; VALUE is YAML), "
                                           "e.g. eval_frames=true"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
-    profile: str = typer.Option("evidence", "--profile", help="sensor-to-sensor: converter profile (shipped name "
+    profile: str = typer.Option("evidence-complete", "--profile", help="sensor-to-sensor: converter profile (shipped name "
                                 "or YAML)"),
     sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
     limit: Optional[int] = typer.Option(None, "--limit", help="sensor-to-sensor, depth: the split's (the "

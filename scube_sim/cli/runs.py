@@ -20,8 +20,9 @@ def demo_cmd(
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
     voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
     seed: int = typer.Option(0, "--seed"),
-    profile: str = typer.Option("evidence", "--profile", help="converter profile for the camera-to-LiDAR part "
-                                "(evidence: stereo depth over the cameras at T and 4 instants either side, fused; "
+    profile: str = typer.Option("evidence-complete", "--profile", help="converter profile for the camera-to-LiDAR part "
+                                "(evidence-complete: stereo depth over the cameras at T and 4 instants either side, fused, "
+                                "what no camera saw completed; evidence: without the completion; "
                                 "cpu-lidar: the paper's route, one Gaussian per voxel, no context instants)"),
     convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),
 ) -> None:

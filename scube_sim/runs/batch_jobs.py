@@ -184,7 +184,7 @@ class ReplayJob(Job):
 class ConvertSettings(StrictModel):
     dataset: str | None = None  # None: each input is a worlds sample folder
     samples: list[SAMPLE_INDEX.annotated()] = Field(default_factory=lambda: [0])  # with `dataset`: each folder's
-    profile: str = "evidence"  # `convert`'s default (model.converter.DEFAULT_PROFILE; not imported: torch)
+    profile: str = "evidence-complete"  # `convert`'s default (model.converter.DEFAULT_PROFILE; not imported: torch)
     steps: int | None = DDIM_STEPS.field(None)
     seed: int = SEED.field(0)
     confidence: int = CONFIDENCE_SAMPLES.field(0)  # K geometry samples for per-voxel confidence (0: off)

@@ -39,7 +39,7 @@ FRAMES_SCALE = DatasetConfig().image_scale
 
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
              world: WorldConfig | None = None, echo: Callable[[str], None] = print,
-             profile: str | None = "evidence") -> dict:
+             profile: str | None = "evidence-complete") -> dict:
     """Write views.png, scene.npz, scene_3dgs.ply, sweep.pcd, scene.usdc, sweep.usda and bev.png
     into `out`; with a converter `profile` (None: skip) also converted.npz (the VoxSplat the
     converter makes from the camera images), converted_sweep.pcd, mesh_sweep.pcd,

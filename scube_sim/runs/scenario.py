@@ -96,7 +96,7 @@ class FramesSpec(StrictModel):
     sample: int = SAMPLE_INDEX.field(0)
     world: WorldConfig | None = None
     rig: str = "waymo-5"
-    profile: str = "evidence"  # `convert`'s default (docs/converter.md: which profile when)
+    profile: str = "evidence-complete"  # `convert`'s default (docs/converter.md: which profile when)
     max_range_m: float | None = MAX_RANGE_M.field(None)
     route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
     # the instants before and after the sample in the same log (`convert --context`), or rendered

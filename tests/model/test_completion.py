@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +33,7 @@ from scube_sim.model.trainer import train
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.voxsplat import Gaussians, VoxSplat
 from scube_sim.worlds.groundtruth import CHUNK_CORNER
-from tests.model.test_evidence import CFG, _frames, _to_chunk
+from tests.model.test_evidence import CFG, _digest, _frames, _to_chunk
 
 CH = {name: i for i, name in enumerate(FEATURES)}
 
@@ -132,8 +135,12 @@ def _wall_scene(conf: float) -> VoxSplat:
 
 
 def _grids(p: float):
+    """(features, occupancy p everywhere, labels building) on the 0.8 m grid; the features hold the
+    height over a flat ground at chunk z = 0 (cell k = 4, z -0.03..0.77 m, holds it), nothing else."""
     dims = coarse_dims(0.8)
     feats = np.zeros((len(FEATURES), *dims), np.float32)
+    z = CHUNK_CORNER[2] + (np.arange(dims[2]) + 0.5) * 0.8
+    feats[CH["height"]] = np.clip(z / 4.0, -1, 1)[None, None, :]
     return feats, np.full(dims, p), np.full(dims, LABEL_IDS["building"])
 
 
@@ -162,6 +169,11 @@ def test_an_unsure_observation_the_network_finds_empty_is_removed():
     scene.labels[:] = LABEL_IDS["road"]
     out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == 0 and out.num_voxels == scene.num_voxels
+
+
+def _span(lo: float, hi: float, axis: int) -> tuple[int, int]:
+    """[first, last + 1) cells of the 0.8 m grid spanning lo..hi metres on `axis`."""
+    return _cell([lo] * 3)[axis], _cell([hi] * 3)[axis] + 1
 
 
 def _block(occ, lo, hi, p=0.95):
@@ -199,6 +211,42 @@ def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
     # the wall in front of it is hit first, unchanged, from the ego's side
     hits = tracer.trace_world(np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
     assert hits.hit[0] and abs(hits.t[0] - 10.1) < 0.05
+
+
+def test_a_ground_cell_is_added_only_under_a_body():
+    """A network that draws a building's floor (one cell thick, on the ground) 20-30 m ahead and a
+    car 3 cells tall beside it: the floor is not added (a ray down to the road there meets nothing:
+    the height field holds the ground), the car is, down to its cell on the ground; the floor under
+    an observed wall is added, the wall standing on it."""
+    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))
+    feats, occ, lab = _grids(0.0)
+    _block(occ, [20.0, -5.0, 0.1], [30.0, 5.0, 0.1])  # the floor: cells k = 4 only
+    _block(occ, [20.0, 8.0, 0.1], [24.0, 10.0, 2.0])  # a car: k = 4..6
+    ground_k = _cell([0, 0, 0.1])[2]
+    cfg = CompletionConfig(checkpoint="x", footprint_height_m=0.4)
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    centres = out.origin + out.gaussians().means
+    assert np.all(centres[:, 1] > 7.0), "a cell of the floor was added"
+    assert counts["footprint_cells"] > 0 and counts["added_cells"] > 0
+    k = np.floor((centres[:, 2] - CHUNK_CORNER[2]) / 0.8).astype(int)
+    assert k.min() == ground_k and k.max() == ground_k + 2
+    tracer = Tracer(out, mode="entry")
+    down = np.array([[25.0, 0.0, 1.8]]), np.array([[0.0, 0.0, -1.0]])
+    assert not tracer.trace_world(*down).hit[0]
+    # straight down on a roof cell's centre: its sphere's top, 0.6 m over the centre
+    roof = CHUNK_CORNER + (np.array(_cell([22.0, 9.0, 2.0])) + 0.5) * 0.8
+    hit = tracer.trace_world(np.array([[roof[0], roof[1], 4.0]]), np.array([[0.0, 0.0, -1.0]]))
+    assert hit.hit[0] and 4.0 - hit.t[0] == pytest.approx(roof[2] + 0.6, abs=0.01)
+    assert roof[2] == pytest.approx(CHUNK_CORNER[2] + (ground_k + 2.5) * 0.8)
+    # a cell on the ground under a body that was observed (a wall seen from 0.8 m up, its foot
+    # unseen): the observation is its body, it is added
+    wall = _wall_scene(0.9)
+    wall = wall.select_voxels(wall.origin[2] + wall.voxel_centers()[:, 2] > 0.8)
+    feats, occ, lab = _grids(0.0)
+    _block(occ, [10.1, -1.9, 0.1], [10.1, 1.9, 0.1])
+    out, counts = merge_completion(wall, feats, occ, lab, CORNER, 0.8, cfg)
+    assert counts["footprint_cells"] == 0 and counts["added_cells"] == len(range(*_span(-1.9, 1.9, 1)))
+    assert counts["added_cells"] > 0
 
 
 def test_nothing_is_added_into_the_ego_car_at_any_instant():
@@ -477,6 +525,37 @@ def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(comp
     assert np.array_equal(out.ijk[pos], plain.ijk[keep])
     assert np.array_equal(out.params[pos], plain.params[keep])
     assert out.channel("observed")[pos].all()
+
+
+def _completed_corridor():
+    """The corridor converted with the default profile's completion (its checkpoint and merge)."""
+    from scube_sim.model.converter import DEFAULT_PROFILE, Converter, ConverterProfile, load_profile
+
+    comp = load_profile(DEFAULT_PROFILE).completion
+    assert comp is not None, "the default profile has no completion"
+    return Converter(ConverterProfile(name="corridor-c", route="evidence", evidence=CFG, completion=comp)).convert(
+        _frames(), max_range=30.0)
+
+
+def completed_corridor_digest() -> str:
+    """`_completed_corridor`'s file, hashed (run in another process below)."""
+    return _digest(_completed_corridor())
+
+
+def test_the_default_completion_gives_the_same_bytes_in_another_process_with_one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        scene = _completed_corridor()
+    finally:
+        torch.set_num_threads(threads)
+    done = scene.metadata["completion"]
+    assert done["relabelled_voxels"] + done["added_cells"] > 0  # the network's output reached the file
+    code = ("import torch; torch.set_num_threads(1); "
+            "from tests.model.test_completion import completed_corridor_digest; print(completed_corridor_digest())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"}, cwd=Path(__file__).resolve().parents[2], check=True)
+    assert out.stdout.strip().splitlines()[-1] == _digest(scene)
 
 
 def test_a_completion_key_on_the_paper_route_is_refused():

@@ -358,13 +358,16 @@ def test_the_command_line_defaults_are_the_converters():
     from scube_sim.model.converter import DEFAULT_PROFILE
     from scube_sim.runs.demo import run_demo
 
-    assert DEFAULT_PROFILE == "evidence"
+    assert DEFAULT_PROFILE == "evidence-complete"
     for fn in (convert_cmd, eval_cmd, demo_cmd):
         assert inspect.signature(fn).parameters["profile"].default.default == DEFAULT_PROFILE, fn.__name__
     assert inspect.signature(run_demo).parameters["profile"].default == DEFAULT_PROFILE
     from scube_sim.runs.batch_jobs import ConvertSettings
 
     assert ConvertSettings().profile == DEFAULT_PROFILE and ConvertSettings().context is None  # the profile's
+    from scube_sim.runs.scenario import FramesSpec
+
+    assert FramesSpec.model_fields["profile"].default == DEFAULT_PROFILE  # a scenario's frames
 
 
 
