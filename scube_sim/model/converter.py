@@ -65,7 +65,8 @@ PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 # matters; at hard opacity their 3-sigma shells are slabs metres thick.
 TRACE_MODE = "soft"
 # the profile `convert` and the demo use unless told: measured geometry with the learned completion
-# (docs/converter.md, "The evidence profile", "The learned completion"); PAPER_PROFILE: the paper's route, whose networks the depth evaluation reads
+# (docs/converter.md, "The evidence profile", "The learned completion"); PAPER_PROFILE: the paper's
+# route, whose networks the depth evaluation reads
 DEFAULT_PROFILE = "evidence-complete"
 PAPER_PROFILE = "cpu"
 

@@ -213,6 +213,21 @@ def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
     assert hits.hit[0] and abs(hits.t[0] - 10.1) < 0.05
 
 
+def test_only_cells_the_network_holds_at_0_9_or_more_are_added():
+    """Two boxes nobody saw, one at p 0.8 and one at p 0.95: by default only the second is added
+    (at 0.8 the shipped network's cells are mostly empty in the truth); at add_threshold 0.5, both."""
+    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))
+    feats, occ, lab = _grids(0.0)
+    _block(occ, [20.0, -2.0, 0.1], [23.0, 2.0, 1.5], p=0.8)
+    _block(occ, [20.0, 10.0, 0.1], [23.0, 12.0, 1.5], p=0.95)
+    out, _ = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    y = (out.origin + out.gaussians().means)[:, 1]
+    assert len(y) and np.all(y > 9.0)
+    out, _ = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x", add_threshold=0.5))
+    y = (out.origin + out.gaussians().means)[:, 1]
+    assert np.any(y < 3.0) and np.any(y > 9.0)
+
+
 def test_a_ground_cell_is_added_only_under_a_body():
     """A network that draws a building's floor (one cell thick, on the ground) 20-30 m ahead and a
     car 3 cells tall beside it: the floor is not added (a ray down to the road there meets nothing:

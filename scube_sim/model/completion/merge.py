@@ -3,32 +3,32 @@ VoxSplat, the observation winning wherever the two disagree.
 
 Per coarse cell (`features` grid) the network gives an occupancy probability p and a label:
 
-- **added**: a cell with p >= `add_threshold` (0.9: completion-v3-cpu's cells at p 0.5-0.9 are
-  empty in the truth for a third to two thirds, at 0.99 and above for none, worlds val; at 0.5
-  the blobs of parked cars drawn too long stood around the LiDAR driven 20 m ahead, worlds test
-  12: 5 593 of its 33 202 unseen ground rays a metre or more short) that holds no observed voxel, whose free-space rays
-  are fewer than `free_veto_samples` (the cameras saw through it: it stays empty whatever the
-  network says), that borders a cell below the threshold (a surface, not the inside of a
-  building) and whose label is not a ground class (the height field already holds the ground
-  no camera saw), whose Gaussian would not reach into the ego's own body at any instant given
+- **added**: a cell with p >= `add_threshold` (0.9: completion-v3-cpu's cells at p 0.5-0.9 are empty
+  in the truth for a third to two thirds, at 0.99 and above for none, worlds val; at 0.5 the blobs
+  of parked cars drawn too long stood around the LiDAR driven 20 m ahead, worlds test 12: 5 593 of
+  its 33 202 unseen ground rays a metre or more short) that holds no observed voxel, whose
+  free-space rays are fewer than `free_veto_samples` (the cameras saw through it: it stays empty
+  whatever the network says), that borders a cell below the threshold (a surface, not the inside of
+  a building) and whose label is not a ground class (the height field already holds the ground no
+  camera saw), whose Gaussian would not reach into the ego's own body at any instant given
   (`ego_box`, grown by the sphere's radius) and that is not joined (26-neighbours, among the cells
-  to add) to one that would: the space the ego car filled or drove through holds nothing else,
-  yet no camera sees it, and a network that has learnt that a hole in the observed road is a car
-  puts one there (worlds test 6: a car blob 0.7 m from the LiDAR, whose rays then ended inside its
-  minimum range, 18 % of the ground rays lost; test 30: the cells around the box, 1.6-1.9 m from
-  the LiDAR, 21 % of its seen rays short), and that, where it holds the ground height field (its
-  centre under `footprint_height_m` over it, where set: 0.4 m, half a cell), has a body standing on it (the cell
-  above occupied and not seen through, or observed): a ground cell with nothing above it is either
-  the ground labelled as an object or the floor of a building (the worlds' buildings are closed
-  meshes, their floors fill the ground cells of the footprint, and the network learns to draw
+  to add) to one that would: the space the ego car filled or drove through holds nothing else, yet
+  no camera sees it, and a network that has learnt that a hole in the observed road is a car puts
+  one there (worlds test 6: a car blob 0.7 m from the LiDAR, whose rays then ended inside its
+  minimum range, 18 % of the ground rays lost; test 30: the cells around the box, 1.6-1.9 m from the
+  LiDAR, 21 % of its seen rays short), and that, where it holds the ground height field (its centre
+  under `footprint_height_m` over it, where set: 0.4 m, half a cell), has a body standing on it (the
+  cell above occupied and not seen through, or observed): a ground cell with nothing above it is
+  either the ground labelled as an object or the floor of a building (the worlds' buildings are
+  closed meshes, their floors fill the ground cells of the footprint, and the network learns to draw
   them), neither of which a sensor outside sees, and its sphere, 0.6 m round, stands on the road
   (worlds val, completion-v3-cpu at 0.5: 16 k such cells added of 25 k, 96 % with nothing above,
   12 % of them ground or terrain in the truth); off by default: those floors also stand for the
-  foot of walls nobody saw, and on worlds test 0-19 the rule lost most of the objects' gain for
-  the unseen ground it spared (docs/converter.md) -- gets one round Gaussian at its centre whose 3-sigma sphere (`blob_radius`, a
-  share of the cell: 0.75, so that four neighbours' spheres close the gap between them at hard
-  opacity) stands for the cell (where in the cell the surface lies, nobody measured), labelled
-  by the network, `observed` 0, `confidence` p;
+  foot of walls nobody saw, and on worlds test 0-19 the rule lost most of the objects' gain for the unseen
+  ground it spared (docs/converter.md) -- gets one round Gaussian at its centre whose 3-sigma sphere
+  (`blob_radius`, a share of the cell: 0.75, so that four neighbours' spheres close the gap between
+  them at hard opacity) stands for the cell (where in the cell the surface lies, nobody measured),
+  labelled by the network, `observed` 0, `confidence` p;
 - **removed**: an observed voxel above the ground (not labelled a ground class) whose fused
   probability is below `keep_confidence` (one view's unsure stereo) in a cell with p <
   `remove_threshold` is dropped as noise (worlds test 0-9 before ground voxels were spared: 2.2 %
@@ -62,8 +62,9 @@ class CompletionConfig(StrictModel):
     """A profile's `completion:` section (module docstring for the merge's rules)."""
 
     checkpoint: str  # a shipped name or a path
-    # completion-v3-cpu's cells at p 0.5-0.9 are empty in the truth for 34-69 % (worlds val; at
-    # p >= 0.99, 0 %): at 0.5 its blobs stood on the unseen ground 20 m ahead (module docstring)
+    # completion-v3-cpu's cells at p 0.5-0.8 are empty in the truth for a third (buildings) to two
+    # thirds (cars), at p >= 0.99 for none (worlds val): at 0.5 its blobs stood around the LiDAR
+    # 20 m ahead (module docstring)
     add_threshold: float = Field(default=0.9, gt=0, lt=1)
     remove_threshold: float = Field(default=0.1, ge=0, lt=1)
     keep_confidence: float = Field(default=0.65, ge=0, le=1)
