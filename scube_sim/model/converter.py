@@ -530,15 +530,22 @@ class Converter:
             self.uncompleted = scene  # the evidence alone (`eval sensor-to-sensor` scores both)
             feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
                                      pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
+            sub = None
             with _one_torch_thread():
-                occ_logit, lab_logit = self.completion(torch.from_numpy(feats)[None])
+                if isinstance(self.completion, CompletionNet):
+                    occ_logit, lab_logit, sub_logit = self.completion.forward_with_subcells(torch.from_numpy(feats)[None])
+                    if sub_logit is not None:
+                        sub = torch.sigmoid(sub_logit[0]).double().numpy()
+                else:
+                    occ_logit, lab_logit = self.completion(torch.from_numpy(feats)[None])
             occ = torch.sigmoid(occ_logit[0]).double().numpy()
             lab = lab_logit[0].argmax(0).numpy()
             # the coarse grid, for scoring (`eval sensor-to-sensor`): probabilities, labels, the input
             self.completion_grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": ev.corner,
                                     "voxel_size": self.completion_voxel_size}
             scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
-                                                self.profile.completion, ego_poses=ego_poses_in_chunk(frames))
+                                                self.profile.completion, ego_poses=ego_poses_in_chunk(frames),
+                                                subcells=sub)
             parts["completion_s"] = time.perf_counter() - t1
         if max_range is not None:
             centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size

@@ -320,8 +320,13 @@ class _Loop:
 
     def _init_from(self, name_or_path: str) -> None:
         path, ck = stage_checkpoint(self.stage, name_or_path)
+        # a model may name parameters a warm start need not hold (a head the checkpoint's model had not)
+        optional = tuple(getattr(self.model, "init_optional_prefixes", ()))
         try:
-            self.model.load_state_dict(ck["model"])
+            missing, unexpected = self.model.load_state_dict(ck["model"], strict=False)
+            bad = [k for k in missing if not k.startswith(optional)] if optional else list(missing)
+            if bad or unexpected:
+                raise RuntimeError(f"missing {bad[:3]}, unexpected {list(unexpected)[:3]}")
         except (RuntimeError, KeyError) as exc:
             first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
             raise CheckpointError(f"train.init: {path} does not fit this run's model: {first}") from None

@@ -11,7 +11,9 @@ and keys whatever N.
 
 Items (`CompletionDataset`): ``features`` (C, X, Y, Z) float32, ``occupancy`` (X, Y, Z) float32
 and ``labels`` (X, Y, Z) int64 (-1 where empty): the ground truth's coarse voxels coarsened to
-the grid (a cell is occupied if any child is; the most frequent label). Training items keep a
+the grid (a cell is occupied if any child is; the most frequent label); ``fine_occupancy`` (fX,
+fY, fZ) bool: the stored coarse voxels themselves (f = the grid's voxel size over theirs: 2 for
+0.8 m cells over the worlds' 0.4 m), for the sub-cell head. Training items keep a
 random `crop` x `crop` metre window in x, y and are mirrored left-right with probability one
 half (seeded by seed, epoch and index); validation items are the whole chunk.
 """
@@ -173,7 +175,7 @@ class CompletionDataset(Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = epoch
 
-    def _target(self, sample: str) -> tuple[torch.Tensor, torch.Tensor]:
+    def _target(self, sample: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         path = self.root / self.split / sample / "voxels.npz"
         if not path.is_file():
             raise InputError(f"{path}: missing ground-truth voxels")
@@ -190,7 +192,13 @@ class CompletionDataset(Dataset):
         tl = torch.full(self.dims, -1, dtype=torch.int64)
         occ[rel[:, 0], rel[:, 1], rel[:, 2]] = 1.0
         tl[rel[:, 0], rel[:, 1], rel[:, 2]] = labels
-        return occ, tl
+        # the stored voxels themselves (the grid's corner is the chunk's): where in a cell the truth lies
+        fine_dims = tuple(d * factor for d in self.dims)
+        f = torch.from_numpy(ijk.astype(np.int64))
+        f = f[((f >= 0) & (f < torch.tensor(fine_dims))).all(1)]
+        fine = torch.zeros(fine_dims, dtype=torch.bool)
+        fine[f[:, 0], f[:, 1], f[:, 2]] = True
+        return occ, tl, fine
 
     def __getitem__(self, index: int) -> dict:
         path = self.files[index]
@@ -203,14 +211,16 @@ class CompletionDataset(Dataset):
         if abs(key.get("voxel_size", -1) - self.cfg.voxel_size) > 1e-9:
             raise InputError(f"{path}: cached at {key.get('voxel_size')} m, data.voxel_size is {self.cfg.voxel_size} m "
                              f"(rebuild: scube-sim worlds evidence)")
-        occ, labels = self._target(path.stem)
+        occ, labels, fine = self._target(path.stem)
         if self.train:
             gen = item_generator(self.seed + 11, self.epoch, index)
             if self.cfg.crop is not None:
                 c = int(round(self.cfg.crop / self.cfg.voxel_size))
                 x0, y0 = (int(torch.randint(0, (d - c) // 8 + 1, (1,), generator=gen)) * 8 for d in self.dims[:2])
                 feats, occ, labels = (t[..., x0:x0 + c, y0:y0 + c, :] for t in (feats, occ, labels))
+                f = fine.shape[0] // self.dims[0]
+                fine = fine[x0 * f:(x0 + c) * f, y0 * f:(y0 + c) * f]
             if self.cfg.flip and bool(torch.randint(0, 2, (1,), generator=gen)):
-                feats, occ, labels = (t.flip(-2) for t in (feats, occ, labels))
+                feats, occ, labels, fine = (t.flip(-2) for t in (feats, occ, labels, fine))
         return {"features": feats.contiguous(), "occupancy": occ.contiguous(), "labels": labels.contiguous(),
-                "sample": path.stem}
+                "fine_occupancy": fine.contiguous(), "sample": path.stem}

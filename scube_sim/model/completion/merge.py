@@ -27,8 +27,13 @@ Per coarse cell (`features` grid) the network gives an occupancy probability p a
   foot of walls nobody saw, and on worlds test 0-19 the rule lost most of the objects' gain for the unseen
   ground it spared (docs/converter.md) -- gets one round Gaussian at its centre whose 3-sigma sphere
   (`blob_radius`, a share of the cell: 0.75, so that four neighbours' spheres close the gap between
-  them at hard opacity) stands for the cell (where in the cell the surface lies, nobody measured),
-  labelled by the network, `observed` 0, `confidence` p;
+  them at hard opacity) stands for the cell (where in the cell the surface lies, nobody measured;
+  with a network's sub-cell head, one Gaussian on each sub-cell it holds occupied instead,
+  `subcell_threshold`, its sphere the same share of the sub-cell; or, `subcell_mode` centroid, the
+  cell's one sphere moved to its sub-cells' centres weighted by their probabilities: both measured
+  on worlds test 0-19, docs/converter.md "Sub-cells", and both lose to the centred sphere: the
+  smaller or moved spheres open gaps between neighbours' that rays slip through), labelled by the network,
+  `observed` 0, `confidence` p;
 - **removed**: an observed voxel above the ground (not labelled a ground class) whose fused
   probability is below `keep_confidence` (one view's unsure stereo) in a cell with p <
   `remove_threshold` is dropped as noise (worlds test 0-9 before ground voxels were spared: 2.2 %
@@ -40,6 +45,8 @@ Per coarse cell (`features` grid) the network gives an occupancy probability p a
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import numpy as np
 from pydantic import Field, model_validator
@@ -70,6 +77,12 @@ class CompletionConfig(StrictModel):
     keep_confidence: float = Field(default=0.65, ge=0, le=1)
     free_veto_samples: int = Field(default=3, ge=1, le=10_000)
     blob_radius: float = Field(default=0.75, gt=0, le=2)  # an added cell's 3-sigma sphere, a share of the cell
+    # with a sub-cell head: an added cell's sub-cells at or above this get a Gaussian each (its most
+    # probable one always), the sphere then a share of the sub-cell
+    subcell_threshold: float = Field(default=0.5, gt=0, le=1)
+    # "spheres": one Gaussian a chosen sub-cell (subcell_threshold); "centroid": the cell's one
+    # sphere, as without sub-cells, moved to its sub-cells' centres weighted by their probabilities
+    subcell_mode: Literal["spheres", "centroid"] = "spheres"
     relabel: bool = True
     # an added cell whose centre lies under this height over the ground height field needs an
     # occupied cell above it (0: off, the default; 0.4, half a 0.8 m cell: the cell that holds the
@@ -108,9 +121,45 @@ def in_ego_box(points: np.ndarray, ego_poses: np.ndarray, cfg: CompletionConfig,
     return inside
 
 
+def _subcells_per_side(sub_shape: tuple, dims: np.ndarray) -> int:
+    """s: the sub-cells per cell side of a sub-cell grid `sub_shape` (sX, sY, sZ) over cells `dims`."""
+    s = sub_shape[0] // int(dims[0])
+    if s < 1 or tuple(sub_shape) != tuple(int(d) * s for d in dims):
+        raise ValueError(f"merge_completion: sub-cells {tuple(sub_shape)} are not a whole multiple of the "
+                         f"cells {tuple(int(d) for d in dims)}")
+    return s
+
+
+def _subcell_centres(ai: np.ndarray, subcells: np.ndarray, s: int, corner: np.ndarray, voxel_size: float,
+                     threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """Where the Gaussians of the added cells `ai` (A, 3) go: their sub-cells (s per side; their
+    probabilities `subcells` (sX, sY, sZ)) at or above `threshold`, and each cell's most probable
+    one whatever it holds (the cell is added: its surface lies somewhere in it). Returns (each
+    Gaussian's index into `ai` (G,), its centre (G, 3), chunk frame, metres)."""
+    offsets = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (s^3, 3)
+    sub_ijk = ai[:, None, :] * s + offsets[None]  # (A, s^3, 3)
+    p = subcells[sub_ijk[..., 0], sub_ijk[..., 1], sub_ijk[..., 2]]
+    chosen = p >= threshold
+    chosen[np.arange(len(ai)), np.argmax(p, 1)] = True
+    cell, k = np.nonzero(chosen)
+    return cell, corner + (sub_ijk[cell, k] + 0.5) * (voxel_size / s)
+
+
+def _subcell_centroids(ai: np.ndarray, subcells: np.ndarray, s: int, corner: np.ndarray,
+                       voxel_size: float) -> np.ndarray:
+    """(A, 3) the added cells' `ai` (A, 3) sub-cell centres weighted by their probabilities
+    `subcells` (sX, sY, sZ), chunk frame, metres: where the cell's one sphere goes."""
+    offsets = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    sub_ijk = ai[:, None, :] * s + offsets[None]
+    p = subcells[sub_ijk[..., 0], sub_ijk[..., 1], sub_ijk[..., 2]]
+    w = p / np.maximum(p.sum(1, keepdims=True), 1e-12)
+    return corner + (np.einsum("ak,akd->ad", w, sub_ijk.astype(np.float64)) + 0.5) * (voxel_size / s)
+
+
 def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarray, labels: np.ndarray,
                      corner: np.ndarray, voxel_size: float, cfg: CompletionConfig,
-                     ego_poses: np.ndarray | None = None) -> tuple[VoxSplat, dict]:
+                     ego_poses: np.ndarray | None = None,
+                     subcells: np.ndarray | None = None) -> tuple[VoxSplat, dict]:
     """The evidence `scene` (chunk frame; channels `observed`, `confidence`) with the network's
     `occupancy` (X, Y, Z) probabilities and `labels` (X, Y, Z) ids merged (module docstring), on the
     coarse grid of `voxel_size` metres from `corner` (3,) whose input was `features` (C, X, Y, Z).
@@ -172,24 +221,39 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
         part = parts[ai[:, 0], ai[:, 1], ai[:, 2]]
         ego = np.isin(part, np.unique(part[ego]))
     ai, a_centres = ai[~ego], a_centres[~ego]
-    a_local = a_centres - scene.origin
+    # the Gaussians: one at each added cell's centre, or at its chosen sub-cells' centres
+    g_cell, g_centres, g_size = np.arange(len(ai)), a_centres, np.full(len(ai), vs)
+    if subcells is not None and len(ai):
+        n_sub = _subcells_per_side(subcells.shape, dims)
+        if cfg.subcell_mode == "centroid":
+            g_centres = _subcell_centroids(ai, subcells, n_sub, corner, vs)
+        else:
+            g_cell, g_centres = _subcell_centres(ai, subcells, n_sub, corner, vs, cfg.subcell_threshold)
+            g_size = np.full(len(g_cell), vs / n_sub)
+    a_local = g_centres - scene.origin
     a_keys = voxel_keys(np.floor(a_local / scene.voxel_size).astype(np.int64))
     keys = voxel_keys(scene.ijk.astype(np.int64))
-    clash = np.isin(a_keys, keys[~drop])  # a fine voxel the scene holds (ground fill): keep the scene's
-    ai, a_local, a_keys = ai[~clash], a_local[~clash], a_keys[~clash]
-    p_add = occupancy[ai[:, 0], ai[:, 1], ai[:, 2]] if len(ai) else np.zeros(0)
-    l_add = labels[ai[:, 0], ai[:, 1], ai[:, 2]] if len(ai) else np.zeros(0, np.int64)
+    _, first = np.unique(a_keys, return_index=True)
+    once = np.zeros(len(a_keys), bool)
+    once[first] = True  # sub-cells finer than the scene's voxels: one Gaussian a voxel
+    clash = np.isin(a_keys, keys[~drop]) | ~once  # a fine voxel the scene holds (ground fill): keep the scene's
+    g_cell, a_local, a_keys, g_size = g_cell[~clash], a_local[~clash], a_keys[~clash], g_size[~clash]
+    ai_g = ai[g_cell]
+    ai = np.unique(ai_g, axis=0) if len(ai_g) else ai_g
+    p_add = occupancy[ai_g[:, 0], ai_g[:, 1], ai_g[:, 2]] if len(ai_g) else np.zeros(0)
+    l_add = labels[ai_g[:, 0], ai_g[:, 1], ai_g[:, 2]] if len(ai_g) else np.zeros(0, np.int64)
 
     base = scene.select_voxels(~drop)
-    if len(ai):
+    n_add = len(a_local)
+    if n_add:
         m = scene.gaussians_per_voxel
-        sigma = cfg.blob_radius * vs / 3.0  # traced at hard opacity: the 3-sigma sphere
-        g = Gaussians(means=a_local, scales=np.full((len(ai), 3), sigma), quats=np.tile([1.0, 0, 0, 0], (len(ai), 1)),
-                      opacities=np.ones(len(ai)),
-                      sh_dc=np.zeros((len(ai), 3), np.float32), origin=scene.origin)
+        sigma = cfg.blob_radius * g_size / 3.0  # traced at hard opacity: the 3-sigma sphere
+        g = Gaussians(means=a_local, scales=np.repeat(sigma[:, None], 3, 1), quats=np.tile([1.0, 0, 0, 0], (n_add, 1)),
+                      opacities=np.ones(n_add),
+                      sh_dc=np.zeros((n_add, 3), np.float32), origin=scene.origin)
         extra = VoxSplat.from_gaussians(g, scene.voxel_size, labels=l_add, offset_range=scene.offset_range,
                                         origin=scene.origin)
-        # each added Gaussian has a fine voxel of its own (one per coarse cell, at its centre)
+        # each added Gaussian has a fine voxel of its own (at its cell's or sub-cell's centre)
         sorted_keys = np.sort(a_keys)
         where = np.searchsorted(sorted_keys, voxel_keys(extra.ijk.astype(np.int64)))
         p_extra = p_add[np.argsort(a_keys, kind="stable")][where]
@@ -217,7 +281,7 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
         merged = base
         merged.labels = new_labels[~drop].astype(np.int16)
     merged = merged.select_voxels(np.argsort(voxel_keys(merged.ijk.astype(np.int64)), kind="stable"))
-    counts = {"added_cells": int(len(ai)), "footprint_cells": int(footprint.sum()),
+    counts = {"added_cells": int(len(ai)), "added_gaussians": int(n_add), "footprint_cells": int(footprint.sum()),
               "ego_box_cells": int(ego.sum()), "removed_voxels": int(drop.sum()),
               "relabelled_voxels": int(relabel.sum()), "observed_voxels": int(observed.sum())}
     return merged, counts

@@ -6,6 +6,13 @@ car, the wall behind a parked van), and the coarse grid (128 x 128 x 32 at 0.8 m
 million cells. Levels halve the box; each has `blocks` residual blocks (`geometry.dense_nets`
 `ResBlock3d`, GroupNorm); the decoder concatenates the encoder's features of the same level
 (skip connections keep the observed cells' detail, which the merge trusts anyway).
+
+Sub-cells (`CompletionModel.subcells` s > 1): a second head gives each cell s x s x s occupancy
+logits at voxel_size / s, trained only inside the cells the truth holds occupied: where in a cell
+the network would place its surface (the merge puts an added cell's Gaussians there instead of one
+sphere at its centre). `train_subcells_only` freezes everything but that head, so that the cells'
+occupancy and labels stay the warm start's (`train.init`) and a comparison measures the placement
+alone.
 """
 
 from __future__ import annotations
@@ -32,7 +39,8 @@ class CompletionModel(StrictModel):
     (`diffusion.CompletionDiffusionNet`: latent diffusion over the frozen coarse VAE, conditioned
     on the same channels; None: the deterministic network). The deterministic loss
     (`stage`): `label_weight` times the label cross-entropy on the occupied cells is added to the
-    occupancy BCE, whose occupied cells weigh `pos_weight`."""
+    occupancy BCE, whose occupied cells weigh `pos_weight`; with `subcells` s > 1, `subcell_weight`
+    times the sub-cells' BCE inside the truth's occupied cells (module docstring)."""
 
     features: list[str] = Field(default_factory=lambda: list(INPUTS_V1), min_length=1)
     widths: list[int] = Field(default_factory=lambda: [12, 24, 48, 64], min_length=1, max_length=6)
@@ -40,6 +48,9 @@ class CompletionModel(StrictModel):
     groups: int = Field(default=4, ge=1, le=32)
     label_weight: float = Field(default=0.5, ge=0, le=100)
     pos_weight: float = Field(default=1.0, gt=0, le=100)
+    subcells: int = Field(default=1, ge=1, le=4)
+    subcell_weight: float = Field(default=1.0, ge=0, le=100)
+    train_subcells_only: bool = False
     diffusion: CompletionDiffusion | None = None
 
     @field_validator("features")
@@ -80,6 +91,17 @@ class CompletionNet(nn.Module):
             blocks += [ResBlock3d(w[lvl], w[lvl], g) for _ in range(cfg.blocks - 1)]
             self.dec.append(nn.Sequential(*blocks))
         self.head = nn.Conv3d(w[0], 1 + NUM_LABELS, 1)
+        s = cfg.subcells
+        self.subcell_head = (nn.Sequential(nn.Conv3d(w[0], 2 * w[0], 3, padding=1), nn.SiLU(),
+                                           nn.Conv3d(2 * w[0], s ** 3, 1)) if s > 1 else None)
+        if cfg.train_subcells_only:
+            if self.subcell_head is None:
+                raise ValueError("CompletionModel: train_subcells_only needs subcells > 1")
+            for name, p in self.named_parameters():
+                p.requires_grad_(name.startswith("subcell_head."))
+
+    # parameters a warm start (`train.init`) from a checkpoint without sub-cells may lack
+    init_optional_prefixes = ("subcell_head.",)
 
     @property
     def multiple(self) -> int:
@@ -87,6 +109,12 @@ class CompletionNet(nn.Module):
         return 2 ** (len(self.cfg.widths) - 1)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        occ, lab, _ = self.forward_with_subcells(x)
+        return occ, lab
+
+    def forward_with_subcells(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """As `forward`, and the sub-cells' occupancy logits (B, s X, s Y, s Z) at voxel_size / s
+        (None where `subcells` is 1)."""
         if x.ndim != 5 or x.shape[1] != len(FEATURES):
             raise ValueError(f"CompletionNet: expected (B, {len(FEATURES)}, X, Y, Z), got {tuple(x.shape)}")
         if any(s % self.multiple for s in x.shape[2:]):
@@ -101,4 +129,10 @@ class CompletionNet(nn.Module):
             skip = skips.pop()
             h = dec(torch.cat([F.interpolate(h, size=skip.shape[2:], mode="nearest"), skip], 1))
         out = self.head(F.silu(h))
-        return out[:, 0], out[:, 1:]
+        sub = None
+        if self.subcell_head is not None:
+            s = self.cfg.subcells
+            b, _, nx, ny, nz = h.shape
+            sub = self.subcell_head(F.silu(h)).reshape(b, s, s, s, nx, ny, nz)
+            sub = sub.permute(0, 4, 1, 5, 2, 6, 3).reshape(b, nx * s, ny * s, nz * s)
+        return out[:, 0], out[:, 1:], sub

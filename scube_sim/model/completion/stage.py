@@ -45,7 +45,7 @@ class CompletionStage(Stage):
         if isinstance(model, CompletionDiffusionNet):
             v = model.loss(batch["features"], batch["occupancy"], batch["labels"])
             return v, {"v_mse": float(v.detach())}
-        occ_logit, lab_logit = model(batch["features"])
+        occ_logit, lab_logit, sub_logit = model.forward_with_subcells(batch["features"])
         occ, labels = batch["occupancy"], batch["labels"]
         label_weight, pos_weight = model.cfg.label_weight, model.cfg.pos_weight
         bce = F.binary_cross_entropy_with_logits(occ_logit, occ, pos_weight=torch.tensor(pos_weight),
@@ -54,15 +54,31 @@ class CompletionStage(Stage):
         mask = (labels >= 0).float()
         ce = (ce * mask).flatten(1).sum(1) / mask.flatten(1).sum(1).clamp_min(1)
         loss = (bce + label_weight * ce).mean()
-        return loss, {"bce": float(bce.detach().mean()), "ce": float(ce.detach().mean())}
+        logs = {"bce": float(bce.detach().mean()), "ce": float(ce.detach().mean())}
+        if sub_logit is not None:
+            sub_bce = _subcell_bce(sub_logit, batch, model.cfg.subcells)
+            loss = loss + model.cfg.subcell_weight * sub_bce.mean()
+            logs["subcell_bce"] = float(sub_bce.detach().mean())
+        return loss, logs
 
     def evaluate(self, model: nn.Module, batches: Iterable[dict]) -> dict[str, float]:
         tp = fp = fn = 0
         utp = ufp = ufn = 0
         conf = torch.zeros(NUM_LABELS, NUM_LABELS, dtype=torch.int64)
+        stp = sfp = sfn = 0
         for batch in batches:
-            occ_logit, lab_logit = model(batch["features"])
+            if isinstance(model, CompletionNet):
+                occ_logit, lab_logit, sub_logit = model.forward_with_subcells(batch["features"])
+            else:
+                (occ_logit, lab_logit), sub_logit = model(batch["features"]), None
             pred, gt = occ_logit > 0, batch["occupancy"] > 0.5
+            if sub_logit is not None:  # where in the truth's occupied cells
+                s = model.cfg.subcells
+                inside = _up(gt, s)
+                sp_, sg = (sub_logit > 0) & inside, _subcell_truth(batch, s, gt.shape) & inside
+                stp += int((sp_ & sg).sum())
+                sfp += int((sp_ & ~sg).sum())
+                sfn += int((~sp_ & sg).sum())
             # cells the evidence holds nothing in and no camera saw through: the completion's own
             unseen = (batch["features"][:, _OCCUPIED] == 0) & (batch["features"][:, _FREE] == 0)
             tp += int((pred & gt).sum())
@@ -75,9 +91,39 @@ class CompletionStage(Stage):
             t, p = batch["labels"][both], lab_logit.argmax(1)[both]
             conf += torch.bincount(t * NUM_LABELS + p, minlength=NUM_LABELS ** 2).reshape(NUM_LABELS, NUM_LABELS)
         sem = semantic_metrics(conf)
-        return {"iou": tp / max(tp + fp + fn, 1), "iou_unseen": utp / max(utp + ufp + ufn, 1),
-                "precision": tp / max(tp + fp, 1), "recall": tp / max(tp + fn, 1),
-                "miou": sem["miou"], "label_accuracy": sem["accuracy"]}
+        out = {"iou": tp / max(tp + fp + fn, 1), "iou_unseen": utp / max(utp + ufp + ufn, 1),
+               "precision": tp / max(tp + fp, 1), "recall": tp / max(tp + fn, 1),
+               "miou": sem["miou"], "label_accuracy": sem["accuracy"]}
+        if stp + sfp + sfn:
+            out["subcell_iou"] = stp / (stp + sfp + sfn)
+        return out
+
+
+def _up(cells: torch.Tensor, s: int) -> torch.Tensor:
+    """(B, X, Y, Z) -> (B, sX, sY, sZ): each cell's value in its s x s x s sub-cells."""
+    return cells.repeat_interleave(s, 1).repeat_interleave(s, 2).repeat_interleave(s, 3)
+
+
+def _subcell_truth(batch: dict, s: int, cells: torch.Size) -> torch.Tensor:
+    """(B, sX, sY, sZ) bool: the sub-cells the truth occupies (the stored voxels pooled to them)."""
+    fine = batch["fine_occupancy"]
+    f = fine.shape[1] // cells[1]
+    if f % s or fine.shape[1] != f * cells[1]:
+        raise ValueError(f"completion: {s} sub-cells per cell side need the truth at a divisor of the cell; it is "
+                         f"stored at 1/{fine.shape[1] / cells[1]:g} of it")
+    r = f // s
+    if r == 1:
+        return fine
+    return F.max_pool3d(fine[:, None].float(), r)[:, 0] > 0.5
+
+
+def _subcell_bce(sub_logit: torch.Tensor, batch: dict, s: int) -> torch.Tensor:
+    """(B,) the sub-cells' BCE, averaged over the sub-cells of the truth's occupied cells."""
+    occ = batch["occupancy"] > 0.5
+    inside = _up(occ, s).float()
+    target = _subcell_truth(batch, s, occ.shape).float()
+    bce = F.binary_cross_entropy_with_logits(sub_logit, target, reduction="none")
+    return (bce * inside).flatten(1).sum(1) / inside.flatten(1).sum(1).clamp_min(1)
 
 
 register_stage(CompletionStage())
