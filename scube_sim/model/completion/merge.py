@@ -130,15 +130,21 @@ def _subcells_per_side(sub_shape: tuple, dims: np.ndarray) -> int:
     return s
 
 
+def _subcells_of(ai: np.ndarray, subcells: np.ndarray, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The s^3 sub-cells of each cell `ai` (A, 3): their indices (A, s^3, 3) in `subcells` (sX, sY,
+    sZ) and their probabilities (A, s^3)."""
+    offsets = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    sub_ijk = ai[:, None, :] * s + offsets[None]
+    return sub_ijk, subcells[sub_ijk[..., 0], sub_ijk[..., 1], sub_ijk[..., 2]]
+
+
 def _subcell_centres(ai: np.ndarray, subcells: np.ndarray, s: int, corner: np.ndarray, voxel_size: float,
                      threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """Where the Gaussians of the added cells `ai` (A, 3) go: their sub-cells (s per side; their
     probabilities `subcells` (sX, sY, sZ)) at or above `threshold`, and each cell's most probable
     one whatever it holds (the cell is added: its surface lies somewhere in it). Returns (each
     Gaussian's index into `ai` (G,), its centre (G, 3), chunk frame, metres)."""
-    offsets = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)  # (s^3, 3)
-    sub_ijk = ai[:, None, :] * s + offsets[None]  # (A, s^3, 3)
-    p = subcells[sub_ijk[..., 0], sub_ijk[..., 1], sub_ijk[..., 2]]
+    sub_ijk, p = _subcells_of(ai, subcells, s)
     chosen = p >= threshold
     chosen[np.arange(len(ai)), np.argmax(p, 1)] = True
     cell, k = np.nonzero(chosen)
@@ -149,9 +155,7 @@ def _subcell_centroids(ai: np.ndarray, subcells: np.ndarray, s: int, corner: np.
                        voxel_size: float) -> np.ndarray:
     """(A, 3) the added cells' `ai` (A, 3) sub-cell centres weighted by their probabilities
     `subcells` (sX, sY, sZ), chunk frame, metres: where the cell's one sphere goes."""
-    offsets = np.stack(np.meshgrid(*[np.arange(s)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    sub_ijk = ai[:, None, :] * s + offsets[None]
-    p = subcells[sub_ijk[..., 0], sub_ijk[..., 1], sub_ijk[..., 2]]
+    sub_ijk, p = _subcells_of(ai, subcells, s)
     w = p / np.maximum(p.sum(1, keepdims=True), 1e-12)
     return corner + (np.einsum("ak,akd->ad", w, sub_ijk.astype(np.float64)) + 0.5) * (voxel_size / s)
 
