@@ -7,7 +7,7 @@ project's pixel convention (pixel (u, v) spans [u, u + 1), its centre at u + 0.5
 reference camera's optical axis (camera z).
 """
 
-from .mvs import StereoConfig, StereoResult, moved_pixels, stereo_depth
+from .mvs import StereoConfig, StereoResult, moved_boxes, moved_pixels, stereo_depth
 from .sweep import (
     COSTS,
     census_codes,
@@ -25,5 +25,5 @@ from .sweep import (
 from .views import SourceView, candidates, select_sources
 
 __all__ = ["COSTS", "SourceView", "StereoConfig", "StereoResult", "candidates", "census_codes", "combine_costs",
-           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "moved_pixels",
-           "select_sources", "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]
+           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "moved_boxes",
+           "moved_pixels", "select_sources", "stereo_depth", "sweep_cost", "warp_to_reference", "winner_take_all"]

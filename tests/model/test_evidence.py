@@ -15,16 +15,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from scube_sim.boxes import Box, points_in_boxes
 from scube_sim.camera import Intrinsics
 from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
-from scube_sim.model.evidence import EvidenceConfig, evidence_scene
-from scube_sim.model.geometry.fusion import FusionConfig
+from scube_sim.model.evidence import GROUND_LABEL, EvidenceConfig, evidence_scene, fuse_evidence
+from scube_sim.model.geometry.fusion import DepthObservation, FusionConfig
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.stereo import StereoConfig
 from scube_sim.worlds.groundtruth import CHUNK_CORNER
-from tests.stereo.test_mvs import _texture
+from tests.stereo.test_mvs import _shot, _texture
+from tests.stereo.test_sweep import _pose
 
 W, H, F = 128, 96, 120.0
 INTR = Intrinsics(W, H, F, F, W / 2, H / 2)
@@ -427,3 +429,26 @@ def test_widened_surfels_close_a_sparsely_measured_wall_and_leave_the_road_and_i
         params = other.params.copy()
         assert widen_surfels(other, field, 0.144, 0.3) == 0
         np.testing.assert_array_equal(other.params, params)
+
+
+def test_points_inside_a_moving_objects_box_neither_fit_the_ground_nor_take_its_label():
+    # a camera looking up at a flat "ground" 10 m off (the stereo tests' plane, z up), and over its
+    # middle a 6 x 5 m surface 0.9 m nearer, facing the same way: a car's hood, which the height
+    # field's low quantile takes for the road unless the car's box keeps it out
+    im, depth = _shot("cam", _pose(), 0.0)
+    rays = im.intrinsics.pixel_rays()
+    x, y = rays[..., 0] / rays[..., 2] * 9.1, rays[..., 1] / rays[..., 2] * 9.1
+    hood = (np.abs(x) <= 3.0) & (np.abs(y) <= 2.5)
+    depth = np.where(hood, np.float32(9.1), depth).astype(np.float32)
+    obs = DepthObservation(im, depth, np.full(depth.shape, 0.9, np.float32))
+    box = Box(np.array([0.0, 0.0, 9.1]), np.array([6.2, 5.2, 0.4]), np.eye(3))
+    plain = fuse_evidence([obs], CHUNK_CORNER, np.eye(4))
+    kept = fuse_evidence([obs], CHUNK_CORNER, np.eye(4), objects=(box,))
+    centre = np.zeros((1, 2))
+    assert plain.field.height_at(centre)[0] < 9.3  # the hood became the ground ...
+    assert abs(kept.field.height_at(centre)[0] - 10.0) < 0.05  # ... unless its box keeps it out
+    on_hood = points_in_boxes(kept.grid.points, [box]) >= 0
+    assert on_hood.sum() > 100
+    # 80 % of the hood's points were road (its rim's normals are undefined: not flat)
+    assert (plain.labels[points_in_boxes(plain.grid.points, [box]) >= 0] == GROUND_LABEL).mean() > 0.7
+    assert not (kept.labels[on_hood] == GROUND_LABEL).any()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from scube_sim.boxes import Box
 from scube_sim.errors import InputError
 from scube_sim.model.geometry.fusion import DepthObservation, FusionConfig, fuse_depth
 from tests.stereo.test_mvs import PLANE_Z, _shot
@@ -67,6 +68,26 @@ def test_a_later_confident_view_carves_a_surface_it_sees_through():
     # one weaker miss does not outweigh a stronger hit
     weak = fuse_depth([_wall(5.0, 0.9), _wall(10.0, 0.5, centre=(0.3, 0.0, 0.0))], cfg)
     assert (np.abs(_centres(weak)[:, 2] - 5.1) < 1e-9).sum() > 0.8 * len(alone.ijk)
+
+
+def test_rays_carve_nothing_inside_the_boxes_they_are_told_to_leave():
+    # the later view's rays pass where a moving object stands at the instant fused: its box, the
+    # right half of the phantom's layer (x >= 0), is left alone; the left half is carved as before
+    cfg = FusionConfig(voxel_size=VS)
+    phantom, later = _wall(5.0, 0.6), _wall(10.0, 0.9, centre=(0.3, 0.0, 0.0))
+    box = Box(np.array([5.0, 0.0, 5.1]), np.array([10.0, 20.0, 0.4]), np.eye(3))
+
+    def layer(grid, right: bool) -> int:
+        c = _centres(grid)
+        return int(((np.abs(c[:, 2] - 5.1) < 1e-9) & ((c[:, 0] >= 0) == right)).sum())
+
+    alone = fuse_depth([phantom], cfg)
+    carved = fuse_depth([phantom, later], cfg)
+    kept = fuse_depth([phantom, DepthObservation(later.image, later.depth, later.confidence, (box,))], cfg)
+    assert layer(alone, True) > 50 and layer(carved, False) < 0.3 * layer(alone, False)
+    assert layer(kept, True) == layer(alone, True)
+    assert layer(kept, False) == layer(carved, False)
+    assert (np.abs(_centres(kept)[:, 2] - 10.1) < 1e-9).sum() > 100  # the wall behind stands
 
 
 def test_pixels_below_the_confidence_floor_give_no_evidence():
