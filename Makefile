@@ -22,8 +22,11 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/scube-sim demo -o out
 
+# Two test processes (pytest-xdist), each taking a whole test file at a time: most of the suite
+# runs on one core, and a file's fixtures are then built once. TEST_WORKERS=0 runs it in one process.
+TEST_WORKERS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q -p no:cacheprovider tests
+	$(PY) -m pytest -q -p no:cacheprovider -n $(TEST_WORKERS) --dist loadfile tests
 
 # The completion stage's training data (docs/converter.md, "The learned completion"): worlds
 # with +-4 context instants and the evidence the stereo pipeline measures in them, cached under

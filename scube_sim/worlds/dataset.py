@@ -235,7 +235,9 @@ def render_frames_with_context(world, rig_name: str = "waymo-5", context: int = 
     the datasets' `frame_rate_hz`) as its `Frames.context`, as a dataset with those frame offsets
     gives them to the converter. ego_pose: (4, 4) ego-to-world to hold the reference rig at (a
     route's chunk origin); the context rigs keep that pose relative to the ego's path, moving as
-    the ego moves between T and their instant (a rig driving through the chunk)."""
+    the ego moves between T and their instant (a rig driving through the chunk). Each instant
+    carries the world's actor boxes (`World.boxes_at`), as a dataset stores them: the converter
+    masks and measures what moved."""
     rate = DatasetConfig().frame_rate_hz
     scene_at = _SceneAt(world)
     ctx = []
@@ -245,9 +247,10 @@ def render_frames_with_context(world, rig_name: str = "waymo-5", context: int = 
         if ego_pose is not None:
             pose = world.ego_pose_at(t) @ invert_pose(world.ego_pose_at(t_ref)) @ np.asarray(ego_pose, np.float64)
         f = render_frames(world, rig_name, t, image_scale, scene_at=scene_at, ego_pose=pose)
-        ctx.append(Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=k))
+        ctx.append(Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=k, boxes=world.boxes_at(t)))
     f = render_frames(world, rig_name, t_ref, image_scale, scene_at=scene_at, ego_pose=ego_pose)
-    return Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=0, context=ctx)
+    return Frames(f.images, f.ego_pose, f.timestamp, f.metadata, log=log, offset=0, context=ctx,
+                  boxes=world.boxes_at(t_ref))
 
 
 def make_sample(split: str, index: int, cfg: DatasetConfig) -> dict:

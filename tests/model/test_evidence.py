@@ -241,8 +241,9 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     # the weak pixels (in `evidence` and `evidence-fast`), T+3 as a third reference, thinner
     # surfels and runs up to 28 degrees filled where in line (in `evidence` alone), the road snapped
     # onto the height field and the surfels off the road widened (in `evidence` and `evidence-fast`;
-    # `evidence-complete` keeps the evidence its checkpoint was trained on: today's `evidence`)
-    weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25},
+    # `evidence-complete` keeps the evidence its checkpoint was trained on, today's `evidence`, and
+    # with it the moving objects swept in their own frames, measured with that checkpoint on top)
+    weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25, "movers": True},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
                           references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15, min_width_share=0.144)
     assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]

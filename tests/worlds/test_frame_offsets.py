@@ -158,6 +158,7 @@ def test_rendered_context_instants_are_the_datasets_instants():
     for i, f in enumerate([frames.context[0], frames, frames.context[1]]):
         stored = sample_frames(sample, i)
         assert stored.offset == f.offset
+        assert [b.to_json() for b in f.boxes] == sample["meta"]["frames"][i]["boxes"] and f.boxes
         np.testing.assert_allclose(f.ego_pose, stored.ego_pose, atol=1e-9)
         for a, b in zip(f.images, stored.images):
             assert a.name == b.name and a.timestamp == b.timestamp
