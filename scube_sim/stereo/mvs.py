@@ -288,6 +288,11 @@ def _key(b: Box):
     return ("instance", int(b.instance)) if b.instance else (("track", b.track_id) if b.track_id else None)
 
 
+def _displaced(a: Box, b: Box, moved_m: float) -> bool:
+    """Whether one object's boxes at two instants differ: centre over `moved_m`, or turned over about a degree."""
+    return bool(np.linalg.norm(b.center - a.center) > moved_m or np.abs(b.rotation - a.rotation).max() > 0.02)
+
+
 def _moved(ref_boxes: list[Box], src_boxes: list[Box], moved_m: float) -> tuple[list[Box], list[Box]]:
     """The boxes, at the reference instant and at the source's, of the objects that moved between
     them (centre moved over `moved_m`, or turned over about a degree); a box without an identity or
@@ -297,7 +302,7 @@ def _moved(ref_boxes: list[Box], src_boxes: list[Box], moved_m: float) -> tuple[
     moved_ref, moved_src = [], []
     for b in ref_boxes:
         o = src_by.get(_key(b)) if _key(b) is not None else None
-        if o is None or np.linalg.norm(o.center - b.center) > moved_m or np.abs(o.rotation - b.rotation).max() > 0.02:
+        if o is None or _displaced(b, o, moved_m):
             moved_ref.append(b)
             if o is not None:
                 moved_src.append(o)
@@ -363,8 +368,7 @@ def _movers(boxes: dict, cfg: StereoConfig) -> list[dict[int, Box]]:
             match = next((o for o in there if _key(o) == key), None) if offset != 0 else None
             if match is not None:
                 at[offset] = match
-        if any(np.linalg.norm(o.center - b.center) > cfg.moved_m or np.abs(o.rotation - b.rotation).max() > 0.02
-               for o in at.values()):
+        if any(_displaced(b, o, cfg.moved_m) for o in at.values()):
             out.append(at)
     return out
 
@@ -474,12 +478,15 @@ def _prepare(ref: CameraImage, views: list[SourceView], boxes: dict, cfg: Stereo
     hw = tuple(ref_img.shape[-2:])
     pad = cfg.window // 2
     srcs = []  # per source: image, K, reference-side mask, source-side mask (float32, 1 channel)
+    outside = None
+    if keep is not None:
+        inside = _box_mask([keep], ref.cam_to_world, k_ref, hw, cfg.box_margin_m, 0)
+        outside = torch.ones(hw, dtype=torch.bool) if inside is None else ~inside
     for v in views:
         img, k_src, _ = _pinhole(v.image, scale)
         ref_mask = src_mask = None
         if keep is not None:
-            inside = _box_mask([keep], ref.cam_to_world, k_ref, hw, cfg.box_margin_m, 0)
-            ref_mask = torch.ones(hw, dtype=torch.bool) if inside is None else ~inside
+            ref_mask = outside
             inside = _box_mask([keep], v.image.cam_to_world, k_src, tuple(img.shape[-2:]), cfg.box_margin_m, 0)
             src_mask = (torch.ones(img.shape[-2:], dtype=torch.bool) if inside is None else ~inside)[None].to(torch.float32)
         elif v.offset != ref_offset and (boxes.get(ref_offset) or boxes.get(v.offset)):
