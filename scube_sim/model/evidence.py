@@ -10,7 +10,11 @@ surface a drive sees most; its reflectance default), any other `undefined` (whos
 default is the measured mean of unlabelled returns above the ground). With `ground_snap_m`, the
 road's points within it of the height field are moved onto it (`snap_ground`) and the field's
 samples laid under them too. With `min_width_share`, the observed surfels off the road and above
-the ground are at least that share of a voxel wide (`widen_surfels`). The scene traces at hard
+the ground are at least that share of a voxel wide (`widen_surfels`). With `fill_boxes`, the
+frames' boxed objects at T (a log's tracked or annotated boxes) get surfels where no camera saw
+them (`box_samples`): a car its silhouette, anything else its box, labelled by the box, unobserved,
+never in a voxel an observed point holds nor where an image saw through: a car waiting beside the
+ego, behind the side cameras, takes a third of a 360-degree sweep's rays. The scene traces at hard
 opacity (`entry`): its Gaussians are flat surfels on measured surfaces.
 
 References (`references`, offsets from T; default T and T-3): each instant's images are stereo
@@ -50,6 +54,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from ..boxes import Box, points_in_boxes
+from ..camera.depth import project_to_pixels
 from ..camera.frames import Frames
 from ..config import StrictModel, unique_names
 from ..errors import InputError
@@ -57,14 +62,14 @@ from ..labels import LABEL_IDS
 from ..memory import peak_mb, reset_peak
 from ..splat_params import SCALE
 from ..stereo import StereoConfig, moved_boxes, moved_pixels, stereo_depth
-from ..voxsplat import VoxSplat
+from ..voxsplat import VoxSplat, voxel_keys
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
 from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, SurfaceSamples, evidence_voxsplat,
                               fuse_depth)
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
-__all__ = ["Evidence", "EvidenceConfig", "evidence_scene", "fuse_evidence", "measure_evidence", "scene_from_evidence",
-           "snap_ground", "widen_surfels"]
+__all__ = ["Evidence", "EvidenceConfig", "box_samples", "evidence_scene", "fuse_evidence", "measure_evidence",
+           "scene_from_evidence", "snap_ground", "widen_surfels"]
 
 TRACE_MODE = "entry"
 GROUND_LABEL = LABEL_IDS["road"]
@@ -85,6 +90,11 @@ class EvidenceConfig(StrictModel):
     # (`geometry.ground.fit_height_field`; None: carried unchanged, as before 2026-12-05)
     ground_fill_decay_m: float | None = Field(default=8.0, gt=0, le=10_000)
     fill_ground: bool = True  # ground surfels under the columns no observed ground voxel covers
+    # surfels on the sides and tops of the frames' boxed objects at T where no camera saw them (a
+    # car beside the ego, behind the side cameras; the far side of a car ahead), labelled by the
+    # box, marked unobserved at `ground_confidence`; never in a voxel an observed point holds nor
+    # where an image saw through (`box_samples`)
+    fill_boxes: bool = False
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     # the instants (offsets from T) whose images are stereo references, each against the others
     # (those the frames lack are skipped): a forward-driving camera saw the objects beside it at T
@@ -170,12 +180,111 @@ def _ground_samples(field: HeightField, grid, labels: np.ndarray, cfg: EvidenceC
                           np.full(len(pts), GROUND_LABEL, np.int64), cfg.ground_confidence)
 
 
+# a car's silhouette inside its box (`_object_faces`): the body over the whole footprint up to this
+# share of the box's height, the cabin above it on the middle half of the length (its centre this
+# share of the length behind the box's), narrower by this share
+CAR_BODY_HEIGHT_SHARE = 0.65
+CAR_CABIN_LENGTH_SHARE = 0.5
+CAR_CABIN_BACK_SHARE = 0.12
+CAR_CABIN_WIDTH_SHARE = 0.88
+
+
+def _cuboid_faces(center: np.ndarray, half: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The four sides and the top (no floor) of an axis-aligned cuboid, each face cut into cells at
+    most `step` metres on a side: (M, 3) cell centres, (M, 3) the two tangent axes' indices and the
+    normal's (per cell: a, b, k), in the cuboid's frame."""
+    pts, axes = [], []
+    for k, signs in ((0, (-1, 1)), (1, (-1, 1)), (2, (1,))):
+        a, b = [i for i in range(3) if i != k]
+        na, nb = (max(1, int(np.ceil(2 * half[i] / step))) for i in (a, b))
+        u = ((np.arange(na) + 0.5) / na - 0.5) * 2 * half[a]
+        v = ((np.arange(nb) + 0.5) / nb - 0.5) * 2 * half[b]
+        uu, vv = np.meshgrid(u, v, indexing="ij")
+        for sign in signs:
+            q = np.zeros((uu.size, 3))
+            q[:, a], q[:, b], q[:, k] = uu.reshape(-1), vv.reshape(-1), sign * half[k]
+            pts.append(center + q)
+            axes.append(np.tile([a, b, k], (uu.size, 1)))
+    return np.concatenate(pts), np.concatenate(axes)
+
+
+def _object_faces(box: Box, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the outside of the object in `box` (no floor), every `step` metres at most: a
+    car's silhouette (body and cabin, `CAR_*`), any other object its box. (M, 3) points in the
+    box's parent frame, (M, 6) each point's footprint covariance (xx xy xz yy yz zz; flat in its
+    face, a square of side `step`)."""
+    half = 0.5 * np.asarray(box.size, np.float64)
+    if box.label == LABEL_IDS["car"]:
+        body_top = -half[2] + 2 * half[2] * CAR_BODY_HEIGHT_SHARE
+        body_c = np.array([0.0, 0.0, 0.5 * (body_top - half[2])])
+        body_h = np.array([half[0], half[1], 0.5 * (body_top + half[2])])
+        cab_h = np.array([half[0] * CAR_CABIN_LENGTH_SHARE, half[1] * CAR_CABIN_WIDTH_SHARE, 0.5 * (half[2] - body_top)])
+        cab_c = np.array([-2 * half[0] * CAR_CABIN_BACK_SHARE, 0.0, body_top + cab_h[2]])
+        p1, a1 = _cuboid_faces(body_c, body_h, step)
+        under = (a1[:, 2] == 2) & np.all(np.abs(p1[:, :2] - cab_c[:2]) < cab_h[:2], 1)  # the body's top under the cabin
+        p2, a2 = _cuboid_faces(cab_c, cab_h, step)
+        local, axes = np.concatenate([p1[~under], p2]), np.concatenate([a1[~under], a2])
+    else:
+        local, axes = _cuboid_faces(np.zeros(3), half, step)
+    rot = np.asarray(box.rotation, np.float64)
+    ta, tb = rot[:, axes[:, 0]].T, rot[:, axes[:, 1]].T
+    cov = (step ** 2 / 12.0) * (ta[:, :, None] * ta[:, None, :] + tb[:, :, None] * tb[:, None, :])
+    return local @ rot.T + box.center, cov[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+
+
+def box_samples(boxes: tuple[Box, ...], grid: FusedGrid, observations: list[DepthObservation], fusion: FusionConfig,
+                confidence: float) -> SurfaceSamples:
+    """Points on the outside of the objects in `boxes` (the grid's frame; `_object_faces`) every
+    half voxel where no camera saw: none in a voxel that holds an observed point (the observation's surfel stands there), none
+    in front of an image's confident depth by more than the fusion's carving band (the image saw
+    through it: the box is loose there, or wrong), an image whose `uncarved` boxes hold the point
+    not asked (it saw that space at another instant). Each stands for its half-voxel square of the
+    face; labelled by its box, coloured by the observed points inside the box (grey without);
+    `confidence` that of the voxels they alone make."""
+    vs = grid.voxel_size
+    parts = [_object_faces(b, vs / 2) for b in boxes]
+    owner = np.concatenate([np.full(len(p), i, np.int64) for i, (p, _) in enumerate(parts)])
+    pts = np.concatenate([p for p, _ in parts])
+    patch = np.concatenate([c for _, c in parts])
+    lo, hi = _chunk_bounds(vs)
+    ijk = np.floor((pts - grid.origin) / vs).astype(np.int64)
+    keep = np.all((ijk >= lo) & (ijk < hi), 1)
+    if len(grid.points):
+        held = np.unique(voxel_keys(np.floor((grid.points - grid.origin) / vs).astype(np.int64)))
+        keys = voxel_keys(ijk)
+        pos = np.minimum(np.searchsorted(held, keys), len(held) - 1)
+        keep &= held[pos] != keys
+    for obs in observations:
+        idx, flat, z = project_to_pixels(pts, obs.image)
+        depth, conf = obs.depth.reshape(-1)[flat], obs.confidence.reshape(-1)[flat]
+        with np.errstate(invalid="ignore"):
+            band = np.maximum(fusion.band_voxels * vs, fusion.band_rel * depth)
+            through = (conf >= fusion.min_confidence) & (depth <= fusion.max_depth_m) & (depth > z + band)
+        if obs.uncarved:
+            through &= points_in_boxes(pts[idx], list(obs.uncarved)) < 0
+        keep[idx[through]] = False
+    colors = np.full((len(boxes), 3), 0.5, np.float32)
+    if len(grid.points):
+        inside = points_in_boxes(grid.points, list(boxes))
+        for i in np.unique(inside[inside >= 0]):
+            colors[i] = grid.colors[inside == i].mean(0)
+    labels = np.array([b.label if b.label else OTHER_LABEL for b in boxes], np.int64)
+    return SurfaceSamples(pts[keep], patch[keep], colors[owner[keep]], labels[owner[keep]], confidence)
+
+
+def _joined(a: SurfaceSamples, b: SurfaceSamples) -> SurfaceSamples:
+    """`a` and `b` as one set of samples, at `a`'s confidence."""
+    return SurfaceSamples(np.concatenate([a.points, b.points]), np.concatenate([a.patch, b.patch]),
+                          np.concatenate([a.colors, b.colors]), np.concatenate([a.labels, b.labels]), a.confidence)
+
+
 @dataclasses.dataclass
 class Evidence:
     """What the cameras measured, before surfels: the fused `grid` (chunk frame, cut to the chunk),
     per-point `labels` (N,) (ground / other), the ground height `field` (None: none measured and
     `fill_ground` off) and whether it was `measured`, every reference image's depth (`observations`,
-    cam_to_world in the chunk frame), the chunk's `corner` (3,) metres and `to_chunk` (4, 4)."""
+    cam_to_world in the chunk frame), the chunk's `corner` (3,) metres, `to_chunk` (4, 4) and the
+    frames' `boxes` at T (chunk frame)."""
 
     grid: FusedGrid
     labels: np.ndarray
@@ -184,6 +293,7 @@ class Evidence:
     observations: list[DepthObservation]
     corner: np.ndarray
     to_chunk: np.ndarray
+    boxes: tuple[Box, ...] = ()  # the frames' boxed objects at T, chunk frame (`EvidenceConfig.fill_boxes`)
 
     @property
     def extent(self) -> tuple[float, float, float, float]:
@@ -229,23 +339,28 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
     if cfg.stereo.movers:  # their surfaces at T, measured: a car's hood is no road
         here = {id(b): b for f in frames.context for b in moved_boxes(frames.boxes, f.boxes, cfg.stereo)[0]}
         movers = tuple(_in_frame(b, to_chunk, cfg.stereo.box_margin_m) for b in here.values())
-    ev = fuse_evidence(observations, grid_corner(frames, to_chunk), to_chunk, cfg, objects=movers)
+    ev = fuse_evidence(observations, grid_corner(frames, to_chunk), to_chunk, cfg, objects=movers,
+                       boxes=tuple(_in_frame(b, to_chunk, 0.0) for b in frames.boxes))
     if timings is not None:
         timings.update({"stereo_s": t1 - t0, "fusion_s": time.perf_counter() - t1})
     return ev
 
 
 def _in_frame(box: Box, pose: np.ndarray, margin_m: float) -> Box:
-    """`box` moved by `pose` (4, 4) into another frame, `margin_m` larger on every side."""
-    return Box(pose[:3, :3] @ box.center + pose[:3, 3], box.size + 2 * margin_m, pose[:3, :3] @ box.rotation)
+    """`box` moved by `pose` (4, 4) into another frame, `margin_m` larger on every side (its label,
+    instance and ids kept)."""
+    return dataclasses.replace(box, center=pose[:3, :3] @ box.center + pose[:3, 3], size=box.size + 2 * margin_m,
+                               rotation=pose[:3, :3] @ box.rotation, velocity=pose[:3, :3] @ box.velocity, yaw=None)
 
 
 def fuse_evidence(observations: list[DepthObservation], corner: np.ndarray, to_chunk: np.ndarray,
-                  cfg: EvidenceConfig | None = None, *, objects: tuple[Box, ...] = ()) -> Evidence:
+                  cfg: EvidenceConfig | None = None, *, objects: tuple[Box, ...] = (),
+                  boxes: tuple[Box, ...] = ()) -> Evidence:
     """The depth maps (cam_to_world in the chunk frame) -> the `Evidence`: fusion on the chunk whose
     corner is `corner` (3,) metres, the ground height field and the points' labels (the part of
     `measure_evidence` after stereo: fusion settings can be compared on the same depth maps).
-    objects: boxes (chunk frame) whose points are no ground (neither fit the field nor get its label)."""
+    objects: boxes (chunk frame) whose points are no ground (neither fit the field nor get its label).
+    boxes: the boxed objects at T (chunk frame), kept in the `Evidence` (`fill_boxes`)."""
     cfg = cfg or EvidenceConfig()
     # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
     fusion = fusion_config(cfg)
@@ -270,7 +385,8 @@ def fuse_evidence(observations: list[DepthObservation], corner: np.ndarray, to_c
         labels = np.where(near & flat, GROUND_LABEL, OTHER_LABEL).astype(np.int64)
     else:
         labels = np.full(len(grid.points), OTHER_LABEL, np.int64)
-    return Evidence(grid, labels, field, measured, observations, corner, np.asarray(to_chunk, np.float64))
+    return Evidence(grid, labels, field, measured, observations, corner, np.asarray(to_chunk, np.float64),
+                    tuple(boxes))
 
 
 def fusion_config(cfg: EvidenceConfig) -> FusionConfig:
@@ -290,6 +406,11 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
         grid, snapped = snap_ground(grid, labels, field, cfg.ground_snap_m)
     samples = (_ground_samples(field, grid, labels, cfg, snapped) if (field is not None and cfg.fill_ground)
                else None)
+    boxed = 0
+    if cfg.fill_boxes and ev.boxes:
+        extra = box_samples(ev.boxes, grid, ev.observations, fusion_config(cfg), cfg.ground_confidence)
+        boxed = len(extra.points)
+        samples = extra if samples is None else _joined(samples, extra)
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,
                               max_normal_scale=cfg.max_normal_share * cfg.fusion.voxel_size)
     widened = (widen_surfels(scene, field, cfg.min_width_share, cfg.min_width_above_m)
@@ -301,6 +422,7 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
         "trace_mode": TRACE_MODE,
         "confidence_kind": "fused occupancy probability (unobserved ground: a constant)",
         "widened_surfels": widened,
+        "box_samples": boxed,
         "ground_field": None if field is None else {"cell_m": field.cell, "measured": ev.measured,
                                                     "observed_share": float(field.observed.mean())},
     })

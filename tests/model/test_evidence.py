@@ -242,10 +242,12 @@ def test_the_evidence_profile_converts_without_checkpoints(scene, tmp_path):
     # surfels and runs up to 28 degrees filled where in line (in `evidence` alone), the road snapped
     # onto the height field and the surfels off the road widened (in `evidence` and `evidence-fast`;
     # `evidence-complete` keeps the evidence its checkpoint was trained on, today's `evidence`, and
-    # with it the moving objects swept in their own frames, measured with that checkpoint on top)
+    # with it the moving objects swept in their own frames and the boxed objects no camera saw
+    # filled, both measured with that checkpoint on top)
     weak = EvidenceConfig(stereo={"fill_gap_deg": 28, "fill_coplanar": 0.5, "weak_agreement": 0.25, "movers": True},
                           fusion={"weak_confidence": 0.1, "weak_fit_weight": 0.1},
-                          references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15, min_width_share=0.144)
+                          references=[0, -3, 3], max_normal_share=0.03, ground_snap_m=0.15, min_width_share=0.144,
+                          fill_boxes=True)
     assert shipped.evidence == weak and EvidenceConfig().references == [0, -3]
     fast = load_profile("evidence-fast")  # T alone as the reference
     assert fast.route == "evidence" and fast.context == 4
@@ -453,3 +455,69 @@ def test_points_inside_a_moving_objects_box_neither_fit_the_ground_nor_take_its_
     # 80 % of the hood's points were road (its rim's normals are undefined: not flat)
     assert (plain.labels[points_in_boxes(plain.grid.points, [box]) >= 0] == GROUND_LABEL).mean() > 0.7
     assert not (kept.labels[on_hood] == GROUND_LABEL).any()
+
+
+def _wall_seen_ahead(uncarved: tuple = ()) -> DepthObservation:
+    """The corridor's camera at (0, 0, 1.5) looking along +x, its every pixel confidently on a
+    wall 30 m ahead (the plane x = 30)."""
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = CAM_R, [0.0, 0.0, CAM_HEIGHT]
+    im = CameraImage("FRONT", np.zeros((H, W, 3), np.uint8), INTR, pose, 0.0)
+    return DepthObservation(im, np.full((H, W), 30.0, np.float32), np.full((H, W), 0.9, np.float32), uncarved)
+
+
+def _first_hit(scene, origin, direction) -> float:
+    hits = Tracer(scene, mode="entry").trace(np.asarray([origin], np.float64) - scene.origin,
+                                             np.asarray([direction], np.float64))
+    return float(hits.t[0]) if hits.hit[0] else np.inf
+
+
+def test_boxed_objects_no_camera_saw_are_filled_and_one_a_camera_saw_through_is_not():
+    """`EvidenceConfig.fill_boxes`: a truck's box behind the camera becomes its box's faces, a car's
+    its silhouette (body to 0.65 of the height, cabin on half the length, 0.12 of it back, 0.88 as
+    wide), both unobserved and labelled; a box in front that the camera saw through to a wall stays
+    empty unless the image's `uncarved` boxes hold it (it saw that space at another instant)."""
+    from scube_sim.model.evidence import scene_from_evidence
+
+    truck = Box(np.array([-6.0, 0.0, 1.0]), np.array([2.0, 2.0, 2.0]), np.eye(3), label=LABEL_IDS["truck"])
+    car = Box(np.array([-6.0, 6.0, 0.8]), np.array([4.5, 1.8, 1.6]), np.eye(3), label=LABEL_IDS["car"])
+    ahead = Box(np.array([15.0, 0.0, 1.5]), np.array([2.0, 2.0, 2.0]), np.eye(3), label=LABEL_IDS["truck"])
+    # no ground under them (`fill_ground` off): the rays meet the boxes and the wall only
+    cfg = CFG.model_copy(update={"fill_boxes": True, "fill_ground": False})
+    boxes = (truck, car, ahead)
+    scene = scene_from_evidence(fuse_evidence([_wall_seen_ahead()], CHUNK_CORNER, np.eye(4), cfg, boxes=boxes), cfg)
+    # flat surfels (6 mm thick at most) entered within 3 sigma of the face
+    assert abs(_first_hit(scene, [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]) - 5.0) < 0.05  # the truck's face x = -5
+    assert abs(_first_hit(scene, [0.0, 0.0, 1.5], [1.0, 0.0, 0.0]) - 30.0) < 0.05  # through the box ahead
+    cabin_x, cabin_side = -6.0 - 0.12 * 4.5, 6.0 - 0.9 * 0.88
+    # level rays towards the car from y = 2 (beside the truck)
+    assert abs(_first_hit(scene, [cabin_x, 2.0, 1.3], [0.0, 1.0, 0.0]) - (cabin_side - 2.0)) < 0.05
+    assert abs(_first_hit(scene, [-4.2, 2.0, 0.6], [0.0, 1.0, 0.0]) - 3.1) < 0.05  # the body's side
+    assert _first_hit(scene, [-4.2, 2.0, 1.3], [0.0, 1.0, 0.0]) == np.inf  # over the hood
+    assert _first_hit(scene, [-6.0, 6.0, 3.0], [0.0, 0.0, -1.0]) == pytest.approx(1.4, abs=0.05)  # the roof
+    filled = ~scene.channel("observed")
+    assert {LABEL_IDS["truck"], LABEL_IDS["car"]} <= set(np.unique(scene.labels[filled]).tolist())
+    np.testing.assert_allclose(scene.channel("confidence")[filled], cfg.ground_confidence)
+    # the same image taken at another instant, where the box ahead stands now
+    moved = fuse_evidence([_wall_seen_ahead(uncarved=(ahead,))], CHUNK_CORNER, np.eye(4), cfg, boxes=boxes)
+    assert abs(_first_hit(scene_from_evidence(moved, cfg), [0.0, 0.0, 1.5], [1.0, 0.0, 0.0]) - 14.0) < 0.05
+    # off (the default): the boxes change nothing
+    plain = cfg.model_copy(update={"fill_boxes": False})
+    off = scene_from_evidence(fuse_evidence([_wall_seen_ahead()], CHUNK_CORNER, np.eye(4), plain, boxes=boxes), plain)
+    assert _first_hit(off, [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]) == np.inf
+    assert off.metadata["box_samples"] == 0 < scene.metadata["box_samples"]
+
+
+def test_measured_evidence_keeps_the_frames_boxes_in_the_chunk_frame_with_their_labels():
+    from scube_sim.model.evidence import measure_evidence
+
+    frames = _frames()
+    frames.boxes = [Box(np.array([-6.0, 0.0, 1.0]), np.array([2.0, 2.0, 2.0]), np.eye(3), label=LABEL_IDS["truck"],
+                        instance=7)]
+    to_chunk = np.eye(4)
+    to_chunk[:3, 3] = [1.0, -2.0, 0.0]
+    ev = measure_evidence(frames, to_chunk, CFG)
+    (box,) = ev.boxes
+    np.testing.assert_allclose(box.center, [-5.0, -2.0, 1.0])
+    np.testing.assert_allclose(box.size, [2.0, 2.0, 2.0])
+    assert (box.label, box.instance) == (LABEL_IDS["truck"], 7)
