@@ -18,25 +18,25 @@ ego, behind the side cameras, takes a third of a 360-degree sweep's rays. The sc
 opacity (`entry`): its Gaussians are flat surfels on measured surfaces.
 
 References (`references`, offsets from T; default T and T-3): each instant's images are stereo
-references in turn (`Frames.around`), each against all the other images, and every depth map
-is fused. A forward-driving camera sees the parked cars and hedges beside it at T at grazing
-angles from close by, where stereo's sources disagree (KITTI-360 frame 3010: 89 % of the object
-pixels within 8 m get no confidence, though 77 % of their depths are right); 3 frames back it saw
-them less obliquely, farther off. Pixels whose object moved between that instant and T (boxes,
+references in turn (`Frames.around`), each against all the other images, and every depth map is
+fused. A forward-driving camera sees the parked cars and hedges beside it at T at grazing angles
+from close by, where stereo's sources disagree (KITTI-360 frame 3010: 89 % of the object pixels
+within 8 m get no confidence, though 77 % of their depths are right); 3 frames back it saw them less
+obliquely, farther off. Pixels whose object moved between that instant and T (boxes,
 `stereo.moved_pixels`) are left out. With `stereo.movers`, each boxed object that moved is also
 swept in its own frame in T's images (`stereo.mvs` step 4b: its depth at T, which the instants
-around T cannot give otherwise), and the images of the other references carve nothing inside
-the boxes where those objects stand at T (`DepthObservation.uncarved`). Measured on KITTI-360 frame 3010 (context 4, `scube-sim
-fidelity --regions`, replayed real rays above the ground in the camera's view: median |dr|, p90,
-hit agreement; geometry time beside another job): [0] 1.87 m, 81 %, 26 s; [0, -3] 0.168 m, 2.22 m,
-94.6 %, 47 s; [0, -4] 0.178 m, 3.06 m, 93.2 %, 30 s; [0, -2, -4] 0.163 m, 1.58 m, 94.9 %, 78 s.
-Each reference costs one more stereo pass per camera. A later instant serves too (the `evidence`
-profile's [0, -3, 3]): 3 instants on, the cameras see what lies ahead of T nearer and the sides of
-what T passes less obliquely (held-in worlds val 0-7, HDL-64E at the input pose, seen-object rays
-median / p90 / returning: [0, -3] 0.150 m / 4.25 m / 93.2 %; [0, -3, 3] 0.164 / 2.80 / 94.9; [0, -3,
-2] 0.169 / 2.91 / 94.7; [0, 3] 0.146 / 3.63 / 92.7; [0, -3, 2, 3] 0.181 / 2.71 / 95.3). Every view
-adds its depth noise to the road (seen ground median 0.292 -> 0.328 m with [0, -3, 3]), which the
-profile's thinner surfels (`max_normal_share` 0.03) take back to 0.298 m.
+around T cannot give otherwise), and the images of the other references carve nothing inside the
+boxes where those objects stand at T (`DepthObservation.uncarved`). Measured on KITTI-360 frame 3010
+(context 4, `scube-sim fidelity --regions`, replayed real rays above the ground in the camera's
+view: median |dr|, p90, hit agreement; geometry time beside another job): [0] 1.87 m, 81 %, 26 s;
+[0, -3] 0.168 m, 2.22 m, 94.6 %, 47 s; [0, -4] 0.178 m, 3.06 m, 93.2 %, 30 s; [0, -2, -4] 0.163 m,
+1.58 m, 94.9 %, 78 s. Each reference costs one more stereo pass per camera. A later instant serves
+too (the `evidence` profile's [0, -3, 3]): 3 instants on, the cameras see what lies ahead of T
+nearer and the sides of what T passes less obliquely (held-in worlds val 0-7, HDL-64E at the input
+pose, seen-object rays median / p90 / returning: [0, -3] 0.150 m / 4.25 m / 93.2 %; [0, -3, 3] 0.164
+/ 2.80 / 94.9; [0, -3, 2] 0.169 / 2.91 / 94.7; [0, 3] 0.146 / 3.63 / 92.7; [0, -3, 2, 3] 0.181 /
+2.71 / 95.3). Every view adds its depth noise to the road (seen ground median 0.292 -> 0.328 m with
+[0, -3, 3]), which the profile's thinner surfels (`max_normal_share` 0.03) take back to 0.298 m.
 
 Frame: the output is in the chunk frame `to_chunk` maps the world into (the converter's chunk:
 x forward, z up from the road under the ego), voxels anchored at `CHUNK_CORNER` (the paper's
@@ -90,10 +90,10 @@ class EvidenceConfig(StrictModel):
     # (`geometry.ground.fit_height_field`; None: carried unchanged, as before 2026-12-05)
     ground_fill_decay_m: float | None = Field(default=8.0, gt=0, le=10_000)
     fill_ground: bool = True  # ground surfels under the columns no observed ground voxel covers
-    # surfels on the sides and tops of the frames' boxed objects at T where no camera saw them (a
-    # car beside the ego, behind the side cameras; the far side of a car ahead), labelled by the
-    # box, marked unobserved at `ground_confidence`; never in a voxel an observed point holds nor
-    # where an image saw through (`box_samples`)
+    # surfels on the frames' boxed objects at T where no camera saw them (a car beside the ego,
+    # behind the side cameras; the far side of a car ahead): a car its silhouette, anything else its
+    # box's sides and top, labelled by the box, marked unobserved at `ground_confidence`; never in a
+    # voxel an observed point holds nor where an image saw through (`box_samples`)
     fill_boxes: bool = False
     gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
     # the instants (offsets from T) whose images are stereo references, each against the others
@@ -218,7 +218,8 @@ def _object_faces(box: Box, step: float) -> tuple[np.ndarray, np.ndarray]:
         body_top = -half[2] + 2 * half[2] * CAR_BODY_HEIGHT_SHARE
         body_c = np.array([0.0, 0.0, 0.5 * (body_top - half[2])])
         body_h = np.array([half[0], half[1], 0.5 * (body_top + half[2])])
-        cab_h = np.array([half[0] * CAR_CABIN_LENGTH_SHARE, half[1] * CAR_CABIN_WIDTH_SHARE, 0.5 * (half[2] - body_top)])
+        cab_h = np.array([half[0] * CAR_CABIN_LENGTH_SHARE, half[1] * CAR_CABIN_WIDTH_SHARE,
+                          0.5 * (half[2] - body_top)])
         cab_c = np.array([-2 * half[0] * CAR_CABIN_BACK_SHARE, 0.0, body_top + cab_h[2]])
         p1, a1 = _cuboid_faces(body_c, body_h, step)
         under = (a1[:, 2] == 2) & np.all(np.abs(p1[:, :2] - cab_c[:2]) < cab_h[:2], 1)  # the body's top under the cabin
@@ -235,12 +236,12 @@ def _object_faces(box: Box, step: float) -> tuple[np.ndarray, np.ndarray]:
 def box_samples(boxes: tuple[Box, ...], grid: FusedGrid, observations: list[DepthObservation], fusion: FusionConfig,
                 confidence: float) -> SurfaceSamples:
     """Points on the outside of the objects in `boxes` (the grid's frame; `_object_faces`) every
-    half voxel where no camera saw: none in a voxel that holds an observed point (the observation's surfel stands there), none
-    in front of an image's confident depth by more than the fusion's carving band (the image saw
-    through it: the box is loose there, or wrong), an image whose `uncarved` boxes hold the point
-    not asked (it saw that space at another instant). Each stands for its half-voxel square of the
-    face; labelled by its box, coloured by the observed points inside the box (grey without);
-    `confidence` that of the voxels they alone make."""
+    half voxel where no camera saw: none in a voxel that holds an observed point (the observation's
+    surfel stands there), none in front of an image's confident depth by more than the fusion's
+    carving band (the image saw through it: the box is loose there, or wrong), an image whose
+    `uncarved` boxes hold the point not asked (it saw that space at another instant). Each stands
+    for its half-voxel square of the face; labelled by its box, coloured by the observed points
+    inside the box (grey without); `confidence` that of the voxels they alone make."""
     vs = grid.voxel_size
     parts = [_object_faces(b, vs / 2) for b in boxes]
     owner = np.concatenate([np.full(len(p), i, np.int64) for i, (p, _) in enumerate(parts)])
