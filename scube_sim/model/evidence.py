@@ -64,8 +64,8 @@ from ..splat_params import SCALE
 from ..stereo import StereoConfig, moved_boxes, moved_pixels, stereo_depth
 from ..voxsplat import VoxSplat, voxel_keys
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
-from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, SurfaceSamples, evidence_voxsplat,
-                              fuse_depth)
+from .geometry.fusion import (DepthObservation, FusedGrid, FusionConfig, SurfaceSamples, carve_band,
+                              evidence_voxsplat, fuse_depth)
 from .geometry.ground import HeightField, fit_height_field, flat_height_field
 
 __all__ = ["Evidence", "EvidenceConfig", "box_samples", "evidence_scene", "fuse_evidence", "measure_evidence",
@@ -259,8 +259,8 @@ def box_samples(boxes: tuple[Box, ...], grid: FusedGrid, observations: list[Dept
         idx, flat, z = project_to_pixels(pts, obs.image)
         depth, conf = obs.depth.reshape(-1)[flat], obs.confidence.reshape(-1)[flat]
         with np.errstate(invalid="ignore"):
-            band = np.maximum(fusion.band_voxels * vs, fusion.band_rel * depth)
-            through = (conf >= fusion.min_confidence) & (depth <= fusion.max_depth_m) & (depth > z + band)
+            through = ((conf >= fusion.min_confidence) & (depth <= fusion.max_depth_m)
+                       & (depth > z + carve_band(depth, fusion)))
         if obs.uncarved:
             through &= points_in_boxes(pts[idx], list(obs.uncarved)) < 0
         keep[idx[through]] = False

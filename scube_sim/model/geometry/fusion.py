@@ -56,7 +56,8 @@ from ...errors import InputError
 from ...fit import fit_voxsplat
 from ...voxsplat import VoxSplat, voxel_keys
 
-__all__ = ["DepthObservation", "FusedGrid", "FusionConfig", "SurfaceSamples", "evidence_voxsplat", "fuse_depth"]
+__all__ = ["DepthObservation", "FusedGrid", "FusionConfig", "SurfaceSamples", "carve_band", "evidence_voxsplat",
+           "fuse_depth"]
 
 
 class FusionConfig(BaseModel):
@@ -238,6 +239,12 @@ def _key_ijk(keys: np.ndarray) -> np.ndarray:
     return np.stack([(keys >> 42) & mask, (keys >> 21) & mask, keys & mask], 1) - (1 << 20)
 
 
+def carve_band(depth: np.ndarray, cfg: FusionConfig) -> np.ndarray:
+    """Metres before a measured point (depth (N,) metres along the optical axis) that its ray does
+    not carve: `band_voxels` voxels or `band_rel` of the depth, the larger."""
+    return np.maximum(cfg.band_voxels * cfg.voxel_size, cfg.band_rel * depth)
+
+
 def _misses(obs_points, depth, conf, origin_cam, candidates: np.ndarray, origin: np.ndarray,
             cfg: FusionConfig) -> tuple[np.ndarray, np.ndarray]:
     """The candidate voxels (indices into the sorted `candidates` keys) the rays from `origin_cam`
@@ -252,7 +259,7 @@ def _misses(obs_points, depth, conf, origin_cam, candidates: np.ndarray, origin:
     for a in range(0, len(obs_points), cfg.chunk_rays):
         p = obs_points[a:a + cfg.chunk_rays]
         dist = np.linalg.norm(p - origin_cam, axis=1)
-        band = np.maximum(cfg.band_voxels * vs, cfg.band_rel * depth[a:a + cfg.chunk_rays])
+        band = carve_band(depth[a:a + cfg.chunk_rays], cfg)
         reach = np.clip(dist - band * dist / np.maximum(depth[a:a + cfg.chunk_rays], 1e-9), 0.0, None)
         n_steps = int(np.ceil(reach.max() / step)) if len(reach) else 0
         if n_steps == 0:
