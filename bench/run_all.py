@@ -7,6 +7,7 @@ import sys
 from . import (
     bench_batch,
     bench_fidelity,
+    bench_fusion,
     bench_render,
     bench_representation,
     bench_sim,
@@ -22,6 +23,7 @@ def main() -> None:
         sys.argv = [sys.argv[0]] + (["--quick"] if quick else [])
         module.main()
     bench_voxel_cast.main(["--repeats", "1" if quick else "2"])
+    bench_fusion.main(["--repeats", "1" if quick else "2"])
 
 
 if __name__ == "__main__":

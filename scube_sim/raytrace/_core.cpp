@@ -561,18 +561,18 @@ void init_context(RayState& st) {
 #endif
 }
 
-// Runs fn(ray, state, thread) over rays in chunks on `threads` std::threads; each chunk's rays
-// are independent, so the result does not depend on which thread ran which chunk.
+// Runs fn(first, last, thread) over [0, n) in chunks of `chunk` on `threads` std::threads; each
+// chunk's items are independent, so the result does not depend on which thread ran which chunk.
 template <typename Fn>
-void parallel_rays(int64_t n, int threads, Fn fn) {
-  const int64_t chunks = (n + kChunk - 1) / kChunk;
+void parallel_chunks(int64_t n, int64_t chunk, int threads, Fn fn) {
+  const int64_t chunks = (n + chunk - 1) / chunk;
   const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(threads, chunks)));
   std::atomic<int64_t> next{0};
   std::vector<std::exception_ptr> errors(nt);
   auto work = [&](int tid) {
     try {
       for (int64_t c = next++; c < chunks; c = next++) {
-        const int64_t lo = c * kChunk, hi = std::min(n, lo + kChunk);
+        const int64_t lo = c * chunk, hi = std::min(n, lo + chunk);
         fn(lo, hi, tid);
       }
     } catch (...) {
@@ -589,6 +589,12 @@ void parallel_rays(int64_t n, int threads, Fn fn) {
   }
   for (auto& e : errors)
     if (e) std::rethrow_exception(e);
+}
+
+// The rays in chunks of kChunk (`parallel_chunks`).
+template <typename Fn>
+void parallel_rays(int64_t n, int threads, Fn fn) {
+  parallel_chunks(n, kChunk, threads, fn);
 }
 
 int resolve_threads(int threads) {
@@ -953,6 +959,96 @@ void voxel_first_hit(Arr<double> o, Arr<double> d, Arr<double> origin, double vo
   });
 }
 
+// The fusion's carving walk (model/geometry/fusion.py `_misses`, its NumPy reference): each ray
+// o + t d, d (R, 3) float64 unit, sampled at t = (s + 0.5) step while t < reach (R,); a sample's
+// voxel floor((p - origin) / voxel_size), a run of samples in one voxel counted once; a voxel found
+// in `candidates` (K,) sorted keys (voxsplat.voxel_keys' packing) takes the ray's conf (R,). Rays
+// go in batches of `batch` (the reference's chunk_rays): per batch each voxel's confidences are
+// summed in ray order, and the batches' sums added to conf_sum (K,) in batch order, the NumPy
+// walk's order of float additions, so the bytes are its and the same for any thread count.
+// conf_cnt (K,) float64 counts the rays, hit (K,) is set where any did. Returns false where a
+// sample's voxel index reached +-2^20 (the reference refuses such grids).
+bool carve_misses(Arr<double> oc, Arr<double> d, Arr<double> reach, Arr<double> conf, Arr<double> origin,
+                  double voxel_size, double step, int64_t batch, Arr<int64_t> candidates,
+                  py::array_t<double, py::array::c_style> conf_sum_out, py::array_t<double, py::array::c_style> conf_cnt_out,
+                  py::array_t<bool, py::array::c_style> hit_out, int threads) {
+  const int64_t n = d.shape(0), nk = candidates.shape(0);
+  if (d.ndim() != 2 || d.shape(1) != 3) throw std::invalid_argument("d: expected (R, 3) float64");
+  if (reach.ndim() != 1 || reach.shape(0) != n || conf.ndim() != 1 || conf.shape(0) != n)
+    throw std::invalid_argument("reach, conf: expected (R,) each");
+  if (oc.ndim() != 1 || oc.shape(0) != 3 || origin.ndim() != 1 || origin.shape(0) != 3)
+    throw std::invalid_argument("oc, origin: expected (3,)");
+  if (candidates.ndim() != 1 || batch < 1 || !(step > 0) || !(voxel_size > 0))
+    throw std::invalid_argument("candidates (K,), batch >= 1, step > 0, voxel_size > 0 expected");
+  double* conf_sum = mutable_data(conf_sum_out, nk, 1, "conf_sum");
+  double* conf_cnt = mutable_data(conf_cnt_out, nk, 1, "conf_cnt");
+  bool* hit = mutable_data(hit_out, nk, 1, "hit");
+  const double *o = oc.data(), *dp = d.data(), *rp = reach.data(), *cp = conf.data(), *org = origin.data();
+  const int64_t* kp = candidates.data();
+  const int64_t batches = (n + batch - 1) / batch;
+  struct Entry { int64_t slot; double sum; int64_t count; };
+  std::vector<std::vector<Entry>> per_batch(batches);
+  std::atomic<bool> in_range{true};
+  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(resolve_threads(threads), batches)));
+  std::vector<std::vector<double>> sums(nt);  // per thread, per candidate: the batch's running sums ...
+  std::vector<std::vector<int64_t>> counts(nt);  // ... and ray counts, zero between batches
+  constexpr int64_t kBias = int64_t{1} << 20;
+  {
+    py::gil_scoped_release release;
+    parallel_chunks(n, batch, nt, [&](int64_t lo, int64_t hi, int tid) {
+      std::vector<double>& sum = sums[tid];
+      std::vector<int64_t>& count = counts[tid];
+      if (sum.empty()) {
+        sum.assign(nk, 0.0);
+        count.assign(nk, 0);
+      }
+      std::vector<int64_t> touched;
+      double most = rp[lo];
+      for (int64_t i = lo + 1; i < hi; ++i) most = std::max(most, rp[i]);
+      const double steps = std::ceil(most / step);
+      const int64_t n_steps = steps > 0 ? static_cast<int64_t>(steps) : 0;
+      for (int64_t i = lo; i < hi; ++i) {
+        int64_t prev = -1;
+        for (int64_t s = 0; s < n_steps; ++s) {
+          const double t = (static_cast<double>(s) + 0.5) * step;
+          if (!(t < rp[i])) break;
+          int64_t key = 0;
+          for (int c = 0; c < 3; ++c) {
+            const double x = std::floor(((o[c] + dp[3 * i + c] * t) - org[c]) / voxel_size);
+            if (!(std::abs(x) < static_cast<double>(kBias))) {
+              in_range = false;
+              key = -1;
+              break;
+            }
+            key = (key << 21) | (static_cast<int64_t>(x) + kBias);
+          }
+          if (key < 0 || key == prev) continue;
+          prev = key;
+          const int64_t pos = std::lower_bound(kp, kp + nk, key) - kp;
+          if (pos == nk || kp[pos] != key) continue;
+          if (count[pos] == 0) touched.push_back(pos);
+          sum[pos] += cp[i];
+          ++count[pos];
+        }
+      }
+      std::vector<Entry>& out = per_batch[lo / batch];
+      out.reserve(touched.size());
+      for (int64_t k : touched) {
+        out.push_back({k, sum[k], count[k]});
+        sum[k] = 0.0;
+        count[k] = 0;
+      }
+    });
+    for (const auto& entries : per_batch)
+      for (const Entry& e : entries) {
+        conf_sum[e.slot] += e.sum;
+        conf_cnt[e.slot] += static_cast<double>(e.count);
+        hit[e.slot] = true;
+      }
+  }
+  return in_range.load();
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
@@ -981,4 +1077,8 @@ PYBIND11_MODULE(_core, m) {
         py::arg("lo"), py::arg("dims"), py::arg("keys"), py::arg("order"), py::arg("dist"), py::arg("max_t"),
         py::arg("index"), py::arg("t"), py::arg("threads") = 0,
         "The first voxel each ray enters in a sparse grid (model/voxel_rays.py's traversal); fills index and t.");
+  m.def("carve_misses", &carve_misses, py::arg("oc"), py::arg("d"), py::arg("reach"), py::arg("conf"),
+        py::arg("origin"), py::arg("voxel_size"), py::arg("step"), py::arg("batch"), py::arg("candidates"),
+        py::arg("conf_sum"), py::arg("conf_cnt"), py::arg("hit"), py::arg("threads") = 0,
+        "The fusion's carving walk (model/geometry/fusion.py's _misses): sums each candidate voxel's misses.");
 }

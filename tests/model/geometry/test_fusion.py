@@ -1,7 +1,7 @@
 """Evidence fusion (`model.geometry.fusion`): exact depth of an analytic plane lands in the voxels
 on it; a later confident view carves a surface it sees through; low confidence gives no evidence;
 unsure pixels make a surface only where two views agree, and carve nothing; bad input names the
-image."""
+image; the compiled carving walk counts the voxels a ray crosses as the NumPy walk does, to the bit."""
 
 from __future__ import annotations
 
@@ -10,8 +10,11 @@ import pytest
 
 from scube_sim.boxes import Box
 from scube_sim.errors import InputError
-from scube_sim.model.geometry.fusion import DepthObservation, FusionConfig, fuse_depth
+from scube_sim.model.geometry.fusion import DepthObservation, FusionConfig, _misses, fuse_depth
+from scube_sim.raytrace import compiled
+from scube_sim.voxsplat import voxel_keys
 from tests.stereo.test_mvs import PLANE_Z, _shot
+from tests.raytrace.engines import engine_kw
 from tests.stereo.test_sweep import _pose
 
 VS = 0.2
@@ -207,3 +210,58 @@ def test_ground_points_snapped_onto_the_height_field_trace_at_the_plane_and_a_ke
     # unsnapped, the noise shows: ranges centimetres off, or a ray slipping between tilted surfels
     raw = Tracer(evidence_voxsplat(grid), mode="entry").trace_world(np.zeros((len(ang), 3)), dirs)
     assert not raw.hit[2:].all() or np.abs(raw.t - expected)[2:].max() > 0.02, raw.t - expected
+
+
+def _core(name: str) -> str:
+    if name == "compiled":
+        engine_kw("compiled")  # skips only where SCUBE_SIM_ALLOW_NO_CORE=1 and the core is not built
+    return name
+
+
+@pytest.mark.parametrize("core", ["reference", "compiled"])
+def test_a_ray_misses_the_voxels_it_crosses_short_of_the_band_and_their_mean_confidence(core):
+    """Rays along +x from (0, 0.1, 0.1) to points at 2.0 m (band max(1.5 voxels, 5 %) = 0.3 m:
+    they carve x in [0, 1.7) m, voxels 0-8 of 0.2 m); candidates on the row and one beside it.
+    Voxels 0-8 are missed by both rays (mean confidence (0.4 + 0.8) / 2); voxel 10 lies in the
+    band, the one beside the row on no ray."""
+    cfg = FusionConfig()
+    cand = np.sort(voxel_keys(np.array([[i, 0, 0] for i in range(12)] + [[3, 1, 0]])))
+    pts = np.array([[2.0, 0.1, 0.1], [2.0, 0.1, 0.1]])
+    idx, conf = _misses(pts, np.array([2.0, 2.0]), np.array([0.4, 0.8], np.float32), np.array([0.0, 0.1, 0.1]),
+                        cand, np.zeros(3), cfg, core=_core(core))
+    want = np.sort(voxel_keys(np.array([[i, 0, 0] for i in range(9)])))
+    assert np.array_equal(cand[idx], want)
+    assert np.allclose(conf, 0.6)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_the_compiled_carving_walk_gives_the_numpy_walks_bytes_for_any_thread_count(seed):
+    """Random rays from a camera into a random sparse grid, batches of 97 rays (sums across
+    batches in the reference's order): the same voxels and the same float64 mean confidence."""
+    _core("compiled")
+    rng = np.random.default_rng(seed)
+    cfg = FusionConfig(chunk_rays=97)
+    origin = rng.uniform(-3, 3, 3)
+    cam = origin + rng.uniform(5, 15, 3)
+    pts = origin + rng.uniform(0, 30, (2000, 3))
+    depth = np.linalg.norm(pts - cam, axis=1) * rng.uniform(0.5, 1.0, 2000)
+    conf = rng.uniform(0.5, 1.0, 2000).astype(np.float32)
+    ijk = np.unique(rng.integers(0, 150, (40000, 3)), axis=0)
+    cand = np.sort(voxel_keys(ijk))
+    want = _misses(pts, depth, conf, cam, cand, origin, cfg, core="reference")
+    assert len(want[0]) > 1000
+    got = _misses(pts, depth, conf, cam, cand, origin, cfg, core="compiled")
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+    for threads in (1, 3):
+        got = _misses(pts, depth, conf, cam, cand, origin, cfg, core="compiled", threads=threads)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_the_carving_walk_by_an_unknown_core_name_or_an_unbuilt_core_is_refused(monkeypatch):
+    args = (np.ones((1, 3)), np.ones(1), np.ones(1, np.float32), np.zeros(3), np.zeros(1, np.int64), np.zeros(3),
+            FusionConfig())
+    with pytest.raises(InputError, match="core"):
+        _misses(*args, core="gpu")
+    monkeypatch.setattr(compiled, "_core", None)
+    with pytest.raises(compiled.CoreUnavailable, match="not built"):
+        _misses(*args, core="compiled")
