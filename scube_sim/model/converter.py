@@ -545,7 +545,7 @@ class Converter:
                                     "voxel_size": self.completion_voxel_size}
             scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
                                                 self.profile.completion, ego_poses=ego_poses_in_chunk(frames),
-                                                subcells=sub)
+                                                subcells=sub, boxes=ev.boxes)
             parts["completion_s"] = time.perf_counter() - t1
         if max_range is not None:
             centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size

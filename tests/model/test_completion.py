@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 import torch
 
+from scube_sim.boxes import Box
 from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.checkpoint import CheckpointError
@@ -290,6 +291,38 @@ def test_nothing_is_added_into_the_ego_car_at_any_instant():
     assert counts1["added_cells"] > counts["added_cells"]
     hits = Tracer(out1, mode="entry").trace_world(*ray)
     assert hits.hit[0] and 4.6 <= hits.t[0] <= 6.8
+
+
+def test_with_boxes_a_car_is_added_only_inside_one_and_a_building_anywhere():
+    """A network that draws a car 20-23 m ahead and a second one 30-33 m ahead, and a building
+    40-43 m ahead; the frames box the first car only. With `objects_in_boxes`, a ray at 1 m height
+    along y = 0 meets the first car's blobs at ~20 m, a ray along y = 4 (the second car) passes
+    it and meets the building at ~40 m; without boxes (or without the option), the second car
+    stands at ~30 m."""
+    scene = _wall_scene(0.9).select_voxels(np.zeros(_wall_scene(0.9).num_voxels, bool))  # no evidence
+    feats, occ, lab = _grids(0.0)
+    _block(occ, [20.0, -1.0, 0.1], [23.0, 1.0, 1.5])
+    _block(occ, [30.0, 3.0, 0.1], [33.0, 5.0, 1.5])
+    _block(occ, [40.0, -6.0, 0.1], [43.0, 6.0, 3.0])
+    lab[:] = LABEL_IDS["car"]
+    a, b = _cell([40.0, -6.0, 0.1]), _cell([43.0, 6.0, 3.0])
+    lab[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = LABEL_IDS["building"]
+    box = Box(np.array([21.6, 0.0, 0.8]), np.array([4.0, 2.4, 2.0]), np.eye(3), label=LABEL_IDS["car"])
+    rays = (np.array([[0.0, 0.0, 1.0], [0.0, 4.0, 1.0]]), np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
+    near = [CHUNK_CORNER[0] + _cell([x, 0, 0])[0] * 0.8 for x in (20.0, 30.0, 40.0)]  # the blocks' near cells
+    cfg = CompletionConfig(checkpoint="x", objects_in_boxes=True)
+    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg, boxes=(box,))
+    assert counts["unboxed_cells"] > 0
+    hits = Tracer(out, mode="entry").trace_world(*rays)
+    assert hits.hit.all()
+    assert near[0] - 0.3 <= hits.t[0] <= near[0] + 0.8
+    assert near[2] - 0.3 <= hits.t[1] <= near[2] + 0.8
+    for kwargs, boxes in (({"objects_in_boxes": True}, ()), ({}, (box,))):
+        out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x", **kwargs),
+                                       boxes=boxes)
+        assert counts["unboxed_cells"] == 0
+        hits = Tracer(out, mode="entry").trace_world(*rays)
+        assert near[1] - 0.3 <= hits.t[1] <= near[1] + 0.8
 
 
 def test_a_car_the_network_puts_around_the_ego_goes_whole_and_its_neighbour_stays():
