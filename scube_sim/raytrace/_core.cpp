@@ -970,7 +970,8 @@ void voxel_first_hit(Arr<double> o, Arr<double> d, Arr<double> origin, double vo
 // sample's voxel index reached +-2^20 (the reference refuses such grids).
 bool carve_misses(Arr<double> oc, Arr<double> d, Arr<double> reach, Arr<double> conf, Arr<double> origin,
                   double voxel_size, double step, int64_t batch, Arr<int64_t> candidates,
-                  py::array_t<double, py::array::c_style> conf_sum_out, py::array_t<double, py::array::c_style> conf_cnt_out,
+                  py::array_t<double, py::array::c_style> conf_sum_out,
+                  py::array_t<double, py::array::c_style> conf_cnt_out,
                   py::array_t<bool, py::array::c_style> hit_out, int threads) {
   const int64_t n = d.shape(0), nk = candidates.shape(0);
   if (d.ndim() != 2 || d.shape(1) != 3) throw std::invalid_argument("d: expected (R, 3) float64");

@@ -245,7 +245,8 @@ def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarra
     ai, a_centres = ai[~ego], a_centres[~ego]
     unboxed = np.zeros(len(ai), bool)
     if cfg.objects_in_boxes and boxes and len(ai):
-        unboxed = np.isin(labels[ai[:, 0], ai[:, 1], ai[:, 2]], BOXED_IDS) & (points_in_boxes(a_centres, list(boxes)) < 0)
+        unboxed = (np.isin(labels[ai[:, 0], ai[:, 1], ai[:, 2]], BOXED_IDS)
+                   & (points_in_boxes(a_centres, list(boxes)) < 0))
         ai, a_centres = ai[~unboxed], a_centres[~unboxed]
     # the Gaussians: one at each added cell's centre, or at its chosen sub-cells' centres
     g_cell, g_centres, g_size = np.arange(len(ai)), a_centres, np.full(len(ai), vs)
