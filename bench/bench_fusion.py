@@ -16,14 +16,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
-import time
 
 import numpy as np
 
 from scube_sim.raytrace import compiled
 
-from .common import write_results
+from .common import best_per_core, write_results
 
 PROFILE = "evidence"
 
@@ -77,27 +75,13 @@ def run(repeats: int = 2) -> list[dict]:
         "after stereo (fusion, ground, surfels)": lambda: scene_from_evidence(fuse_evidence(obs, corner, to_chunk,
                                                                                             cfg), cfg),
     }
-    before = os.environ.get(compiled.CORE_ENV)
     rows = []
-    try:
-        for stage, fn in stages.items():
-            sec, out = {}, {}
-            for _ in range(repeats):
-                for core in ("reference", "compiled"):  # interleaved: load drifts hit both alike
-                    os.environ[compiled.CORE_ENV] = core
-                    t = time.perf_counter()
-                    out[core] = fn()
-                    sec[core] = min(sec.get(core, np.inf), time.perf_counter() - t)
-            rows.append({"stage": stage, "depth_maps": len(obs), "numpy_s": round(sec["reference"], 2),
-                         "compiled_s": round(sec["compiled"], 2),
-                         "speedup": round(sec["reference"] / sec["compiled"], 2),
-                         "same_output": _same(out["reference"], out["compiled"])})
-            print(rows[-1])
-    finally:
-        if before is None:
-            os.environ.pop(compiled.CORE_ENV, None)
-        else:
-            os.environ[compiled.CORE_ENV] = before
+    for stage, fn in stages.items():
+        sec, out = best_per_core(fn, repeats)
+        rows.append({"stage": stage, "depth_maps": len(obs), "numpy_s": round(sec["reference"], 2),
+                     "compiled_s": round(sec["compiled"], 2), "speedup": round(sec["reference"] / sec["compiled"], 2),
+                     "same_output": _same(out["reference"], out["compiled"])})
+        print(rows[-1])
     return rows
 
 

@@ -12,16 +12,14 @@ Results: bench/results/voxel_cast.{json,md}.
 from __future__ import annotations
 
 import argparse
-import os
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 from scube_sim.raytrace import compiled
 
-from .common import write_results
+from .common import best_per_core, write_results
 
 PROFILES = ("cpu", "cpu-lidar", "cpu-lidar-fine")
 
@@ -45,29 +43,16 @@ def run(repeats: int = 2) -> list[dict]:
     if not compiled.available():
         raise SystemExit(f"the compiled core is not built: {compiled.load_error()}")
     frames = render_frames(generate_world(DEFAULT_WORLD), "waymo-5", 0.0, FRAMES_SCALE)
-    before = os.environ.get(compiled.CORE_ENV)
     rows = []
-    try:
-        for profile in PROFILES:
-            conv = Converter(profile)
-            conv.convert(frames, seed=0)  # warm-up: first-call allocations
-            sec, scene = {}, {}
-            for _ in range(repeats):
-                for core in ("reference", "compiled"):  # interleaved: load drifts hit both alike
-                    os.environ[compiled.CORE_ENV] = core
-                    t = time.perf_counter()
-                    scene[core] = conv.convert(frames, seed=0)
-                    sec[core] = min(sec.get(core, np.inf), time.perf_counter() - t)
-            rows.append({"profile": profile, "voxels": int(scene["compiled"].num_voxels),
-                         "torch_loop_s": round(sec["reference"], 2), "compiled_s": round(sec["compiled"], 2),
-                         "speedup": round(sec["reference"] / sec["compiled"], 2),
-                         "same_scene": _same_scene(scene["reference"], scene["compiled"])})
-            print(rows[-1])
-    finally:
-        if before is None:
-            os.environ.pop(compiled.CORE_ENV, None)
-        else:
-            os.environ[compiled.CORE_ENV] = before
+    for profile in PROFILES:
+        conv = Converter(profile)
+        conv.convert(frames, seed=0)  # warm-up: first-call allocations
+        sec, scene = best_per_core(lambda: conv.convert(frames, seed=0), repeats)
+        rows.append({"profile": profile, "voxels": int(scene["compiled"].num_voxels),
+                     "torch_loop_s": round(sec["reference"], 2), "compiled_s": round(sec["compiled"], 2),
+                     "speedup": round(sec["reference"] / sec["compiled"], 2),
+                     "same_scene": _same_scene(scene["reference"], scene["compiled"])})
+        print(rows[-1])
     return rows
 
 

@@ -46,6 +46,29 @@ def timed(fn, repeat: int = 3):
     return float(np.median(times)), out
 
 
+def best_per_core(fn, repeats: int, cores=("reference", "compiled")) -> tuple[dict, dict]:
+    """Run `fn()` `repeats` times under each of the trace cores (`SCUBE_SIM_CORE`), interleaved so
+    that load drifts hit both alike: ({core: best seconds}, {core: last result}); the variable is
+    restored afterwards."""
+    from scube_sim.raytrace import compiled
+
+    before = os.environ.get(compiled.CORE_ENV)
+    sec, out = {}, {}
+    try:
+        for _ in range(repeats):
+            for core in cores:
+                os.environ[compiled.CORE_ENV] = core
+                t = time.perf_counter()
+                out[core] = fn()
+                sec[core] = min(sec.get(core, np.inf), time.perf_counter() - t)
+    finally:
+        if before is None:
+            os.environ.pop(compiled.CORE_ENV, None)
+        else:
+            os.environ[compiled.CORE_ENV] = before
+    return sec, out
+
+
 def machine() -> dict:
     return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
             "date": time.strftime("%Y-%m-%d %H:%M")}
