@@ -18,7 +18,13 @@ NAMEs of one checkpoint.
 
 Writes experiments/results/<NAME>.{json,md} (default completion_compare): per checkpoint and
 distance ahead the ray-weighted rows of `eval sensor-to-sensor` (median |dr|, p90, share of the
-mesh's returns returned) and the completion grid's IoU / mIoU against the truth at 0.8 m.
+mesh's returns returned) and the completion grid's IoU / mIoU against the truth at 0.8 m; and ray
+by ray against the evidence alone (`paired`): of the mesh's returns on each split, the share the
+completion makes worse or better by over `CHANGED_M`, among the rays both scenes return; the share
+it returns where the evidence alone returned nothing, and their median |dr|; the share it loses.
+A median over a split mixes rays of both kinds, so a completion that returns rays the evidence
+missed, at larger errors than the easy rays it already returned, moves the median without making
+a ray worse: the ray-by-ray figures tell the two apart.
 
 Each sample's result is kept in runs/compare/<NAME>/<sample>.json as soon as it is measured (with
 the checkpoints it was measured for; a file for other checkpoints is measured again), so an
@@ -47,26 +53,68 @@ from scube_sim.model.evidence import measure_evidence
 from scube_sim.transforms import invert_pose
 
 ALONE = s2s.SCENES[1]
+CHANGED_M = 0.5  # a ray's |dr| grown (shrunk) by more than this: made worse (better)
+PAIRED_COUNTS = ("rays", "both", "worse", "better", "gained", "lost")
 GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "completion_removed_share",
              "completion_s")
 
 
+def paired(reference: np.ndarray, rays: np.ndarray, alone: np.ndarray, completed: np.ndarray) -> dict:
+    """Ray by ray (module docstring), the completed sweep against the evidence alone's: range images
+    (rings, columns; NaN: no return), `rays` (rings, columns) bool the reference's returns compared.
+    Counts (`PAIRED_COUNTS`) and the median |dr| (m) of the gained rays (NaN: none)."""
+    a, c = rays & np.isfinite(alone), rays & np.isfinite(completed)
+    both, gained = a & c, c & ~a
+    err_a, err_c = np.abs(alone - reference), np.abs(completed - reference)
+    return {"rays": int(rays.sum()), "both": int(both.sum()),
+            "worse": int((both & (err_c > err_a + CHANGED_M)).sum()),
+            "better": int((both & (err_a > err_c + CHANGED_M)).sum()),
+            "gained": int(gained.sum()), "lost": int((a & ~c).sum()),
+            "gained_median_m": float(np.median(err_c[gained])) if gained.any() else float("nan")}
+
+
 def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
-    """One sample's rows (the truth, the evidence alone, each checkpoint by name) and grid stages."""
+    """One sample's rows (the truth, the evidence alone, each checkpoint by name), grid stages and
+    ray-by-ray figures against the evidence alone (`paired`: per checkpoint, rows by ahead and split)."""
     frames = open_frames(d, context=base.context)
     t0 = time.perf_counter()
     ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), base.evidence)
-    rows, measure_s, stages = [], time.perf_counter() - t0, {}
+    rows, measure_s, stages, pairs = [], time.perf_counter() - t0, {}, {}
     for k, (name, conv) in enumerate(convs.items()):
+        sweeps: dict = {}
         res = s2s.evaluate_sample(conv, d, lidar, gt_cache=cache, convert_options={"evidence": ev},
-                                  with_psnr=False)
+                                  with_psnr=False, sweeps=sweeps)
         for r in res["rows"]:
             if r["scene"] == "converted":
                 rows.append({**r, "scene": name})
             elif k == 0:  # the truth and the evidence alone: the same for every checkpoint
                 rows.append(r)
         stages[name] = {key: float(res["stages"].get(key, np.nan)) for key in GRID_KEYS}
-    return {"sample": d.name, "measure_s": measure_s, "rows": rows, "stages": stages}
+        refs = cache[str(d.resolve())]
+        pairs[name] = [{"ahead_m": p.ahead, "split": split,
+                        **paired(ref["img"], mask, sweeps[(ALONE, p.ahead)], sweeps[("converted", p.ahead)])}
+                       for ref, p in zip(refs["refs"], refs["poses"]) for split, mask in ref["masks"].items()]
+    return {"sample": d.name, "measure_s": measure_s, "rows": rows, "stages": stages, "paired": pairs}
+
+
+def summarise_paired(samples: list[dict], names) -> list[dict]:
+    """Per checkpoint, distance ahead and split: the samples' counts summed, the gained rays' median
+    |dr| averaged weighted by their count."""
+    groups: dict[tuple, list[dict]] = {}
+    for s in samples:
+        for name in names:
+            for r in s.get("paired", {}).get(name, []):
+                groups.setdefault((name, r["ahead_m"], r["split"]), []).append(r)
+    out = []
+    for (name, ahead, split), rs in groups.items():
+        row = {"scene": name, "ahead_m": ahead, "split": split,
+               **{k: int(sum(r[k] for r in rs)) for k in PAIRED_COUNTS}}
+        w = np.array([r["gained"] for r in rs], np.float64)
+        v = np.array([r["gained_median_m"] for r in rs], np.float64)
+        ok = np.isfinite(v) & (w > 0)
+        row["gained_median_m"] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
+        out.append(row)
+    return out
 
 
 def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints: dict[str, str],
@@ -103,7 +151,8 @@ def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints
     grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
             for name in checkpoints}
     return {"split": split, "profile": profile, "checkpoints": checkpoints, "merges": merges, "samples_n": len(samples),
-            "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid, "samples": samples}
+            "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid,
+            "paired": summarise_paired(samples, checkpoints), "samples": samples}
 
 
 def table(res: dict) -> list[str]:
@@ -124,6 +173,23 @@ def table(res: dict) -> list[str]:
     for name, g in res["grid"].items():
         merge = "".join(f", {k} {v}" for k, v in res.get("merges", {}).get(name, {}).items())
         lines.append(f"| {name} ({res['checkpoints'][name]}{merge}) | " + " | ".join(f"{g[k]:.4g}" for k in GRID_KEYS) + " |")
+    if res.get("paired"):
+        lines += ["", f"Ray by ray against the evidence alone, shares of the mesh's returns: made worse / better by "
+                      f"over {CHANGED_M} m (both return) ; returned where the evidence alone returned nothing "
+                      f"(their median |dr|) ; no longer returned.", "",
+                  "| ahead | " + " | ".join(res["checkpoints"]) + " |", "|---|" + "---|" * len(res["checkpoints"])]
+        pb = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["paired"]}
+        for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in res["paired"]):
+            cells = []
+            for n in res["checkpoints"]:
+                r = pb.get((ahead, split, n))
+                if r is None:
+                    cells.append("-")
+                    continue
+                pct = {k: 100 * r[k] / max(r["rays"], 1) for k in PAIRED_COUNTS}
+                cells.append(f"{pct['worse']:.2f} / {pct['better']:.2f} % ; {pct['gained']:.2f} % "
+                             f"({r['gained_median_m']:.2f} m) ; {pct['lost']:.2f} %")
+            lines.append(f"| {ahead:.0f} m {split} | " + " | ".join(cells) + " |")
     return lines
 
 

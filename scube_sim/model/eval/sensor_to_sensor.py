@@ -169,7 +169,8 @@ def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
 def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel: float = 0.4, seed: int = 0,
                     ahead: Sequence[float] = AHEAD_M, convert_options: dict | None = None,
                     with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
-                    trace_options: dict | None = None, context: int | None = None) -> dict:
+                    trace_options: dict | None = None, context: int | None = None,
+                    sweeps: dict | None = None) -> dict:
     """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
     voxels, PSNR at the input cameras, seconds, peak MB, the observed Gaussians' centres to the mesh
     (median and p90 m) and the ground-truth VoxSplat's (median)}, "rows": [{scene, ahead, split, rays,
@@ -178,7 +179,8 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     converter settings then regenerates nothing). trace_mode: how the converted scene is traced
     (default its metadata ``trace_mode``); trace_options: more `Tracer` settings for it (for
     example ``soft_alpha_min``). context: the instants before and after the sample the converter
-    sees (`open_frames`; default the profile's)."""
+    sees (`open_frames`; default the profile's). sweeps: a dict that receives each traced scene's range
+    image (rings, columns; NaN: no return) by (scene, metres ahead), to compare scenes ray by ray."""
     sample_dir = Path(sample_dir)
     meta = json_loads((sample_dir / "meta.json").read_text(), sample_dir / "meta.json", InputError)
     key = str(sample_dir.resolve())
@@ -223,10 +225,13 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     alone_tracer = None if alone is None else Tracer(alone, mode=trace_mode or alone.metadata.get("trace_mode", "entry"),
                                                      **(trace_options or {}))
     for ref, p in zip(cached["refs"], cached["poses"]):
-        sweep = lidar.scan(tracer, p.chunk, seed=seed)
-        rows += _rows("converted", p.ahead, ref, sweep, p.chunk)
+        traced = {"converted": lidar.scan(tracer, p.chunk, seed=seed)}
         if alone_tracer is not None:
-            rows += _rows(SCENES[1], p.ahead, ref, lidar.scan(alone_tracer, p.chunk, seed=seed), p.chunk)
+            traced[SCENES[1]] = lidar.scan(alone_tracer, p.chunk, seed=seed)
+        for name, sweep in traced.items():
+            rows += _rows(name, p.ahead, ref, sweep, p.chunk)
+            if sweeps is not None:
+                sweeps[(name, p.ahead)] = sweep.range_image()
     stages["trace_s_per_sweep"] = (time.perf_counter() - t1) / max(len(cached["poses"]), 1)
     # the context asked for and the instants the converter was given (fewer where the log has fewer)
     return {"sample": f"{sample_dir.parent.name}/{sample_dir.name}", "context": context,

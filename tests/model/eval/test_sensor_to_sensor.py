@@ -13,8 +13,10 @@ from typer.testing import CliRunner
 from scube_sim.cli import app
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
+from scube_sim.model.converter import Converter, load_profile
 from scube_sim.model.eval.sensor_to_sensor import (
     ahead_poses,
+    evaluate_sample,
     evaluate_split,
     geometric_lidar,
     seen_labels,
@@ -97,6 +99,27 @@ def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_pa
     assert "median |dr|" in r.output and "converted" in r.output
     # the paper-route profile sees no context by default; the tiny data holds only its own instant
     assert res["samples"][0]["context"] == 0 and res["samples"][0]["offsets"] == [0]
+
+
+def test_evaluate_sample_hands_back_the_range_images_its_rows_were_scored_on(tiny_converter):
+    conv = Converter(load_profile(tiny_converter["profile"]))
+    lidar = geometric_lidar("vlp16")
+    cache, sweeps = {}, {}
+    sample = sorted(d for d in (tiny_converter["data"] / "test").iterdir() if (d / "meta.json").is_file())[0]
+    res = evaluate_sample(conv, sample, lidar, gt_voxel=0.8, ahead=(0.0, 20.0), with_psnr=False, gt_cache=cache,
+                          sweeps=sweeps)
+    assert set(sweeps) == {("converted", 0.0), ("converted", 20.0)}
+    (cached,) = cache.values()
+    rows = {(r["scene"], r["ahead_m"], r["split"]): r for r in res["rows"]}
+    for ref, pose in zip(cached["refs"], cached["poses"]):
+        img = sweeps[("converted", pose.ahead)]
+        assert img.shape == ref["img"].shape and np.isfinite(img).any()
+        for split in ("all", "seen"):
+            mask = ref["masks"][split]
+            both = mask & np.isfinite(img)
+            row = rows[("converted", pose.ahead, split)]
+            assert row["hit_agreement"] == pytest.approx(both.sum() / mask.sum())
+            assert row["median_m"] == pytest.approx(np.median(np.abs(img - ref["img"])[both]))
 
 
 def test_eval_sensor_to_sensor_gives_the_converter_the_context_instants(tiny_converter, tmp_path):
