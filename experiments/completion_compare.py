@@ -21,7 +21,8 @@ distance ahead the ray-weighted rows of `eval sensor-to-sensor` (median |dr|, p9
 mesh's returns returned) and the completion grid's IoU / mIoU against the truth at 0.8 m; and ray
 by ray against the evidence alone (`paired`): of the mesh's returns on each split, the share the
 completion makes worse or better by over `CHANGED_M`, among the rays both scenes return; the share
-it returns where the evidence alone returned nothing, and their median |dr|; the share it loses.
+it returns where the evidence alone returned nothing, and their median |dr|; the share it loses,
+and the evidence alone's median |dr| on those.
 A median over a split mixes rays of both kinds, so a completion that returns rays the evidence
 missed, at larger errors than the easy rays it already returned, moves the median without making
 a ray worse: the ray-by-ray figures tell the two apart.
@@ -62,15 +63,17 @@ GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "com
 def paired(reference: np.ndarray, rays: np.ndarray, alone: np.ndarray, completed: np.ndarray) -> dict:
     """Ray by ray (module docstring), the completed sweep against the evidence alone's: range images
     (rings, columns; NaN: no return), `rays` (rings, columns) bool the reference's returns compared.
-    Counts (`PAIRED_COUNTS`) and the median |dr| (m) of the gained rays (NaN: none)."""
+    Counts (`PAIRED_COUNTS`), the median |dr| (m) of the gained rays and the evidence alone's median
+    |dr| on the lost ones (NaN: none)."""
     a, c = rays & np.isfinite(alone), rays & np.isfinite(completed)
-    both, gained = a & c, c & ~a
+    both, gained, lost = a & c, c & ~a, a & ~c
     err_a, err_c = np.abs(alone - reference), np.abs(completed - reference)
     return {"rays": int(rays.sum()), "both": int(both.sum()),
             "worse": int((both & (err_c > err_a + CHANGED_M)).sum()),
             "better": int((both & (err_a > err_c + CHANGED_M)).sum()),
-            "gained": int(gained.sum()), "lost": int((a & ~c).sum()),
-            "gained_median_m": float(np.median(err_c[gained])) if gained.any() else float("nan")}
+            "gained": int(gained.sum()), "lost": int(lost.sum()),
+            "gained_median_m": float(np.median(err_c[gained])) if gained.any() else float("nan"),
+            "lost_median_m": float(np.median(err_a[lost])) if lost.any() else float("nan")}
 
 
 def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
@@ -98,8 +101,8 @@ def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
 
 
 def summarise_paired(samples: list[dict], names) -> list[dict]:
-    """Per checkpoint, distance ahead and split: the samples' counts summed, the gained rays' median
-    |dr| averaged weighted by their count."""
+    """Per checkpoint, distance ahead and split: the samples' counts summed, the gained and the lost
+    rays' median |dr| averaged weighted by their counts."""
     groups: dict[tuple, list[dict]] = {}
     for s in samples:
         for name in names:
@@ -109,10 +112,11 @@ def summarise_paired(samples: list[dict], names) -> list[dict]:
     for (name, ahead, split), rs in groups.items():
         row = {"scene": name, "ahead_m": ahead, "split": split,
                **{k: int(sum(r[k] for r in rs)) for k in PAIRED_COUNTS}}
-        w = np.array([r["gained"] for r in rs], np.float64)
-        v = np.array([r["gained_median_m"] for r in rs], np.float64)
-        ok = np.isfinite(v) & (w > 0)
-        row["gained_median_m"] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
+        for kind in ("gained", "lost"):
+            w = np.array([r[kind] for r in rs], np.float64)
+            v = np.array([r.get(f"{kind}_median_m", np.nan) for r in rs], np.float64)
+            ok = np.isfinite(v) & (w > 0)
+            row[f"{kind}_median_m"] = float(np.average(v[ok], weights=w[ok])) if ok.any() else float("nan")
         out.append(row)
     return out
 
@@ -176,7 +180,7 @@ def table(res: dict) -> list[str]:
     if res.get("paired"):
         lines += ["", f"Ray by ray against the evidence alone, shares of the mesh's returns: made worse / better by "
                       f"over {CHANGED_M} m (both return) ; returned where the evidence alone returned nothing "
-                      f"(their median |dr|) ; no longer returned.", "",
+                      f"(their median |dr|) ; no longer returned (the evidence alone's median |dr| on them).", "",
                   "| ahead | " + " | ".join(res["checkpoints"]) + " |", "|---|" + "---|" * len(res["checkpoints"])]
         pb = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["paired"]}
         for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in res["paired"]):
@@ -188,7 +192,7 @@ def table(res: dict) -> list[str]:
                     continue
                 pct = {k: 100 * r[k] / max(r["rays"], 1) for k in PAIRED_COUNTS}
                 cells.append(f"{pct['worse']:.2f} / {pct['better']:.2f} % ; {pct['gained']:.2f} % "
-                             f"({r['gained_median_m']:.2f} m) ; {pct['lost']:.2f} %")
+                             f"({r['gained_median_m']:.2f} m) ; {pct['lost']:.2f} % ({r['lost_median_m']:.2f} m)")
             lines.append(f"| {ahead:.0f} m {split} | " + " | ".join(cells) + " |")
     return lines
 
