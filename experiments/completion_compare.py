@@ -22,10 +22,14 @@ mesh's returns returned) and the completion grid's IoU / mIoU against the truth 
 by ray against the evidence alone (`paired`): of the mesh's returns on each split, the share the
 completion makes worse or better by over `CHANGED_M`, among the rays both scenes return; the share
 it returns where the evidence alone returned nothing, and their median |dr|; the share it loses,
-and the evidence alone's median |dr| on those.
-A median over a split mixes rays of both kinds, so a completion that returns rays the evidence
-missed, at larger errors than the easy rays it already returned, moves the median without making
-a ray worse: the ray-by-ray figures tell the two apart.
+and the evidence alone's median |dr| on those. A median over a split mixes rays of both kinds, so
+a completion that returns rays the evidence missed, at larger errors than the easy rays it already
+returned, moves the median without making a ray worse: the ray-by-ray figures tell the two apart.
+
+The LiDAR is driven straight along the ego's heading, and where the road bends the pose 20 or 60 m
+on can stand inside or against a building. So both tables are given again over the poses a car
+can stand at (`pose_clear`: the ego's box, `CompletionConfig.ego_box_min` / `max`, grown by
+`CLEAR_MARGIN_M` sideways and lengthways, holds none of the truth's object voxels).
 
 Each sample's result is kept in runs/compare/<NAME>/<sample>.json as soon as it is measured (with
 the checkpoints it was measured for; a file for other checkpoints is measured again), so an
@@ -47,13 +51,15 @@ from rich.progress import track
 from experiments.common import RESULTS, RUNS
 from scube_sim.atomic import atomic_path
 from scube_sim.camera.frames import chunk_to_world
-from scube_sim.model.completion.merge import CompletionConfig
+from scube_sim.model.completion.merge import GROUND_IDS, CompletionConfig
 from scube_sim.model.converter import Converter, load_profile, open_frames
 from scube_sim.model.eval import sensor_to_sensor as s2s
 from scube_sim.model.evidence import measure_evidence
 from scube_sim.transforms import invert_pose
+from scube_sim.worlds.groundtruth import CHUNK_CORNER
 
 ALONE = s2s.SCENES[1]
+CLEAR_MARGIN_M = 1.0
 CHANGED_M = 0.5  # a ray's |dr| grown (shrunk) by more than this: made worse (better)
 PAIRED_COUNTS = ("rays", "both", "worse", "better", "gained", "lost")
 GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "completion_removed_share",
@@ -74,6 +80,27 @@ def paired(reference: np.ndarray, rays: np.ndarray, alone: np.ndarray, completed
             "gained": int(gained.sum()), "lost": int(lost.sum()),
             "gained_median_m": float(np.median(err_c[gained])) if gained.any() else float("nan"),
             "lost_median_m": float(np.median(err_a[lost])) if lost.any() else float("nan")}
+
+
+def pose_clear(voxels: dict, ahead: float, margin: float = CLEAR_MARGIN_M) -> bool:
+    """Whether a car stands clear `ahead` metres along the chunk's x axis (module docstring): no
+    object voxel of the truth (`voxels.npz`: coarse_ijk from `CHUNK_CORNER`, coarse_labels) inside
+    the ego's box there, grown by `margin` metres sideways and lengthways (chunk frame, road at z 0)."""
+    lo = np.array(CompletionConfig.model_fields["ego_box_min"].default) + [ahead - margin, -margin, 0.0]
+    hi = np.array(CompletionConfig.model_fields["ego_box_max"].default) + [ahead + margin, margin, 0.0]
+    objects = ~np.isin(np.asarray(voxels["coarse_labels"], np.int64), GROUND_IDS)
+    ijk = np.asarray(voxels["coarse_ijk"], np.int64)[objects]
+    centres = CHUNK_CORNER + (ijk + 0.5) * float(voxels["coarse_voxel_size"])
+    return not bool(np.any(np.all((centres >= lo) & (centres <= hi), axis=1)))
+
+
+def clear_only(samples: list[dict], clear: dict[tuple[str, float], bool]) -> list[dict]:
+    """The samples with only the rows and ray-by-ray rows of the poses `clear` holds True for, by
+    (sample, metres ahead)."""
+    def keep(rows: list[dict], name: str) -> list[dict]:
+        return [r for r in rows if clear[(name, r["ahead_m"])]]
+    return [{**s, "rows": keep(s["rows"], s["sample"]),
+             "paired": {n: keep(rs, s["sample"]) for n, rs in s.get("paired", {}).items()}} for s in samples]
 
 
 def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
@@ -152,11 +179,56 @@ def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints
         with atomic_path(work / f"{d.name}.json") as tmp:
             Path(tmp).write_text(json.dumps(res), encoding="utf-8")
     samples = [s for s in (done(d) for d in dirs) if s is not None]
+    clear = {}
+    for s in samples:
+        with np.load(Path(data) / split / s["sample"] / "voxels.npz") as z:
+            vox = {k: z[k] for k in ("coarse_ijk", "coarse_labels", "coarse_voxel_size")}
+        clear.update({(s["sample"], a): pose_clear(vox, a) for a in {r["ahead_m"] for r in s["rows"]}})
+    kept = clear_only(samples, clear)
     grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
             for name in checkpoints}
     return {"split": split, "profile": profile, "checkpoints": checkpoints, "merges": merges, "samples_n": len(samples),
             "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid,
-            "paired": summarise_paired(samples, checkpoints), "samples": samples}
+            "paired": summarise_paired(samples, checkpoints),
+            "clear_poses": {f"{a:g}": sum(v for (_, b), v in clear.items() if b == a)
+                            for a in sorted({b for _, b in clear})},
+            "clear": {"rows": s2s.summarise_rows(kept), "paired": summarise_paired(kept, checkpoints)},
+            "samples": samples}
+
+
+def rows_table(rows: list[dict], names: list[str]) -> list[str]:
+    """Markdown: per distance ahead and split, each scene's median |dr| / p90 / returns."""
+    lines = ["| ahead | rays | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    by = {(r["ahead_m"], r["split"], r["scene"]): r for r in rows}
+    for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in rows):
+        cells = []
+        for n in names:
+            r = by.get((ahead, split, n))
+            cells.append("-" if r is None else f"{r['median_m']:.3f} / {r['p90_m']:.2f} / {100 * r['hit_agreement']:.1f} %")
+        lines.append(f"| {ahead:.0f} m {split} | {by.get((ahead, split, ALONE), {}).get('rays', '-')} | "
+                     + " | ".join(cells) + " |")
+    return lines
+
+
+def paired_table(paired_rows: list[dict], names: list[str]) -> list[str]:
+    """Markdown: per distance ahead and split, each checkpoint's ray-by-ray shares (`paired`)."""
+    lines = [f"Ray by ray against the evidence alone, shares of the mesh's returns: made worse / better by "
+             f"over {CHANGED_M} m (both return) ; returned where the evidence alone returned nothing "
+             f"(their median |dr|) ; no longer returned (the evidence alone's median |dr| on them).", "",
+             "| ahead | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
+    pb = {(r["ahead_m"], r["split"], r["scene"]): r for r in paired_rows}
+    for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in paired_rows):
+        cells = []
+        for n in names:
+            r = pb.get((ahead, split, n))
+            if r is None:
+                cells.append("-")
+                continue
+            pct = {k: 100 * r[k] / max(r["rays"], 1) for k in PAIRED_COUNTS}
+            cells.append(f"{pct['worse']:.2f} / {pct['better']:.2f} % ; {pct['gained']:.2f} % "
+                         f"({r['gained_median_m']:.2f} m) ; {pct['lost']:.2f} % ({r['lost_median_m']:.2f} m)")
+        lines.append(f"| {ahead:.0f} m {split} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def table(res: dict) -> list[str]:
@@ -164,36 +236,19 @@ def table(res: dict) -> list[str]:
     lines = [f"# Completions on one measurement: {res['samples_n']} {res['split']} worlds"
              f" (of {res.get('samples_of', res['samples_n'])}), profile {res['profile']}",
              "", "HDL-64E against the mesh; median |dr| m / p90 m / share of the mesh's returns returned.", "",
-             "| ahead | rays | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
-    by = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["rows"]}
-    for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in res["rows"]):
-        cells = []
-        for n in names:
-            r = by.get((ahead, split, n))
-            cells.append("-" if r is None else f"{r['median_m']:.3f} / {r['p90_m']:.2f} / {100 * r['hit_agreement']:.1f} %")
-        lines.append(f"| {ahead:.0f} m {split} | {by.get((ahead, split, ALONE), {}).get('rays', '-')} | "
-                     + " | ".join(cells) + " |")
+             *rows_table(res["rows"], names)]
     lines += ["", "| checkpoint | " + " | ".join(GRID_KEYS) + " |", "|---|" + "---|" * len(GRID_KEYS)]
     for name, g in res["grid"].items():
         merge = "".join(f", {k} {v}" for k, v in res.get("merges", {}).get(name, {}).items())
         lines.append(f"| {name} ({res['checkpoints'][name]}{merge}) | " + " | ".join(f"{g[k]:.4g}" for k in GRID_KEYS) + " |")
     if res.get("paired"):
-        lines += ["", f"Ray by ray against the evidence alone, shares of the mesh's returns: made worse / better by "
-                      f"over {CHANGED_M} m (both return) ; returned where the evidence alone returned nothing "
-                      f"(their median |dr|) ; no longer returned (the evidence alone's median |dr| on them).", "",
-                  "| ahead | " + " | ".join(res["checkpoints"]) + " |", "|---|" + "---|" * len(res["checkpoints"])]
-        pb = {(r["ahead_m"], r["split"], r["scene"]): r for r in res["paired"]}
-        for ahead, split in dict.fromkeys((r["ahead_m"], r["split"]) for r in res["paired"]):
-            cells = []
-            for n in res["checkpoints"]:
-                r = pb.get((ahead, split, n))
-                if r is None:
-                    cells.append("-")
-                    continue
-                pct = {k: 100 * r[k] / max(r["rays"], 1) for k in PAIRED_COUNTS}
-                cells.append(f"{pct['worse']:.2f} / {pct['better']:.2f} % ; {pct['gained']:.2f} % "
-                             f"({r['gained_median_m']:.2f} m) ; {pct['lost']:.2f} % ({r['lost_median_m']:.2f} m)")
-            lines.append(f"| {ahead:.0f} m {split} | " + " | ".join(cells) + " |")
+        lines += ["", *paired_table(res["paired"], list(res["checkpoints"]))]
+    if res.get("clear"):
+        counts = ", ".join(f"{n} at {a} m" for a, n in res["clear_poses"].items())
+        lines += ["", f"## The poses a car can stand at ({counts} of {res['samples_n']}: the ego's box and "
+                      f"{CLEAR_MARGIN_M:g} m around it free of the truth's objects)", "",
+                  *rows_table(res["clear"]["rows"], names), "",
+                  *paired_table(res["clear"]["paired"], list(res["checkpoints"]))]
     return lines
 
 
