@@ -28,8 +28,8 @@ returned, moves the median without making a ray worse: the ray-by-ray figures te
 
 The LiDAR is driven straight along the ego's heading, and where the road bends the pose 20 or 60 m
 on can stand inside or against a building. So both tables are given again over the poses a car
-can stand at (`pose_clear`: the ego's box, `CompletionConfig.ego_box_min` / `max`, grown by
-`CLEAR_MARGIN_M` sideways and lengthways, holds none of the truth's object voxels).
+can stand at (`model.eval.sensor_to_sensor.pose_clear`: the ego's box, grown by 1 m sideways and
+lengthways, holds none of the truth's object voxels).
 
 Each sample's result is kept in runs/compare/<NAME>/<sample>.json as soon as it is measured (with
 the checkpoints it was measured for; a file for other checkpoints is measured again), so an
@@ -51,15 +51,13 @@ from rich.progress import track
 from experiments.common import RESULTS, RUNS
 from scube_sim.atomic import atomic_path
 from scube_sim.camera.frames import chunk_to_world
-from scube_sim.model.completion.merge import GROUND_IDS, CompletionConfig
+from scube_sim.model.completion.merge import CompletionConfig
 from scube_sim.model.converter import Converter, load_profile, open_frames
 from scube_sim.model.eval import sensor_to_sensor as s2s
 from scube_sim.model.evidence import measure_evidence
 from scube_sim.transforms import invert_pose
-from scube_sim.worlds.groundtruth import CHUNK_CORNER
 
 ALONE = s2s.SCENES[1]
-CLEAR_MARGIN_M = 1.0
 CHANGED_M = 0.5  # a ray's |dr| grown (shrunk) by more than this: made worse (better)
 PAIRED_COUNTS = ("rays", "both", "worse", "better", "gained", "lost")
 GRID_KEYS = ("completion_iou", "completion_miou", "completion_added_cells", "completion_removed_share",
@@ -80,18 +78,6 @@ def paired(reference: np.ndarray, rays: np.ndarray, alone: np.ndarray, completed
             "gained": int(gained.sum()), "lost": int(lost.sum()),
             "gained_median_m": float(np.median(err_c[gained])) if gained.any() else float("nan"),
             "lost_median_m": float(np.median(err_a[lost])) if lost.any() else float("nan")}
-
-
-def pose_clear(voxels: dict, ahead: float, margin: float = CLEAR_MARGIN_M) -> bool:
-    """Whether a car stands clear `ahead` metres along the chunk's x axis (module docstring): no
-    object voxel of the truth (`voxels.npz`: coarse_ijk from `CHUNK_CORNER`, coarse_labels) inside
-    the ego's box there, grown by `margin` metres sideways and lengthways (chunk frame, road at z 0)."""
-    lo = np.array(CompletionConfig.model_fields["ego_box_min"].default) + [ahead - margin, -margin, 0.0]
-    hi = np.array(CompletionConfig.model_fields["ego_box_max"].default) + [ahead + margin, margin, 0.0]
-    objects = ~np.isin(np.asarray(voxels["coarse_labels"], np.int64), GROUND_IDS)
-    ijk = np.asarray(voxels["coarse_ijk"], np.int64)[objects]
-    centres = CHUNK_CORNER + (ijk + 0.5) * float(voxels["coarse_voxel_size"])
-    return not bool(np.any(np.all((centres >= lo) & (centres <= hi), axis=1)))
 
 
 def clear_only(samples: list[dict], clear: dict[tuple[str, float], bool]) -> list[dict]:
@@ -183,7 +169,7 @@ def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints
     for s in samples:
         with np.load(Path(data) / split / s["sample"] / "voxels.npz") as z:
             vox = {k: z[k] for k in ("coarse_ijk", "coarse_labels", "coarse_voxel_size")}
-        clear.update({(s["sample"], a): pose_clear(vox, a) for a in {r["ahead_m"] for r in s["rows"]}})
+        clear.update({(s["sample"], a): s2s.pose_clear(vox, a) for a in {r["ahead_m"] for r in s["rows"]}})
     kept = clear_only(samples, clear)
     grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
             for name in checkpoints}
@@ -246,7 +232,7 @@ def table(res: dict) -> list[str]:
     if res.get("clear"):
         counts = ", ".join(f"{n} at {a} m" for a, n in res["clear_poses"].items())
         lines += ["", f"## The poses a car can stand at ({counts} of {res['samples_n']}: the ego's box and "
-                      f"{CLEAR_MARGIN_M:g} m around it free of the truth's objects)", "",
+                      f"{s2s.CLEAR_MARGIN_M:g} m around it free of the truth's objects)", "",
                   *rows_table(res["clear"]["rows"], names), "",
                   *paired_table(res["clear"]["paired"], list(res["checkpoints"]))]
     return lines

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from experiments.completion_compare import PAIRED_COUNTS, clear_only, paired, pose_clear, summarise_paired
-from scube_sim.labels import label_id
-from scube_sim.worlds.groundtruth import CHUNK_CORNER
+from experiments.completion_compare import PAIRED_COUNTS, clear_only, paired, summarise_paired
 
 
 def test_paired_tells_rays_made_worse_from_rays_gained_on_hand_made_range_images():
@@ -35,18 +33,6 @@ def test_summarise_paired_sums_counts_and_weights_the_gained_median_by_its_rays(
     (got,) = summarise_paired(samples, ["c"])
     assert (got["rays"], got["both"], got["worse"], got["better"], got["gained"]) == (30, 24, 3, 6, 4)
     assert got["gained_median_m"] == pytest.approx(1.0) and np.isnan(got["lost_median_m"])
-
-
-def test_pose_clear_finds_an_object_voxel_in_the_ego_box_grown_by_the_margin():
-    size = 0.4
-    # one building voxel whose centre lies 1.5 m to the side of the ego 60 m on, 0.8 m up
-    centre = np.array([61.0, -1.5, 0.8])
-    ijk = np.floor((centre - CHUNK_CORNER) / size).astype(np.int16)[None]
-    vox = {"coarse_ijk": ijk, "coarse_labels": np.array([label_id("building")], np.uint8), "coarse_voxel_size": size}
-    # the box reaches 1.1 m to each side: clear without a margin, not with the 1 m one; 20 m on, clear
-    assert pose_clear(vox, 60.0, margin=0.0) and not pose_clear(vox, 60.0) and pose_clear(vox, 20.0)
-    road = {**vox, "coarse_labels": np.array([label_id("road")], np.uint8)}
-    assert pose_clear(road, 60.0)  # the ground never blocks
 
 
 def test_clear_only_keeps_the_rows_of_the_clear_poses():

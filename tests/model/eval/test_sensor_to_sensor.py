@@ -16,9 +16,11 @@ from scube_sim.labels import label_id
 from scube_sim.model.converter import Converter, load_profile
 from scube_sim.model.eval.sensor_to_sensor import (
     ahead_poses,
+    clear_rows,
     evaluate_sample,
     evaluate_split,
     geometric_lidar,
+    pose_clear,
     seen_labels,
     seen_points,
     sweep_metrics,
@@ -43,6 +45,31 @@ def test_sweep_metrics_on_hand_made_range_images_and_parallel_planes():
     assert m["chamfer_m"] == pytest.approx(0.3)  # planes 0.3 m apart, the same grid
     none = sweep_metrics(ref, np.full_like(ref, np.nan), rays, g, g[:0])
     assert none["hit_agreement"] == 0 and np.isnan(none["median_m"]) and np.isnan(none["chamfer_m"])
+
+
+def test_pose_clear_finds_an_object_voxel_in_the_ego_box_grown_by_the_margin():
+    size = 0.4
+    # one building voxel whose centre lies 1.5 m to the side of the ego 60 m on, 0.8 m up
+    centre = np.array([61.0, -1.5, 0.8])
+    ijk = np.floor((centre - CHUNK_CORNER) / size).astype(np.int16)[None]
+    vox = {"coarse_ijk": ijk, "coarse_labels": np.array([label_id("building")], np.uint8), "coarse_voxel_size": size}
+    # the box reaches 1.1 m to each side: clear without a margin, not with the 1 m one; 20 m on, clear
+    assert pose_clear(vox, 60.0, margin=0.0) and not pose_clear(vox, 60.0) and pose_clear(vox, 20.0)
+    road = {**vox, "coarse_labels": np.array([label_id("road")], np.uint8)}
+    assert pose_clear(road, 60.0)  # the ground never blocks
+
+
+
+def test_clear_rows_summarise_the_rows_of_the_poses_a_car_can_stand_at():
+    row = {"scene": "converted", "split": "all", "rays": 10, "median_m": 1.0, "p90_m": 2.0, "hit_agreement": 1.0,
+           "chamfer_m": 0.5}
+    samples = [{"rows": [{**row, "ahead_m": 0.0}, {**row, "ahead_m": 60.0, "median_m": 9.0}],
+                "pose_clear": {"0": True, "60": False}},
+               {"rows": [{**row, "ahead_m": 0.0, "median_m": 3.0}, {**row, "ahead_m": 60.0, "median_m": 5.0}],
+                "pose_clear": {"0": True, "60": True}}]
+    got = {r["ahead_m"]: r for r in clear_rows(samples)}
+    assert got[0.0]["rays"] == 20 and got[0.0]["median_m"] == pytest.approx(2.0)
+    assert got[60.0]["rays"] == 10 and got[60.0]["median_m"] == pytest.approx(5.0)
 
 
 def test_ahead_poses_move_the_sensor_along_the_ego_heading_in_the_world():
@@ -83,6 +110,8 @@ def test_cli_eval_sensor_to_sensor_on_a_tiny_worlds_split(tiny_converter, tmp_pa
     assert res["samples_n"] == 1 and res["split"] == "test"
     rows = {(x["scene"], x["ahead_m"], x["split"]): x for x in res["rows"]}
     assert {k[1] for k in rows} == {0.0, 20.0, 60.0}
+    assert set(res["clear_poses"]) == {"0", "20", "60"} and all(0 <= n <= 1 for n in res["clear_poses"].values())
+    assert res["samples"][0]["pose_clear"] == {a: bool(n) for a, n in res["clear_poses"].items()}
     for ahead in (0.0, 20.0, 60.0):
         for scene in ("ground-truth VoxSplat", "converted"):
             a, s, u, so, sg = (rows[(scene, ahead, k)] for k in ("all", "seen", "unseen", "seen-obj", "seen-gnd"))
