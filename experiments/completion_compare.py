@@ -80,13 +80,11 @@ def paired(reference: np.ndarray, rays: np.ndarray, alone: np.ndarray, completed
             "lost_median_m": float(np.median(err_a[lost])) if lost.any() else float("nan")}
 
 
-def clear_only(samples: list[dict], clear: dict[tuple[str, float], bool]) -> list[dict]:
-    """The samples with only the rows and ray-by-ray rows of the poses `clear` holds True for, by
-    (sample, metres ahead)."""
-    def keep(rows: list[dict], name: str) -> list[dict]:
-        return [r for r in rows if clear[(name, r["ahead_m"])]]
-    return [{**s, "rows": keep(s["rows"], s["sample"]),
-             "paired": {n: keep(rs, s["sample"]) for n, rs in s.get("paired", {}).items()}} for s in samples]
+def clear_only(samples: list[dict]) -> list[dict]:
+    """The samples with only the ray-by-ray rows of the poses a car can stand at (each sample's
+    ``pose_clear``, as `eval sensor-to-sensor` gives it)."""
+    return [{**s, "paired": {n: [r for r in rs if s["pose_clear"][f"{r['ahead_m']:g}"]]
+                             for n, rs in s.get("paired", {}).items()}} for s in samples]
 
 
 def measure_sample(d: Path, base, convs: dict, lidar, cache: dict) -> dict:
@@ -165,20 +163,17 @@ def compare(data: Path, split: str, limit: int | None, profile: str, checkpoints
         with atomic_path(work / f"{d.name}.json") as tmp:
             Path(tmp).write_text(json.dumps(res), encoding="utf-8")
     samples = [s for s in (done(d) for d in dirs) if s is not None]
-    clear = {}
-    for s in samples:
+    for s in samples:  # measured before the eval gave it: from the truth's voxels, as the eval does
         with np.load(Path(data) / split / s["sample"] / "voxels.npz") as z:
             vox = {k: z[k] for k in ("coarse_ijk", "coarse_labels", "coarse_voxel_size")}
-        clear.update({(s["sample"], a): s2s.pose_clear(vox, a) for a in {r["ahead_m"] for r in s["rows"]}})
-    kept = clear_only(samples, clear)
+        s["pose_clear"] = {f"{a:g}": s2s.pose_clear(vox, a) for a in sorted({r["ahead_m"] for r in s["rows"]})}
     grid = {name: {k: float(np.nanmean([s["stages"][name][k] for s in samples])) for k in GRID_KEYS}
             for name in checkpoints}
     return {"split": split, "profile": profile, "checkpoints": checkpoints, "merges": merges, "samples_n": len(samples),
             "samples_of": len(dirs), "rows": s2s.summarise_rows(samples), "grid": grid,
             "paired": summarise_paired(samples, checkpoints),
-            "clear_poses": {f"{a:g}": sum(v for (_, b), v in clear.items() if b == a)
-                            for a in sorted({b for _, b in clear})},
-            "clear": {"rows": s2s.summarise_rows(kept), "paired": summarise_paired(kept, checkpoints)},
+            "clear_poses": {a: sum(s["pose_clear"][a] for s in samples) for a in samples[0]["pose_clear"]},
+            "clear": {"rows": s2s.clear_rows(samples), "paired": summarise_paired(clear_only(samples), checkpoints)},
             "samples": samples}
 
 

@@ -35,8 +35,8 @@ def test_summarise_paired_sums_counts_and_weights_the_gained_median_by_its_rays(
     assert got["gained_median_m"] == pytest.approx(1.0) and np.isnan(got["lost_median_m"])
 
 
-def test_clear_only_keeps_the_rows_of_the_clear_poses():
-    samples = [{"sample": "a", "rows": [{"ahead_m": 0.0}, {"ahead_m": 60.0}],
+def test_clear_only_keeps_the_ray_by_ray_rows_of_the_clear_poses():
+    samples = [{"sample": "a", "rows": [{"ahead_m": 0.0}, {"ahead_m": 60.0}], "pose_clear": {"0": True, "60": False},
                 "paired": {"c": [{"ahead_m": 0.0}, {"ahead_m": 60.0}]}}]
-    (got,) = clear_only(samples, {("a", 0.0): True, ("a", 60.0): False})
-    assert got["rows"] == [{"ahead_m": 0.0}] and got["paired"] == {"c": [{"ahead_m": 0.0}]}
+    (got,) = clear_only(samples)
+    assert got["paired"] == {"c": [{"ahead_m": 0.0}]} and got["rows"] == samples[0]["rows"]
