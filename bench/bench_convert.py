@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from scube_sim.converter.frames import open_frames
+from scube_sim.converter.pipeline import Converter
 from scube_sim.datasets import open_dataset
-from scube_sim.model.converter import Converter, open_frames
 
 from .common import BENCH_DIR, write_results
 

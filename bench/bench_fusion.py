@@ -1,7 +1,7 @@
 """The evidence route after stereo on the compiled core against the NumPy walk (issue 44's cost).
 
 The fusion carves free space along every confident pixel's ray (`model/geometry/fusion.py`,
-`_misses`): the walk runs in the compiled trace core (`_core.carve_misses`) or in NumPy, to the
+`_misses`): the walk runs in the compiled trace core (`compiled.carve_misses`) or in NumPy, to the
 same bytes. This fuses the depth maps of worlds test sample 0 (made on the fly, as `worlds
 generate` makes it) at the `evidence` profile's references (T, T-3 and T+3: 15 maps of the five
 cameras) with each, in the same process, interleaved: seconds (best
@@ -31,8 +31,8 @@ def _observations(profile):
     at the profile's references (exact depth, confidence 1, chunk frame), the chunk's corner and
     world -> chunk."""
     from scube_sim.camera.frames import chunk_to_world
-    from scube_sim.model.evidence import grid_corner
-    from scube_sim.model.geometry.fusion import DepthObservation
+    from scube_sim.reconstruct.evidence import grid_corner
+    from scube_sim.reconstruct.fusion import DepthObservation
     from scube_sim.transforms import invert_pose
     from scube_sim.worlds.dataset import DatasetConfig, make_sample, sample_frames
 
@@ -61,9 +61,10 @@ def _same(a, b) -> bool:
 
 
 def run(repeats: int = 2) -> list[dict]:
-    from scube_sim.model.converter import load_profile
-    from scube_sim.model.evidence import fuse_evidence, fusion_config, scene_from_evidence
-    from scube_sim.model.geometry.fusion import fuse_depth
+    from scube_sim.converter.profile import load_profile
+    from scube_sim.reconstruct.evidence import fuse_evidence, fusion_config
+    from scube_sim.reconstruct.fusion import fuse_depth
+    from scube_sim.reconstruct.surfels import scene_from_evidence
 
     if not compiled.available():
         raise SystemExit(f"the compiled core is not built: {compiled.load_error()}")

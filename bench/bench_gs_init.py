@@ -29,8 +29,8 @@ import numpy as np
 import torch
 from rich.progress import track
 
+from scube_sim.converter.pipeline import Converter
 from scube_sim.io.ply3dgs import read_3dgs_ply, write_3dgs_ply
-from scube_sim.model.converter import Converter
 from scube_sim.model.nn.image_metrics import psnr
 from scube_sim.model.nn.splat_render import rasterization
 from scube_sim.transforms import invert_pose

@@ -30,8 +30,8 @@ import json
 import numpy as np
 from rich.progress import track
 
-from scube_sim.model.converter import Converter
-from scube_sim.model.eval.sensor_to_sensor import geometric_lidar
+from scube_sim.converter.eval.sensor_to_sensor import geometric_lidar
+from scube_sim.converter.pipeline import Converter
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.runs.scenario import route_stops
 from scube_sim.sim.converted import remove_boxes, scene_part

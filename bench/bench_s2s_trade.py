@@ -25,8 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from scube_sim.model.converter import Converter, load_profile
-from scube_sim.model.eval.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
+from scube_sim.converter.eval.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
+from scube_sim.converter.pipeline import Converter
+from scube_sim.converter.profile import load_profile
 
 from .common import BENCH_DIR, write_results
 

@@ -35,7 +35,7 @@ def _same_scene(a, b) -> bool:
 
 
 def run(repeats: int = 2) -> list[dict]:
-    from scube_sim.model.converter import Converter
+    from scube_sim.converter.pipeline import Converter
     from scube_sim.runs.demo import DEFAULT_WORLD, FRAMES_SCALE
     from scube_sim.worlds.dataset import render_frames
     from scube_sim.worlds.generator import generate_world

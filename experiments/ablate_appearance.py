@@ -45,7 +45,7 @@ def _config(base: dict, variant: dict, steps: int, threads: int | None) -> dict:
 
 def main(argv=None) -> None:
     from scube_sim.model.config import load_config
-    from scube_sim.model.eval.evaluate import evaluate
+    from scube_sim.model.evaluate import evaluate
     from scube_sim.model.stages import get_stage
     from scube_sim.model.trainer import LAST, train
 

@@ -99,7 +99,7 @@ def _cached_row(args, tag: str, measure) -> dict:
 def _train_and_evaluate(stage, name: str, cfg: dict, args, rows: list) -> Path:
     from scube_sim.model.checkpoint import load_checkpoint
     from scube_sim.model.config import load_config
-    from scube_sim.model.eval.evaluate import evaluate
+    from scube_sim.model.evaluate import evaluate
     from scube_sim.model.trainer import LAST, train
 
     tag = "".join(c for c in name if c.isalnum() or c in " -").replace(" ", "-")
@@ -149,7 +149,7 @@ def vae_of(checkpoint: str, template: str, work: Path) -> Path:
 
 def checkpoint_row(checkpoint: Path, args) -> dict:
     """A trained model (a path or a shipped checkpoint's name) evaluated on the eval split."""
-    from scube_sim.model.eval.evaluate import evaluate
+    from scube_sim.model.evaluate import evaluate
     from scube_sim.model.stages import get_stage
 
     m = evaluate(get_stage("geometry"), checkpoint, args.data, split=args.eval_split, progress=True)
@@ -242,7 +242,7 @@ def mean_scene_row(args) -> dict:
 def ddim_trade(checkpoint: Path, args) -> list[dict]:
     """IoU, seconds and peak memory per sample against the number of DDIM steps."""
     from scube_sim.model.checkpoint import load_model
-    from scube_sim.model.eval.evaluate import evaluate_model
+    from scube_sim.model.evaluate import evaluate_model
     from scube_sim.model.geometry.data import GeometryDataConfig
     from scube_sim.model.stages import get_stage
 

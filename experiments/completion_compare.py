@@ -2,7 +2,7 @@
 against the latent diffusion at the same budget, a new checkpoint against the shipped one).
 
 Per worlds sample: the evidence is measured once with the profile's settings
-(`model.evidence.measure_evidence`), then each checkpoint's converter builds its scene from that
+(`reconstruct.evidence.measure_evidence`), then each checkpoint's converter builds its scene from that
 measurement (`Converter.convert(..., evidence=)`) and `eval sensor-to-sensor`'s `evaluate_sample`
 scores it (HDL-64E at the input pose, 20 m and 60 m ahead, against the mesh; the ground-truth
 sweeps regenerated once). The evidence alone is scored once: it is the same scene for every
@@ -12,7 +12,7 @@ checkpoint. Stereo, the costly part, runs once a sample instead of once per chec
         --checkpoint shipped=completion-cpu --checkpoint direct=runs/completion-v2/last.pt [--name NAME] \\
         [--shard I/N] [--merge direct.footprint_height_m=0]
 
-`--merge NAME.FIELD=VALUE` sets one of the merge's settings (`completion.merge.CompletionConfig`;
+`--merge NAME.FIELD=VALUE` sets one of the merge's settings (`converter.merge.CompletionConfig`;
 VALUE read as JSON) for the checkpoint of that NAME: the same network under two merges is two
 NAMEs of one checkpoint.
 
@@ -28,7 +28,7 @@ returned, moves the median without making a ray worse: the ray-by-ray figures te
 
 The LiDAR is driven straight along the ego's heading, and where the road bends the pose 20 or 60 m
 on can stand inside or against a building. So both tables are given again over the poses a car
-can stand at (`model.eval.sensor_to_sensor.pose_clear`: the ego's box, grown by 1 m sideways and
+can stand at (`converter.eval.sensor_to_sensor.pose_clear`: the ego's box, grown by 1 m sideways and
 lengthways, holds none of the truth's object voxels).
 
 Each sample's result is kept in runs/compare/<NAME>/<sample>.json as soon as it is measured (with
@@ -51,10 +51,12 @@ from rich.progress import track
 from experiments.common import RESULTS, RUNS
 from scube_sim.atomic import atomic_path
 from scube_sim.camera.frames import chunk_to_world
-from scube_sim.model.completion.merge import CompletionConfig
-from scube_sim.model.converter import Converter, load_profile, open_frames
-from scube_sim.model.eval import sensor_to_sensor as s2s
-from scube_sim.model.evidence import measure_evidence
+from scube_sim.converter.eval import sensor_to_sensor as s2s
+from scube_sim.converter.frames import open_frames
+from scube_sim.converter.merge import CompletionConfig
+from scube_sim.converter.pipeline import Converter
+from scube_sim.converter.profile import load_profile
+from scube_sim.reconstruct.evidence import measure_evidence
 from scube_sim.transforms import invert_pose
 
 ALONE = s2s.SCENES[1]

@@ -70,7 +70,8 @@ def _row(name: str, which: str, report: dict) -> dict:
 
 
 def main(argv=None) -> None:
-    from scube_sim.model.converter import Converter, open_frames
+    from scube_sim.converter.frames import open_frames
+    from scube_sim.converter.pipeline import Converter
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--profile", default="evidence-complete")

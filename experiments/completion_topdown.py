@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import RESULTS
-from scube_sim.model.completion.merge import GROUND_IDS
-from scube_sim.model.converter import Converter, open_frames
-from scube_sim.model.eval import sensor_to_sensor as s2s
+from scube_sim.converter.eval import sensor_to_sensor as s2s
+from scube_sim.converter.frames import open_frames
+from scube_sim.converter.merge import GROUND_IDS
+from scube_sim.converter.pipeline import Converter
 from scube_sim.viz import pyplot, save_png
 from scube_sim.voxsplat import voxel_keys
 from scube_sim.worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE

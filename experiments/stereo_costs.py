@@ -2,10 +2,10 @@
 
 One camera, two instants (issues 42/43): the reference at T and a source two frames earlier
 (T - 0.2 s at 10 Hz), and a second configuration with two sources (T - 2 and T + 2 frames, their
-costs averaged where both see the pixel: `stereo.combine_costs`). Each cost (`stereo.sweep_cost`:
+costs averaged where both see the pixel: `reconstruct.stereo.combine_costs`). Each cost (`reconstruct.stereo.sweep_cost`:
 'ad' absolute grey difference, 'ncc' 1 - zero-mean NCC, 'census' Hamming distance of the census
 on the warped image, and 'census_source' the census of the source warped by nearest sampling,
-the alternative `stereo.sweep` did not choose) with the same 7 x 7 window (the census transform's
+the alternative `reconstruct.stereo.sweep` did not choose) with the same 7 x 7 window (the census transform's
 and every cost's aggregation window) over the same 128 hypotheses uniform in inverse depth from
 2 m to 90 m (0.5 m would spend three quarters of them below 2 m), then winner-take-all depth
 with the parabola refinement.
@@ -22,7 +22,7 @@ Data:
 - KITTI-360: the 20-frame excerpt, frames `--kitti-frames` (default 6, 10, 14) with the
   context of `datasets.base.frames_with_context` (ICP-estimated poses: estimates), swept at half
   resolution (704 x 188: each full-resolution pixel takes its half-resolution pixel's depth).
-  Ground truth as `scube-sim eval depth` takes it (`model.eval.depth.ground_truth`: the LiDAR
+  Ground truth as `scube-sim eval depth` takes it (`converter.eval.depth.ground_truth`: the LiDAR
   projected into the image, occluded returns removed); objects: returns off the LiDAR's ground
   plane.
 
@@ -51,12 +51,12 @@ from PIL import Image
 from bench.common import machine
 from scube_sim.atomic import atomic_path
 from scube_sim.camera import CameraImage, load_rig, render_camera
+from scube_sim.converter.eval.depth import ground_truth
 from scube_sim.datasets import open_dataset
 from scube_sim.datasets.base import frames_with_context
 from scube_sim.labels import GROUND_LABEL_NAMES, LABEL_IDS
-from scube_sim.model.eval.depth import ground_truth
 from scube_sim.raytrace import Tracer
-from scube_sim.stereo import combine_costs, inverse_depth_hypotheses, sweep_cost, winner_take_all
+from scube_sim.reconstruct.stereo import combine_costs, inverse_depth_hypotheses, sweep_cost, winner_take_all
 from scube_sim.transforms import invert_pose
 from scube_sim.worlds import DatasetConfig, generate_world, sample_world_config
 from scube_sim.worlds.dataset import render_frames

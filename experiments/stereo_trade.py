@@ -24,7 +24,7 @@ Data (held out: the test split and the KITTI-360 acceptance frames; nothing is t
   (about 21 s per sample on one core).
 - KITTI-360: frames `--kitti-frames` (default 4-15) of `--kitti` (default
   ../shared/data/kitti360-2013_05_28-seq next to the repository), camera image_00; ground truth the
-  projected LiDAR (`model.eval.depth.ground_truth`), objects the returns off its ground plane.
+  projected LiDAR (`converter.eval.depth.ground_truth`), objects the returns off its ground plane.
 Images, ground truth and the band scores come from experiments/stereo_tune.py (`image_sets`,
 `band_rows`).
 
@@ -69,9 +69,10 @@ import numpy as np
 import torch
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+from scube_sim.converter.eval.depth import DEFAULT_STEREO_CONFIDENCE
 from scube_sim.memory import peak_mb, reset_peak
-from scube_sim.model.eval.depth import DEFAULT_STEREO_CONFIDENCE
-from scube_sim.stereo import StereoConfig, stereo_depth
+from scube_sim.reconstruct.config import StereoConfig
+from scube_sim.reconstruct.stereo import stereo_depth
 
 from .common import EXPERIMENTS_DIR, RESULTS, write_results
 from .stereo_tune import KITTI_DEFAULT, _ints, _value, band_rows, image_sets
@@ -264,12 +265,12 @@ def pareto_front(seconds: list[float], coverage: list[float], eligible: list[boo
 
 def mover_safe(pt: dict) -> tuple[bool, float]:
     """The issue's safety case, for a point's stereo factor: the analytic planted moving object
-    without a box (tests/stereo/test_mvs.py's scene and settings, the point's StereoConfig field
+    without a box (tests/reconstruct/stereo/test_mvs.py's scene and settings, the point's StereoConfig field
     applied to them) -> (at most MAX_MOVER_WRONG of its pixels confidently wrong, that share).
     The default point: the test's settings. Factors that are no StereoConfig field, or that the
     small analytic images cannot take (scale, hypotheses: the tests sweep 128 x 96 images at scale
     1 over 64 planes), pass (NaN)."""
-    from tests.stereo.test_mvs import BOX_Z, CFG, _confident_wrong, _moving_scene
+    from tests.reconstruct.stereo.test_mvs import BOX_Z, CFG, _confident_wrong, _moving_scene
 
     default = pt["factor"] == "default"  # the test's own settings
     if not default and (pt["factor"] not in StereoConfig.model_fields or pt["factor"] in ("scale", "hypotheses")):
@@ -391,7 +392,7 @@ def write_outputs(rows, fronts, factors, subs, args) -> None:
              f"0-40 m; s_per_image, s_per_set (a sample's reference images), peak_mb. front: on the Pareto front "
              f"(min seconds per image, times within {100 * TIME_TOL:g} % tied, max coverage, min median_rel, among "
              f"delta_1.25 >= {MIN_DELTA:g} and mover_wrong <= {MAX_MOVER_WRONG:g}: the share of the planted unboxed mover "
-             f"confidently wrong, tests/stereo/test_mvs.py's scene with the point's factor; NaN: not applicable); "
+             f"confidently wrong, tests/reconstruct/stereo/test_mvs.py's scene with the point's factor; NaN: not applicable); "
              f"front_time_coverage: the same without the error. Plot: docs/{args.label}.png")
     write_results(args.label, rows, header, notes)
     plot(rows, fronts, factors, subs, DOCS / f"{args.label}.png")

@@ -9,7 +9,7 @@ defaults since semi-global aggregation were chosen on, is made by
   `--cameras` (indices into the rig, default all), with ±`--context` instants. Ground truth: the
   rendered depth map; objects: not ground (semantic labels) and not sky (no finite depth).
 - KITTI-360: frames `--kitti-frames` (default 16-19; 4-15 are the acceptance frames) of `--kitti`,
-  ground truth `model.eval.depth.ground_truth` (LiDAR projected, occluded returns removed); objects:
+  ground truth `converter.eval.depth.ground_truth` (LiDAR projected, occluded returns removed); objects:
   the returns off the LiDAR's ground plane.
 
 Scored: object pixels with ground truth in (0, 40) m, bands 0-10 / 10-20 / 20-40 m. Per band and
@@ -18,7 +18,7 @@ median |error| (m), median relative error and δ<1.25 over the confident ones. A
 confidence deciles (all pixels with a depth, 0-40 m): how well the confidence ranks errors.
 
 `--final DATASET` instead scores the default `StereoConfig` with `scube-sim eval depth`'s code
-(`model.eval.depth.evaluate_depth`, confident pixels: confidence >= 0.5) on `--final-samples` of
+(`converter.eval.depth.evaluate_depth`, confident pixels: confidence >= 0.5) on `--final-samples` of
 `--worlds`/`--split` (worlds) or `--kitti` (kitti360), and writes results/stereo_tune_<label>.json
 and its table (.md): the acceptance figures for a subset (e.g. KITTI-360 frames 4-15).
 
@@ -40,11 +40,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from scube_sim.converter.eval.depth import depth_method, evaluate_depth, format_table, ground_truth, json_ready
 from scube_sim.datasets import open_dataset
 from scube_sim.datasets.base import frames_with_context
 from scube_sim.memory import peak_mb, reset_peak
-from scube_sim.model.eval.depth import depth_method, evaluate_depth, format_table, ground_truth, json_ready
-from scube_sim.stereo import StereoConfig, stereo_depth
+from scube_sim.reconstruct.config import StereoConfig
+from scube_sim.reconstruct.stereo import stereo_depth
 
 from .common import RESULTS, write_results
 

@@ -42,8 +42,8 @@ def require(path: Path) -> Path:
 @pytest.fixture(scope="session")
 def tiny_converter(tmp_path_factory) -> dict:
     """A tiny worlds dataset and a converter profile of two few-step stages, built once per session
-    (tests/model/tiny_converter.py): {"data", "profile", "geo", "app", "sample"}."""
-    from .model.tiny_converter import build
+    (tests/converter/tiny_converter.py): {"data", "profile", "geo", "app", "sample"}."""
+    from .converter.tiny_converter import build
 
     return build(tmp_path_factory.mktemp("converter"))
 

@@ -1,9 +1,8 @@
 """What the user-facing Markdown shows of the package: its Python imports and dotted names, and its
-`scube-sim` command lines. The layout test holds every one of them to the code, and a fixture
-keeps those of the README and docs/ as they stood before the package moved to its rooms by role.
+`scube-sim` command lines. tests/test_doc_references.py holds every one of them to the code.
 
 Run as a script to print the references of README.md and docs/*.md as JSON:
-    python -m tests.doc_references > tests/fixtures/doc_references_before_house.json
+    python -m tests.doc_references
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """The README and docs hold to the code: every Python import and dotted name they show works, and
-every `scube-sim` line they show parses. The references of the README and docs as they stood
-before the package was arranged by role (tests/fixtures/doc_references_before_house.json) still
-work, or fail with a message that names their new place."""
+every `scube-sim` line they show parses."""
 
 from __future__ import annotations
 
 import importlib
-import json
-from pathlib import Path
 
 import pytest
 import typer.main
@@ -16,8 +12,6 @@ from scube_sim.cli import app
 
 from .doc_references import command_words, references
 
-FIXTURE = Path(__file__).parent / "fixtures" / "doc_references_before_house.json"
-BEFORE = json.loads(FIXTURE.read_text(encoding="utf-8"))
 NOW = references()
 
 
@@ -29,33 +23,13 @@ def _resolve(dotted: str):
         try:
             obj = importlib.import_module(".".join(parts[:cut]))
         except ModuleNotFoundError as exc:
-            if exc.name != ".".join(parts[:cut]) or "moved to" in str(exc):
+            if exc.name != ".".join(parts[:cut]):
                 raise
             continue
         for attr in parts[cut:]:
             obj = getattr(obj, attr)
         return obj
     raise AssertionError(f"{dotted}: no module of it imports")
-
-
-def _works_or_names_new_place(run) -> None:
-    try:
-        run()
-    except ImportError as exc:
-        msg = str(exc)
-        assert "moved to scube_sim." in msg, f"fails without naming the new place: {msg}"
-        new = msg.split("moved to ", 1)[1].split()[0].rstrip(",)")
-        importlib.import_module(new)  # the place named exists
-
-
-@pytest.mark.parametrize("stmt", BEFORE["imports"])
-def test_earlier_imports_work_or_name_their_new_module(stmt):
-    _works_or_names_new_place(lambda: exec(stmt, {}))
-
-
-@pytest.mark.parametrize("name", BEFORE["names"])
-def test_earlier_dotted_names_work_or_name_their_new_module(name):
-    _works_or_names_new_place(lambda: _resolve(name))
 
 
 @pytest.mark.parametrize("stmt", NOW["imports"])
@@ -91,7 +65,7 @@ def parse_command(line: str):
     return cmd
 
 
-@pytest.mark.parametrize("line", sorted(set(BEFORE["commands"]) | set(NOW["commands"])))
+@pytest.mark.parametrize("line", sorted(set(NOW["commands"])))
 def test_documented_commands_parse(line):
     parse_command(line)
 
@@ -103,12 +77,3 @@ def test_the_parser_check_can_fail():
         parse_command("scube-sim worlds teleport -o x")
     with pytest.raises(Exception, match="valid integer"):
         parse_command("scube-sim worlds generate --split test --count many -o x")
-
-
-def test_a_moved_module_names_its_new_place():
-    with pytest.raises(ModuleNotFoundError, match="moved to scube_sim.realdata.build"):
-        importlib.import_module("scube_sim.reconstruct")
-    with pytest.raises(ImportError, match=r"moved to scube_sim.runs.scenario"):
-        exec("from scube_sim.sim import Scenario", {})
-    with pytest.raises(ModuleNotFoundError, match="No module named 'scube_sim.nothing_here'$"):
-        importlib.import_module("scube_sim.nothing_here")

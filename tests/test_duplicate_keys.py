@@ -88,15 +88,15 @@ def _shipped_yamls() -> list[str]:
 
 def test_every_shipped_yaml_loads_through_the_loader():
     files = _shipped_yamls()
-    assert len(files) >= 40 and any(f.startswith("scube_sim/model/profiles/") for f in files)
+    assert len(files) >= 40 and any(f.startswith("scube_sim/converter/profiles/") for f in files)
     for f in files:
         assert load_yaml(REPO / f) is not None, f
 
 
 def test_every_shipped_yaml_validates_where_a_schema_reads_it():
     from scube_sim.camera.rig import load_rig
+    from scube_sim.converter.profile import load_profile, shipped_profiles
     from scube_sim.lidar.config import load_config_file
-    from scube_sim.model.converter import load_profile, shipped_profiles
     from scube_sim.runs.scenario import load_scenario
 
     for p in sorted((REPO / "sensors/lidar").glob("*.yaml")):
@@ -436,7 +436,7 @@ def test_batch_settings_naming_a_seed_or_sample_twice(tmp_path, job, setting, ex
 
 
 def test_schemas_refuse_a_list_naming_one_thing_twice():
-    from scube_sim.model.evidence import EvidenceConfig
+    from scube_sim.reconstruct.config import EvidenceConfig
     from scube_sim.worlds.dataset import DatasetConfig
 
     with pytest.raises(ConfigError, match=r"^d: styles: 'urban' is listed twice \(at \[0\] and \[1\]\)$"):

@@ -2,19 +2,19 @@
 
     cli           the scube-sim command
     runs          the program's jobs: scenario files, replay, the demo, batch jobs
-    middle        sim | worlds -> datasets -> stereo -> realdata, model
+    middle        sim | worlds -> datasets -> reconstruct -> realdata -> model -> converter
     sensors       raytrace camera lidar
     representation voxsplat splat_params fit scene_file io (but io.pointcloud, io.safe_pickle)
     ground        _version errors config atomic run_manifest transforms labels boxes mesh geodesy memory
-                  resources viz parallel io.pointcloud io.safe_pickle _moved _sensors
+                  resources viz parallel io.pointcloud io.safe_pickle _sensors
 
 1. Layers are folders (or top-level modules); an import goes to the module's own layer or a lower one.
 2. Inside the middle layer a room imports only the rooms before it in MIDDLE_ORDER; `sim` imports
    none of the others and none of them imports `sim`.
 3. No module but `cli` and `runs` imports the package face (`scube_sim` itself).
-4. Inside `model`: `nn` imports nothing of `model` outside `nn`; a stage (geometry, appearance,
-   semantics, depth) never imports another stage, the trainer or `eval`; the converter never
-   imports the trainer or `eval`.
+4. Inside `model`: `nn` imports nothing of `model` outside `nn`; a stage (every folder of `model`
+   that registers one with `register_stage`) never imports another stage, the trainer or the
+   evaluation (`model.evaluate`); `converter` never imports the trainer or the evaluation.
 5. Function-local imports of our own modules only in `cli`, at the `scube_sim.convert` facade,
    and in `runs` of a module that imports torch at its top (a replay of a mesh scene stays free of
    torch's start-up).
@@ -36,16 +36,16 @@ PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 LAYERS = [
     ("ground", ["_version", "errors", "config", "atomic", "run_manifest", "transforms", "labels", "resources",
                 "geodesy", "boxes", "mesh", "memory", "viz", "parallel", "io.pointcloud", "io.safe_pickle",
-                "_moved", "_sensors"]),
+                "_sensors"]),
     ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar"]),
-    ("middle", ["sim", "worlds", "datasets", "stereo", "realdata", "model"]),
+    ("middle", ["sim", "worlds", "datasets", "reconstruct", "realdata", "model", "converter"]),
     ("runs", ["runs"]),
     ("cli", ["cli"]),
 ]
 # the middle layer's sideways order: a room may import the rooms before it (sim stands alone)
-MIDDLE_ORDER = ["worlds", "datasets", "stereo", "realdata", "model"]
-STAGES = ["model.geometry", "model.appearance", "model.semantics", "model.depth"]
+MIDDLE_ORDER = ["worlds", "datasets", "reconstruct", "realdata", "model", "converter"]
+TRAINING = ["model.trainer", "model.evaluate"]
 HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools",
          # the output formats' libraries, imported when a sink or file of that kind opens
          "laspy", "lzf", "rosbags", "ruamel", "google", "mcap", "foxglove_schemas_protobuf",
@@ -53,7 +53,7 @@ HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", 
          # the optional batch executor
          "ray"}
 # (importing module, imported module) allowed as a function-local import outside cli/ and runs/
-FACADE = {("", "model.converter")}
+FACADE = {("", "converter.pipeline")}
 
 
 def _modules(package: Path = PACKAGE) -> dict[str, Path]:
@@ -175,7 +175,7 @@ def check(modules: dict[str, Path]) -> list[str]:
                     bad.append(f"{at} imports sideways between {a} and {b} (sim takes and gives none)")
                 elif MIDDLE_ORDER.index(b) > MIDDLE_ORDER.index(a):
                     bad.append(f"{at} imports sideways against the order: {a} -> {b} ({' -> '.join(MIDDLE_ORDER)})")
-            bad += _model_rules(name, target, at)
+            bad += _model_rules(name, target, at) + _converter_rules(name, target, at)
             if not top and _prefix_match(name, ["cli"]) is None and (name, target) not in FACADE:
                 if not (_prefix_match(name, ["runs"]) and target in heavy):
                     bad.append(f"{at} imports scube_sim.{target} inside a function (only cli, the facade, and runs "
@@ -198,11 +198,15 @@ def _model_rules(name: str, target: str, at: str) -> list[str]:
     mine, theirs = _prefix_match(name, STAGES), _prefix_match(target, STAGES)
     if mine and theirs and mine != theirs:
         out.append(f"{at}: stage {mine} imports another stage, {theirs}")
-    if mine and _prefix_match(target, ["model.trainer", "model.eval"]):
-        out.append(f"{at}: stage {mine} imports scube_sim.{target} (the trainer or eval)")
-    if _prefix_match(name, ["model.converter"]) and _prefix_match(target, ["model.trainer", "model.eval"]):
-        out.append(f"{at}: the converter imports scube_sim.{target} (inference without training code)")
+    if mine and _prefix_match(target, TRAINING):
+        out.append(f"{at}: stage {mine} imports scube_sim.{target} (the trainer or the evaluation)")
     return out
+
+
+def _converter_rules(name: str, target: str, at: str) -> list[str]:
+    if _prefix_match(name, ["converter"]) and _prefix_match(target, TRAINING):
+        return [f"{at}: the converter imports scube_sim.{target} (inference without training code)"]
+    return []
 
 
 def _circles(edges: dict[str, set[str]]) -> list[list[str]]:
@@ -231,6 +235,23 @@ def _circles(edges: dict[str, set[str]]) -> list[list[str]]:
 MODULES = _modules()
 
 
+def _stages(modules: dict[str, Path]) -> list[str]:
+    """The folders of `model` one of whose modules calls `register_stage` at its top: the stages."""
+    out = set()
+    for name, path in modules.items():
+        parts = name.split(".")
+        if len(parts) < 3 or parts[0] != "model":
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        if any(isinstance(n, ast.Expr) and isinstance(n.value, ast.Call) and ast.unparse(n.value.func) == "register_stage"
+               for n in tree.body):
+            out.add(".".join(parts[:2]))
+    return sorted(out)
+
+
+STAGES = _stages(MODULES)
+
+
 def test_every_module_has_a_layer():
     for name in MODULES:
         layer_of(name)
@@ -243,7 +264,8 @@ def test_the_tree_keeps_every_rule():
 
 @pytest.mark.parametrize("module, expected", [("errors", 0), ("parallel.runner", 0), ("io.usd", 1),
                                               ("io.pointcloud", 0), ("raytrace.tracer", 2), ("datasets.folder", 3),
-                                              ("sim", 3), ("model.nn.sparse", 3), ("runs.scenario", 4), ("cli", 5)])
+                                              ("sim", 3), ("model.nn.sparse", 3), ("reconstruct.stereo.mvs", 3),
+                                              ("converter.pipeline", 3), ("runs.scenario", 4), ("cli", 5)])
 def test_layer_table_reads_as_the_docstring_says(module, expected):
     assert layer_of(module) == expected
 
@@ -274,22 +296,40 @@ def test_a_stage_importing_another_stage_is_reported(tmp_path):
     assert any("stage model.appearance imports another stage, model.geometry" in b for b in bad), bad
 
 
+def test_the_stages_are_the_folders_that_register_one():
+    assert STAGES == ["model.appearance", "model.completion", "model.geometry", "model.semantics"]
+
+
+def test_the_completion_stage_importing_the_geometry_stage_is_reported(tmp_path):
+    path = "model/completion/net.py"
+    src = (PACKAGE / path).read_text() + "\nfrom ..geometry.dense_nets import StructureVAE\n"
+    bad = _planted(tmp_path, {path: src})
+    assert any("stage model.completion imports another stage, model.geometry" in b for b in bad), bad
+
+
+def test_measured_reconstruction_importing_a_network_or_the_converter_is_reported(tmp_path):
+    bad = _planted(tmp_path, {"reconstruct/extra.py": "from ..model.completion.net import CompletionNet\n",
+                              "reconstruct/other.py": "from ..converter.merge import CompletionConfig\n"})
+    assert any("reconstruct -> model" in b for b in bad), bad
+    assert any("reconstruct -> converter" in b for b in bad), bad
+
+
 def test_the_converter_importing_the_trainer_is_reported(tmp_path):
-    path = "model/converter.py"
-    bad = _planted(tmp_path, {path: (PACKAGE / path).read_text() + "\nfrom .trainer import train\n"})
+    path = "converter/pipeline.py"
+    bad = _planted(tmp_path, {path: (PACKAGE / path).read_text() + "\nfrom ..model.trainer import train\n"})
     assert any("the converter imports scube_sim.model.trainer" in b for b in bad), bad
 
 
 def test_sideways_and_face_and_local_imports_are_reported(tmp_path):
     bad = _planted(tmp_path, {
-        "worlds/extra.py": "from ..model.converter import Converter\n",
+        "worlds/extra.py": "from ..converter.pipeline import Converter\n",
         "datasets/extra.py": "from .. import VoxSplat\n",
         "lidar/extra.py": "def f():\n    from ..raytrace.tracer import Tracer\n",
         "sim/extra.py": "from ..worlds.generator import World\n",
         "model/nn/extra.py": "from ..geometry.net import GeometryNet\n",
         "io/extra.py": "def f():\n    import pxr\n\ndef g():\n    from pxr import Usd\n",
     })
-    expect = ["worlds -> model", "imports the package face", "inside a function", "between sim and worlds",
+    expect = ["worlds -> converter", "imports the package face", "inside a function", "between sim and worlds",
               "model.nn imports scube_sim.model.geometry.net", "imports pxr in 2 places"]
     for e in expect:
         assert any(e in b for b in bad), (e, bad)

@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 
 from scube_sim import memory
 from scube_sim.cli import app
+from scube_sim.converter.profile import PROFILE_DIR
 from scube_sim.errors import InputError
-from scube_sim.model.converter import PROFILE_DIR
 from tests.conftest import one_line_error as one_line
 
 runner = CliRunner()

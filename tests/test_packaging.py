@@ -1,8 +1,9 @@
 """pyproject.toml lists its packages by hand: every package folder must be in the list, or a
 wheel (and a fresh editable install) would miss it."""
 
-import tomllib
 from pathlib import Path
+
+import tomllib
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -44,7 +44,8 @@ from scube_sim.camera.rig import load_rig, rig_paths
 from scube_sim.lidar.config import list_presets
 from scube_sim.model.checkpoint import load_checkpoint, load_model, shipped_checkpoints
 from scube_sim.model.config import config_names, load_config
-from scube_sim.model.converter import Converter, shipped_profiles
+from scube_sim.converter.pipeline import Converter
+from scube_sim.converter.profile import shipped_profiles
 checkpoints = shipped_checkpoints()
 for name, path in checkpoints.items():
     load_model(load_checkpoint(path)["stage"], name)

@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from ..config import CONFIDENCE_SAMPLES, CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, MAX_RANGE_M, SAMPLE_INDEX, SEED
+from ..converter.profile import DEFAULT_PROFILE
 from ._common import CliError, app, bounded, handle_errors
 
 
@@ -21,7 +22,7 @@ def convert_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
     dataset: Optional[str] = typer.Option(None, "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | waymo | folder | worlds (DIR/<split>)"),
     sample: int = typer.Option(0, "--sample", help="sample index in the dataset"),
-    profile: str = typer.Option("evidence-complete", "--profile", help="a shipped converter profile's name or a profile "
+    profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="a shipped converter profile's name or a profile "
                                 "YAML's path (evidence-complete: stereo depth fused, what no camera saw completed, "
                                 "for LiDAR; evidence: without the completion; cpu: the paper's route, with camera views)"),
     steps: Optional[int] = typer.Option(None, "--steps", help="DDIM steps of the geometry stage (default: the profile's)"),
@@ -40,7 +41,8 @@ def convert_cmd(
     """Convert posed camera frames into a VoxSplat (the SCube converter: geometry, then appearance)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from ..model.converter import Converter, open_frames
+    from ..converter.frames import open_frames
+    from ..converter.pipeline import Converter
 
     if output.suffix != ".npz":
         raise CliError(f"-o: expected a .npz path, got {output}")

@@ -1,5 +1,5 @@
-"""The converter's model commands: `train` (a stage) and `eval` (a checkpoint, the whole
-converter end to end with `eval sensor-to-sensor`, or per-pixel depth with `eval depth`)."""
+"""The converter's model commands: `train` (a stage) and `eval` (`eval stage`: a checkpoint;
+`eval sensor-to-sensor`: the whole converter end to end; `eval depth`: per-pixel camera depth)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,8 @@ from typing import Optional
 import typer
 
 from ..config import CONTEXT_INSTANTS, FINE_VOXEL_M, SEED, Range
+from ..converter.profile import DEFAULT_PROFILE
 from ._common import CliError, _fail, app, bounded, handle_errors
-
-# what `eval` evaluates besides one stage's checkpoint: the whole converter, per-pixel depth
-EVAL_MODES = ("sensor-to-sensor", "depth")
-
 
 @app.command("train")
 @handle_errors
@@ -50,70 +47,38 @@ def train_cmd(
     typer.echo(f"{st.name}: step {res.step}, epoch {res.epoch}; val {shown}{best} -> {res.last}")
 
 
-@app.command("eval")
+eval_app = typer.Typer(no_args_is_help=True, help="Evaluate a stage's checkpoint, the converter end to end, or "
+                       "camera depth.")
+app.add_typer(eval_app, name="eval")
+
+
+@eval_app.command("stage")
 @handle_errors
-@bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True), gt_voxel=FINE_VOXEL_M, seed=SEED)
-def eval_cmd(
+def eval_stage_cmd(
     stage: str = typer.Argument(..., is_eager=True, callback=lambda v: _eval_stage_name(v),
-                                help="converter stage the checkpoint belongs to (geometry-vae, geometry, "
-                                "appearance), sensor-to-sensor: the whole converter, end to end, or depth: "
-                                "per-pixel depth of the camera images against ground truth"),
+                                help="the stage the checkpoint belongs to (geometry-vae, geometry, appearance, "
+                                "voxel-semantics, completion)"),
     data: Optional[Path] = typer.Option(None, "--data", help="dataset folder (required)"),
     checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="a run's last.pt or best.pt, or a shipped "
                                              "checkpoint's name (appearance-cpu); geometry, appearance: default "
-                                             "the shipped paper-route (cpu) profile's; another stage needs it; "
-                                             "depth: the geometry checkpoint of --method mono or fused "
-                                             "(default geometry-coarse-cpu); sensor-to-sensor: none (the "
-                                             "profile names them)"),
-    dataset: Optional[str] = typer.Option(None, "--dataset", help="depth: the dataset adapter (worlds, nuscenes, "
-                                          "kitti_raw, ...); worlds: --data DIR --split S or --data DIR/<split>"),
-    method: str = typer.Option("mono", "--method", help="depth: the depth method (mono: the geometry "
-                               "checkpoint's monocular depth head; stereo: plane-sweep multi-view stereo over "
-                               "the other cameras and the --context instants, confident pixels only; fused: "
-                               "stereo where confident, the monocular head elsewhere)"),
-    context: Optional[int] = typer.Option(None, "--context", help="depth: the method sees up to K instants "
-                                          "before and after each sample (stereo needs them; default 0: the sample's "
-                                          "frames alone); sensor-to-sensor: the converter does (default: the "
-                                          "profile's, evidence 4)"),
+                                             "the shipped paper-route profile's; another stage needs it"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     data_option: list[str] = typer.Option([], "--data-option", help="KEY=VALUE: a field of the stage's data "
                                           "config to change from the checkpoint's (repeatable; VALUE is YAML), "
                                           "e.g. eval_frames=true"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
-    profile: str = typer.Option("evidence-complete", "--profile", help="sensor-to-sensor: converter profile (shipped name "
-                                "or YAML)"),
-    sensor: str = typer.Option("hdl64e", "--sensor", help="sensor-to-sensor: LiDAR preset or YAML"),
-    limit: Optional[int] = typer.Option(None, "--limit", help="sensor-to-sensor, depth: the split's (the "
-                                        "dataset's) first N samples"),
-    gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="sensor-to-sensor: the ground-truth VoxSplat's voxel (m)"),
-    seed: int = typer.Option(0, "--seed", help="sensor-to-sensor: converter and LiDAR seed"),
 ) -> None:
-    """Evaluate a checkpoint on one split of a dataset folder; `eval sensor-to-sensor` converts
-    each held-out worlds sample's cameras and sweeps a LiDAR through the result against the same
-    LiDAR on the world's mesh (model/eval/sensor_to_sensor.py); `eval depth --dataset NAME` scores a
-    depth method on each sample's camera images against the rendered depth maps, else the sample's
-    LiDAR projected into the cameras (model/eval/depth.py)."""
+    """A stage's checkpoint on one split of a dataset folder: the stage's own metrics."""
     import json
 
     from ..atomic import atomic_path
     from ..config import parse_key_values
-    from ..model.eval.evaluate import evaluate
+    from ..converter.profile import PAPER_PROFILE
+    from ..model.evaluate import evaluate
     from ..model.stages import get_stage
 
-    if data is None:
-        raise CliError("--data: required (the dataset folder)")
-    if stage == "sensor-to-sensor":
-        if checkpoint is not None:
-            raise CliError("--checkpoint: eval sensor-to-sensor uses the checkpoints its --profile names")
-        _eval_sensor_to_sensor(data, split, profile, sensor, limit, gt_voxel, seed, output, progress, context)
-        return
-    if stage == "depth":
-        if checkpoint is not None and method == "stereo":
-            raise CliError("--checkpoint: --method stereo uses no checkpoint (mono and fused do)")
-        _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context or 0)
-        return
-
+    _require_data(data)
     overrides = parse_key_values(data_option, "--data-option")
     st = get_stage(stage)
     shipped_default = checkpoint is None
@@ -128,49 +93,36 @@ def eval_cmd(
     for k, v in metrics.items():
         typer.echo(f"{k}: {v:.6g}" + (f"  (primary, {order} is better)" if k == st.primary_metric else ""))
     if shipped_default:
-        from ..model.converter import PAPER_PROFILE
-
         typer.echo(f"checkpoint: {checkpoint} (the shipped {PAPER_PROFILE} profile's {st.name} checkpoint)")
     if output is not None:
         typer.echo(f"-> {output}")
 
 
-def _eval_stage_name(stage: str) -> str:
-    """`eval`'s STAGE, checked before any option (an eager callback): a registered stage or one of
-    EVAL_MODES; otherwise one line naming it and listing what eval takes (exit 2)."""
-    from ..config import normalize_name
-    from ..model.stages import stage_names
-
-    names = stage_names()
-    if stage not in EVAL_MODES and normalize_name(stage) not in {normalize_name(n) for n in names}:
-        _fail(f"unknown stage {stage!r}; eval takes {', '.join(sorted([*names, *EVAL_MODES]))}")
-    return stage
-
-
-def _default_checkpoint(stage: str) -> str:
-    """The checkpoint `eval STAGE` uses without --checkpoint: the one the shipped paper-route
-    profile (`converter.PAPER_PROFILE`) names for the stage; a stage it names none for is an error
-    listing the shipped checkpoints of that stage."""
-    from ..model.checkpoint import load_checkpoint, shipped_checkpoints
-    from ..model.converter import PAPER_PROFILE, load_profile
-
-    prof = load_profile(PAPER_PROFILE)
-    named = {"geometry": prof.geometry.checkpoint, "appearance": prof.appearance.checkpoint}
-    if stage in named:
-        return named[stage]
-    own = [name for name, path in shipped_checkpoints().items() if load_checkpoint(path).get("stage") == stage]
-    raise CliError(f"--checkpoint: required to evaluate the {stage} stage (the shipped profiles name no {stage} "
-                   f"checkpoint); a run's last.pt or best.pt, or a shipped one: {', '.join(own) or 'none ships'}")
-
-
-def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, limit: int | None, gt_voxel: float,
-                           seed: int, output: Path | None, progress: bool, context: int | None = None) -> None:
+@eval_app.command("sensor-to-sensor")
+@handle_errors
+@bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True), gt_voxel=FINE_VOXEL_M, seed=SEED)
+def eval_sensor_to_sensor_cmd(
+    data: Optional[Path] = typer.Option(None, "--data", help="a worlds dataset folder (required)"),
+    split: str = typer.Option("test", "--split", help="train | val | test"),
+    profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="converter profile (shipped name or YAML)"),
+    sensor: str = typer.Option("hdl64e", "--sensor", help="LiDAR preset or YAML"),
+    context: Optional[int] = typer.Option(None, "--context", help="the converter sees up to K instants before and "
+                                          "after each sample (default: the profile's)"),
+    limit: Optional[int] = typer.Option(None, "--limit", help="the split's first N samples"),
+    gt_voxel: float = typer.Option(0.4, "--gt-voxel", help="the ground-truth VoxSplat's voxel (m)"),
+    seed: int = typer.Option(0, "--seed", help="converter and LiDAR seed"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """The whole converter end to end: each held-out worlds sample's cameras converted, a LiDAR swept
+    through the result against the same LiDAR on the world's mesh (converter/eval/sensor_to_sensor.py)."""
     import json
 
     from ..atomic import atomic_path
-    from ..model.eval.sensor_to_sensor import evaluate_split, format_table
+    from ..converter.eval.sensor_to_sensor import evaluate_split, format_table
     from ._common import track
 
+    _require_data(data)
     if not gt_voxel > 0:
         raise CliError(f"--gt-voxel: expected a positive voxel size in metres, got {gt_voxel}")
     bar = (lambda xs: track(xs, description="sensor to sensor")) if progress else None
@@ -185,15 +137,76 @@ def _eval_sensor_to_sensor(data: Path, split: str, profile: str, sensor: str, li
         typer.echo(f"-> {output}")
 
 
+@eval_app.command("depth")
+@handle_errors
+@bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True))
+def eval_depth_cmd(
+    data: Optional[Path] = typer.Option(None, "--data", help="dataset folder (required)"),
+    dataset: Optional[str] = typer.Option(None, "--dataset", help="the dataset adapter (worlds, nuscenes, "
+                                          "kitti_raw, ...); worlds: --data DIR --split S or --data DIR/<split>"),
+    method: str = typer.Option("mono", "--method", help="the depth method (mono: the geometry checkpoint's "
+                               "monocular depth head; stereo: plane-sweep multi-view stereo over the other cameras "
+                               "and the --context instants, confident pixels only; fused: stereo where confident, "
+                               "the monocular head elsewhere)"),
+    checkpoint: Optional[str] = typer.Option(None, "--checkpoint", help="the geometry checkpoint of --method mono or "
+                                             "fused (default geometry-coarse-cpu)"),
+    context: int = typer.Option(0, "--context", help="the method sees up to K instants before and after each "
+                                "sample (stereo needs them; 0: the sample's frames alone)"),
+    split: str = typer.Option("test", "--split", help="worlds: train | val | test"),
+    limit: Optional[int] = typer.Option(None, "--limit", help="the dataset's first N samples"),
+    output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
+    progress: bool = typer.Option(True, "--progress/--no-progress"),
+) -> None:
+    """A depth method on each sample's camera images against the rendered depth maps, else the
+    sample's LiDAR projected into the cameras (converter/eval/depth.py)."""
+    _require_data(data)
+    if checkpoint is not None and method == "stereo":
+        raise CliError("--checkpoint: --method stereo uses no checkpoint (mono and fused do)")
+    _eval_depth(data, dataset, split, limit, method, checkpoint, output, progress, context)
+
+
+def _require_data(data: Path | None) -> None:
+    if data is None:
+        raise CliError("--data: required (the dataset folder)")
+
+
+def _eval_stage_name(stage: str) -> str:
+    """`eval stage`'s STAGE, checked before any option (an eager callback): a registered stage;
+    otherwise one line naming it and listing the stages (exit 2)."""
+    from ..config import normalize_name
+    from ..model.stages import stage_names
+
+    names = stage_names()
+    if normalize_name(stage) not in {normalize_name(n) for n in names}:
+        _fail(f"unknown stage {stage!r}; eval stage takes {', '.join(sorted(names))}")
+    return stage
+
+
+def _default_checkpoint(stage: str) -> str:
+    """The checkpoint `eval STAGE` uses without --checkpoint: the one the shipped paper-route
+    profile (`converter.PAPER_PROFILE`) names for the stage; a stage it names none for is an error
+    listing the shipped checkpoints of that stage."""
+    from ..converter.profile import PAPER_PROFILE, load_profile
+    from ..model.checkpoint import load_checkpoint, shipped_checkpoints
+
+    prof = load_profile(PAPER_PROFILE)
+    named = {"geometry": prof.geometry.checkpoint, "appearance": prof.appearance.checkpoint}
+    if stage in named:
+        return named[stage]
+    own = [name for name, path in shipped_checkpoints().items() if load_checkpoint(path).get("stage") == stage]
+    raise CliError(f"--checkpoint: required to evaluate the {stage} stage (the shipped profiles name no {stage} "
+                   f"checkpoint); a run's last.pt or best.pt, or a shipped one: {', '.join(own) or 'none ships'}")
+
+
 def _eval_depth(data: Path, dataset: str | None, split: str, limit: int | None, method: str,
                 checkpoint: str | None, output: Path | None, progress: bool, context: int = 0) -> None:
     import json
 
     from ..atomic import atomic_path
+    from ..converter.eval.depth import depth_method, evaluate_depth, format_table, json_ready
     from ..datasets import open_dataset
-    from ._common import track
     from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
-    from ..model.eval.depth import depth_method, evaluate_depth, format_table, json_ready
+    from ._common import track
 
     if dataset is None:
         raise CliError("--dataset: required for eval depth (worlds, nuscenes, kitti_raw, ...)")

@@ -9,6 +9,7 @@ from typing import Optional
 import typer
 
 from ..config import SCENE_VOXEL_M, SEED, THREADS, WORKERS, Range
+from ..converter.profile import DEFAULT_PROFILE
 from ._common import CliError, app, bounded, handle_errors
 
 
@@ -20,7 +21,7 @@ def demo_cmd(
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
     voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
     seed: int = typer.Option(0, "--seed"),
-    profile: str = typer.Option("evidence-complete", "--profile", help="converter profile for the camera-to-LiDAR part "
+    profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="converter profile for the camera-to-LiDAR part "
                                 "(evidence-complete: stereo depth over the cameras at T and 4 instants either side, fused, "
                                 "what no camera saw completed; evidence: without the completion; "
                                 "cpu-lidar: the paper's route, one Gaussian per voxel, no context instants)"),

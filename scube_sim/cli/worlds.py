@@ -99,8 +99,8 @@ def worlds_evidence_cmd(
 ) -> None:
     """Measure the evidence of worlds samples with the real stereo pipeline and cache it for the completion
     stage (DATA/evidence/<split>/<sample>.npz); resumable: cached samples with the same settings are skipped."""
+    from ..converter.profile import load_profile
     from ..model.completion.data import cache_evidence
-    from ..model.converter import load_profile
 
     if split not in ("train", "val", "test"):
         raise CliError(f"--split: expected train, val or test, got {split!r}")

@@ -38,7 +38,6 @@ from rich.progress import Progress
 from torch import nn
 from torch.utils.data import DataLoader, Dataset
 
-from .._moved import moved_name_getattr
 from ..atomic import atomic_path
 from ..config import ConfigError, normalize_name
 from ..errors import InputError, ScubeSimError
@@ -53,12 +52,11 @@ from .checkpoint import (
     stage_checkpoint,
 )
 from .config import RunConfig, TrainConfig, config_from_dict, resolved_config, stage_configs, torch_settings
-from .eval.evaluate import bar_columns, evaluate_model
+from .evaluate import bar_columns, evaluate_model
 from .stages import Stage, StageError, get_stage
 
 LAST, BEST, METRICS, CURVE, CONFIG = "last.pt", "best.pt", "metrics.jsonl", "loss.png", "config.yaml"
 
-__getattr__ = moved_name_getattr(__name__)  # load_model, evaluate...: a message naming their new module
 
 
 # `train` keys a resumed run may change: they set how long the run goes on and how it is executed,

@@ -74,6 +74,31 @@ def default_core_name() -> str:
     return "reference"
 
 
+def carve_misses(origin: np.ndarray, direction: np.ndarray, reach: np.ndarray, confidence: np.ndarray,
+                 grid_origin: np.ndarray, voxel_size: float, step: float, batch: int, candidates: np.ndarray,
+                 threads: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The voxels rays cross short of their ends, in the compiled core (the fusion's free-space walk).
+
+    Each ray from `origin` (3,) metres along unit `direction` (R, 3) is sampled at (s + 0.5) * `step`
+    up to `reach` (R,) metres; a sample's voxel is floor((p - grid_origin) / voxel_size), a run of
+    samples in one voxel counted once, looked up in the sorted `candidates` (K,) int64 voxel keys
+    (`voxsplat.voxel_keys`). Returns per candidate (hit (K,) bool, summed `confidence` (K,) float64 of
+    the rays that crossed it, their count (K,) float64). Sums are added per batch of `batch` rays in
+    batch order, so the bytes do not depend on `threads` (0: one per core)."""
+    if _core is None:
+        raise CoreUnavailable(f"the compiled core is not built ({_LOAD_ERROR})")
+    n = len(candidates)
+    hit, conf_sum, conf_cnt = np.zeros(n, bool), np.zeros(n), np.zeros(n)
+    if n and len(direction):
+        ok = _core.carve_misses(np.asarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
+                                np.ascontiguousarray(reach, np.float64), np.ascontiguousarray(confidence, np.float64),
+                                np.asarray(grid_origin, np.float64), float(voxel_size), float(step), int(batch),
+                                np.ascontiguousarray(candidates, np.int64), conf_sum, conf_cnt, hit, int(threads))
+        if not ok:
+            raise InputError("voxel indices beyond +-2^20: the scene is too large for this voxel size")
+    return hit, conf_sum, conf_cnt
+
+
 @dataclass
 class CompiledScene:
     """The core's BVH and what the hits are filled from. lo, hi (3,): the search box (the k-sigma

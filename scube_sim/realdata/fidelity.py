@@ -43,10 +43,10 @@ from ..lidar.pattern import channels_by_elevation, replay_pattern
 from ..mesh import TriangleMesh
 from ..raytrace.posed import place_scene
 from ..raytrace.tracer import Tracer
+from ..reconstruct.ground import GroundPlane, fit_ground_plane
 from ..transforms import invert_pose
 from ..viz import fidelity_png, intensity_png, sweeps_over_image_png
 from ..voxsplat import unique_voxels
-from .ground import GroundPlane, fit_ground_plane
 from .build import BuildOptions, accumulate_from_dataset, free_space_mask, grow_to_objects, surface_patches
 
 

@@ -34,6 +34,7 @@ from ..config import (
     field_range,
     unique_names,
 )
+from ..converter.profile import DEFAULT_PROFILE, load_profile
 from ..datasets import open_dataset
 from ..errors import InputError
 from ..parallel.tasks import BatchError, Job, Task
@@ -184,7 +185,7 @@ class ReplayJob(Job):
 class ConvertSettings(StrictModel):
     dataset: str | None = None  # None: each input is a worlds sample folder
     samples: list[SAMPLE_INDEX.annotated()] = Field(default_factory=lambda: [0])  # with `dataset`: each folder's
-    profile: str = "evidence-complete"  # `convert`'s default (model.converter.DEFAULT_PROFILE; not imported: torch)
+    profile: str = DEFAULT_PROFILE
     steps: int | None = DDIM_STEPS.field(None)
     seed: int = SEED.field(0)
     confidence: int = CONFIDENCE_SAMPLES.field(0)  # K geometry samples for per-voxel confidence (0: off)
@@ -198,7 +199,7 @@ class ConvertSettings(StrictModel):
 
 class ConvertJob(Job):
     """Camera frames -> VoxSplat (`scube_sim.convert`). The converter loads once per worker process
-    (`model.converter.convert` keeps it), not once per task."""
+    (`converter.pipeline.convert` keeps it), not once per task."""
 
     name = "convert"
 
@@ -210,7 +211,6 @@ class ConvertJob(Job):
 
     def prepare(self, out):
         from ..model.checkpoint import resolve_checkpoint
-        from ..model.converter import load_profile
 
         profile = load_profile(self.settings.profile)
         self._weights = {"profile": profile.model_dump(mode="json"),
@@ -248,7 +248,8 @@ class ConvertJob(Job):
                                            **self._weights, "scube_sim": __version__})
 
     def run(self, task, folder, out):
-        from ..model.converter import convert, is_loaded, load_profile, open_frames  # torch: in the worker
+        from ..converter.frames import open_frames
+        from ..converter.pipeline import convert, is_loaded
 
         s = self.settings
         context = load_profile(s.profile).context if s.context is None else s.context

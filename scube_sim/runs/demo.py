@@ -13,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from ..camera.frames import Frames
+from ..converter.profile import DEFAULT_PROFILE, load_profile
 from ..io.ply3dgs import write_3dgs_ply
 from ..io.pointcloud import write_pcd
 from ..io.usd import export_usd
@@ -39,7 +40,7 @@ FRAMES_SCALE = DatasetConfig().image_scale
 
 def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2, seed: int = 0,
              world: WorldConfig | None = None, echo: Callable[[str], None] = print,
-             profile: str | None = "evidence-complete") -> dict:
+             profile: str | None = DEFAULT_PROFILE) -> dict:
     """Write views.png, scene.npz, scene_3dgs.ply, sweep.pcd, scene.usdc, sweep.usda and bev.png
     into `out`; with a converter `profile` (None: skip) also converted.npz (the VoxSplat the
     converter makes from the camera images), converted_sweep.pcd, mesh_sweep.pcd,
@@ -60,8 +61,6 @@ def run_demo(out: str | Path, *, sensor: str = "hdl64e", voxel_size: float = 0.2
     # the instants around T the converter's profile looks at (the evidence route's stereo and fusion)
     context = 0
     if profile is not None:
-        from ..model.converter import load_profile  # torch: only when the converter runs
-
         context = load_profile(profile).context
     frames = render_frames_with_context(w, "waymo-5", context, FRAMES_SCALE, log="demo")
     mosaic_png(out / "views.png", {im.name: im.image for im in frames.images},
@@ -129,7 +128,7 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
                          pose_world: np.ndarray, mesh_sweep, gt_sweep, rays: np.ndarray, seed: int,
                          times: dict, echo: Callable[[str], None]) -> dict:
     """The converter's part of the demo (run_demo's docstring): convert, sweep, compare, write."""
-    from ..model.converter import Converter  # torch: only when the converter runs
+    from ..converter.pipeline import Converter
 
     t = time.perf_counter()
     conv = Converter(profile)

@@ -61,6 +61,7 @@ from ..config import (
     unique_names,
     validate_model,
 )
+from ..converter.profile import DEFAULT_PROFILE, load_profile
 from ..errors import ScubeSimWarning
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
@@ -96,7 +97,7 @@ class FramesSpec(StrictModel):
     sample: int = SAMPLE_INDEX.field(0)
     world: WorldConfig | None = None
     rig: str = "waymo-5"
-    profile: str = "evidence-complete"  # `convert`'s default (docs/converter.md: which profile when)
+    profile: str = DEFAULT_PROFILE
     max_range_m: float | None = MAX_RANGE_M.field(None)
     route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
     # the instants before and after the sample in the same log (`convert --context`), or rendered
@@ -445,8 +446,9 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     """scene.frames: the frames converted (cached in `folder`), the moving actors' voxels
     cut out (`sim.converted.remove_boxes`), the actors traced as instances. With `route`, one
     conversion per chunk along the world's road, loaded as a `ChunkSet`."""
+    from ..converter.frames import open_frames
+    from ..converter.pipeline import TRACE_MODE
     from ..model.checkpoint import resolve_checkpoint
-    from ..model.converter import TRACE_MODE, load_profile, open_frames  # torch: only for converted scenes
 
     f = sc.scene.frames
     profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
@@ -511,7 +513,7 @@ def route_stops(world: World, spacing_m: float) -> list[tuple[float, np.ndarray]
 def _cached_conversion(stem: Path, frames, key: dict, profile, seed: int, max_range, progress=None) -> VoxSplat:
     """`frames` converted with `profile`, or the conversion cached at STEM.npz / STEM.json when
     its key (`key` and the frames' digest) matches and its checksum holds."""
-    from ..model.converter import Converter
+    from ..converter.pipeline import Converter
 
     npz, meta_path = stem.with_suffix(".npz"), stem.with_suffix(".json")
     key = {**key, "frames": frames_digest(frames)}

@@ -32,7 +32,3 @@ __all__ = [
     "Sink", "RunInfo", "SinkRunner", "SinkError", "FileSink", "UsdSink", "CanFrameSink", "CallbackSink",
     "QueueSink",
 ]
-
-from .._moved import moved_name_getattr
-
-__getattr__ = moved_name_getattr(__name__)  # names of the earlier layout: a message naming their module

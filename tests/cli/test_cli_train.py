@@ -10,7 +10,7 @@ from typer.testing import CliRunner
 
 from scube_sim.cli import app
 from scube_sim.model.checkpoint import load_checkpoint
-from scube_sim.model.eval.evaluate import evaluate
+from scube_sim.model.evaluate import evaluate
 from tests.conftest import one_line_error
 from tests.model.test_trainer import TOY, write_config
 
@@ -39,7 +39,7 @@ def test_train_writes_a_run_folder_and_eval_reports_its_metrics(trained, tmp_pat
     assert {p.name for p in run_dir.iterdir()} >= {"last.pt", "best.pt", "metrics.jsonl", "loss.png", "config.yaml"}
 
     out = tmp_path / "m" / "metrics.json"
-    res = run("eval", "toy", "--data", data, "--checkpoint", run_dir / "last.pt", "--split", "test", "-o", out)
+    res = run("eval", "stage", "toy", "--data", data, "--checkpoint", run_dir / "last.pt", "--split", "test", "-o", out)
     assert res.exit_code == 0, res.output
     report = json.loads(out.read_text())
     assert report["split"] == "test" and report["stage"] == "toy"
@@ -80,12 +80,12 @@ def test_train_errors_are_one_line(trained, tmp_path):
 
 def test_eval_errors_are_one_line(trained, tmp_path):
     data, _, run_dir, _ = trained
-    one_line_error(run("eval", "toy", "--data", data, "--checkpoint", tmp_path / "none.pt"),
+    one_line_error(run("eval", "stage", "toy", "--data", data, "--checkpoint", tmp_path / "none.pt"),
                    "none.pt: no such checkpoint file")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
-    one_line_error(run("eval", "toy", "--data", data, "--checkpoint", junk), "junk.pt: not a loadable checkpoint")
-    one_line_error(run("eval", "toy", "--data", data, "--checkpoint", run_dir / "last.pt", "--split", "dev"),
+    one_line_error(run("eval", "stage", "toy", "--data", data, "--checkpoint", junk), "junk.pt: not a loadable checkpoint")
+    one_line_error(run("eval", "stage", "toy", "--data", data, "--checkpoint", run_dir / "last.pt", "--split", "dev"),
                    "split: 'dev' is not a split of stage 'toy' (train, val, test)")
-    one_line_error(run("eval", "toy", "--data", tmp_path / "absent", "--checkpoint", run_dir / "last.pt"),
+    one_line_error(run("eval", "stage", "toy", "--data", tmp_path / "absent", "--checkpoint", run_dir / "last.pt"),
                    "absent: no such data folder")

@@ -100,7 +100,8 @@ def test_the_folder_format_keeps_the_log(tmp_path):
 
 
 def test_a_conversion_with_context_is_the_same_scene_and_records_the_instants(tiny_converter):
-    from scube_sim.model.converter import Converter, open_frames
+    from scube_sim.converter.frames import open_frames
+    from scube_sim.converter.pipeline import Converter
 
     conv = Converter(tiny_converter["profile"])
     plain = conv.convert(open_frames(tiny_converter["sample"]), sky=False)

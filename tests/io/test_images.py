@@ -258,8 +258,8 @@ def own_sets(tmp_path_factory) -> dict:
     """The adapters whose data the tests make: a folder dataset and a worlds dataset."""
     from scube_sim.datasets.folder import write_folder_dataset
     from scube_sim.worlds.dataset import generate_dataset
+    from tests.converter.tiny_converter import TINY
     from tests.datasets.test_folder import synthetic_sample
-    from tests.model.tiny_converter import TINY
 
     tmp = tmp_path_factory.mktemp("own")
     write_folder_dataset([synthetic_sample(np.random.default_rng(3))], tmp / "folder")

@@ -19,23 +19,21 @@ import pytest
 import torch
 
 from scube_sim.boxes import Box
+from scube_sim.converter.merge import CompletionConfig, in_ego_box, merge_completion
 from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.checkpoint import CheckpointError
 from scube_sim.model.completion.data import CACHE_DIR, FEATURES_VERSION, CompletionData, CompletionDataset
 from scube_sim.model.completion.features import FEATURES, INPUTS_V1, coarse_dims, completion_input
-from scube_sim.model.completion.diffusion import CompletionDiffusion, CompletionDiffusionNet
 from scube_sim.model.completion.net import CompletionModel, CompletionNet
-from scube_sim.model.geometry.stage import frozen_vae
-from scube_sim.model.geometry.fusion import DepthObservation
-from scube_sim.model.completion.merge import CompletionConfig, in_ego_box, merge_completion
 from scube_sim.model.config import config_from_dict
-from scube_sim.model.evidence import measure_evidence
 from scube_sim.model.trainer import train
 from scube_sim.raytrace.tracer import Tracer
+from scube_sim.reconstruct.evidence import measure_evidence
+from scube_sim.reconstruct.fusion import DepthObservation
 from scube_sim.voxsplat import Gaussians, VoxSplat
 from scube_sim.worlds.groundtruth import CHUNK_CORNER
-from tests.model.test_evidence import CFG, _digest, _frames, _to_chunk
+from tests.reconstruct.test_evidence import CFG, _digest, _frames, _to_chunk
 
 CH = {name: i for i, name in enumerate(FEATURES)}
 
@@ -346,8 +344,7 @@ def test_a_car_the_network_puts_around_the_ego_goes_whole_and_its_neighbour_stay
 
 
 def test_the_ego_poses_of_a_frame_set_are_on_the_road_in_the_chunk_frame():
-    from scube_sim.camera.frames import Frames
-    from scube_sim.camera.frames import ego_poses_in_chunk
+    from scube_sim.camera.frames import Frames, ego_poses_in_chunk
 
     ref = np.eye(4)
     ref[:3, 3] = [100.0, 50.0, 1.73]  # a KITTI-like ego frame, 1.73 m above the road
@@ -404,12 +401,8 @@ def tiny_data(tmp_path_factory):
     return root
 
 
-TINY_DIFFUSION = {"cond_channels": 8, "widths": [8], "groups": 2, "sample_steps": 2}
-
-
-def _run_config(steps: int, *, crop=None, flip=False, lr=1e-2, batch=1, validate_every=1, diffusion=False):
-    model = ({"features": list(FEATURES), "diffusion": TINY_DIFFUSION} if diffusion else
-             {"widths": [8, 8], "blocks": 1, "groups": 2})
+def _run_config(steps: int, *, crop=None, flip=False, lr=1e-2, batch=1, validate_every=1):
+    model = {"widths": [8, 8], "blocks": 1, "groups": 2}
     return config_from_dict({
         "stage": "completion",
         "train": {"seed": 0, "steps": steps, "batch_size": batch, "lr": lr, "checkpoint_every": 5, "threads": 1,
@@ -445,12 +438,11 @@ def test_a_tiny_model_overfits_one_sample(tiny_data, tmp_path):
     assert res.metrics["iou"] > 0.9
 
 
-@pytest.mark.parametrize("diffusion", [False, True], ids=["direct", "diffusion"])
-def test_training_resumes_bit_for_bit(tiny_data, tmp_path, diffusion):
-    cfg = _run_config(10, crop=51.2, flip=True, lr=1e-3, diffusion=diffusion)
+def test_training_resumes_bit_for_bit(tiny_data, tmp_path):
+    cfg = _run_config(10, crop=51.2, flip=True, lr=1e-3)
     whole = train("completion", cfg, tiny_data, tmp_path / "whole", progress=False)
-    half = train("completion", _run_config(5, crop=51.2, flip=True, lr=1e-3, diffusion=diffusion), tiny_data,
-                 tmp_path / "half", progress=False)
+    half = train("completion", _run_config(5, crop=51.2, flip=True, lr=1e-3), tiny_data, tmp_path / "half",
+                 progress=False)
     assert half.step == 5
     resumed = train("completion", cfg, tiny_data, tmp_path / "half", resume=True, progress=False)
     a = torch.load(whole.last, weights_only=True)["model"]
@@ -571,13 +563,6 @@ def test_training_items_draw_new_windows_each_epoch(tmp_path):
     assert len(windows) > 2
 
 
-def _diffusion_net(**update) -> CompletionDiffusionNet:
-    torch.manual_seed(0)
-    cfg = CompletionModel(features=list(FEATURES),
-                          diffusion=CompletionDiffusion(cond_channels=8, widths=(16,), groups=4, **update))
-    return CompletionDiffusionNet(cfg, load_vae=frozen_vae)
-
-
 def _block_world(dims=(16, 16, 8)):
     """A road layer and a building block on the 0.8 m grid: (occupancy, labels, features with the
     block's face and the road as the evidence)."""
@@ -590,63 +575,24 @@ def _block_world(dims=(16, 16, 8)):
     return occ, lab, feats
 
 
-def test_the_diffusion_option_learns_the_latent_of_one_sample():
-    """The paper's prior on the evidence: the shipped coarse VAE frozen (it reconstructs a world's
-    0.8 m grid at IoU 0.935, worlds val 1), its latent of one block world learnt by the denoiser
-    from the evidence: the v-loss falls more than twofold in 300 steps."""
-    net = _diffusion_net()
-    assert net.vae_loaded and not any(p.requires_grad for p in net.vae.parameters())
-    occ, lab, feats = _block_world()
-    opt = torch.optim.Adam([p for p in net.parameters() if p.requires_grad], lr=3e-3)
-    losses = []
-    for _ in range(300):
-        loss = net.loss(feats, occ[None], lab[None])
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
-    # measured 2026-12-06: 0.72 over the first 20 steps, 0.24 over the last 20
-    assert np.mean(losses[-20:]) < np.mean(losses[:20]) / 2, (np.mean(losses[:20]), np.mean(losses[-20:]))
-
-
-def test_the_diffusion_option_gives_one_grid_per_evidence_and_seed():
-    """The same evidence and seed give the same grid bit for bit, another seed another; a box the
-    latent cannot tile and a VAE that is not there are refused."""
-    net = _diffusion_net(sample_steps=3).eval()
-    _, _, feats = _block_world()
-    with torch.no_grad():
-        a, la = net(feats)
-        b, lb = net(feats)
-        other, _ = _diffusion_net(sample_steps=3, seed=1).eval()(feats)
-    assert a.shape == (1, 16, 16, 8) and la.shape[2:] == (16, 16, 8)
-    assert torch.equal(a, b) and torch.equal(la, lb)
-    assert not torch.equal(a, other)
-    assert torch.isfinite(a).all() and float(torch.sigmoid(a).max()) <= 1.0
-    with pytest.raises(ValueError, match="not divisible by 4"):
-        net(torch.zeros(1, len(FEATURES), 16, 16, 6))
-    occ, lab, feats = _block_world()
-    untrained = CompletionDiffusionNet(CompletionModel(diffusion=CompletionDiffusion(
-        vae_checkpoint="no-such-vae", cond_channels=8, widths=(16,), groups=4)), load_vae=frozen_vae)
-    with pytest.raises(InputError, match="vae_checkpoint 'no-such-vae': not found"):
-        untrained.loss(feats, occ[None], lab[None])
-
-
 # ----------------------------------------------------------------------------- the converter
-@pytest.fixture(scope="module", params=[False, True], ids=["direct", "diffusion"])
-def completion_checkpoint(tiny_data, tmp_path_factory, request):
+@pytest.fixture(scope="module")
+def completion_checkpoint(tiny_data, tmp_path_factory):
     run = tmp_path_factory.mktemp("run")
-    return train("completion", _run_config(3, diffusion=request.param), tiny_data, run / "r", progress=False).last
+    return train("completion", _run_config(3), tiny_data, run / "r", progress=False).last
 
 
 @pytest.fixture(scope="module")
 def plain_corridor():
-    from scube_sim.model.converter import Converter, ConverterProfile
+    from scube_sim.converter.pipeline import Converter
+    from scube_sim.converter.profile import ConverterProfile
 
     return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames())
 
 
 def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint, plain_corridor):
-    from scube_sim.model.converter import Converter, ConverterProfile
+    from scube_sim.converter.pipeline import Converter
+    from scube_sim.converter.profile import ConverterProfile
 
     plain = plain_corridor
     comp = CompletionConfig(checkpoint=str(completion_checkpoint))
@@ -668,7 +614,8 @@ def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(comp
 
 def _completed_corridor():
     """The corridor converted with the default profile's completion (its checkpoint and merge)."""
-    from scube_sim.model.converter import DEFAULT_PROFILE, Converter, ConverterProfile, load_profile
+    from scube_sim.converter.pipeline import Converter
+    from scube_sim.converter.profile import DEFAULT_PROFILE, ConverterProfile, load_profile
 
     comp = load_profile(DEFAULT_PROFILE).completion
     assert comp is not None, "the default profile has no completion"
@@ -698,7 +645,7 @@ def test_the_default_completion_gives_the_same_bytes_in_another_process_with_one
 
 
 def test_a_completion_key_on_the_paper_route_is_refused():
-    from scube_sim.model.converter import ConverterProfile
+    from scube_sim.converter.profile import ConverterProfile
 
     with pytest.raises(Exception, match="takes no evidence or completion key"):
         ConverterProfile(name="x", route="scube", geometry={"checkpoint": "a", "focal_px": 100},
@@ -726,8 +673,8 @@ def test_worlds_evidence_caches_the_same_features_in_one_process_or_two(tmp_path
     """Two tiny worlds with an instant either side, their evidence measured and cached in this
     process and in two worker processes: the same features and keys; a second run measures
     nothing (resumable)."""
+    from scube_sim.converter.profile import load_profile
     from scube_sim.model.completion.data import cache_evidence, cache_path
-    from scube_sim.model.converter import load_profile
     from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
     tiny = DatasetConfig(image_scale=0.05, visibility_scale=0.05, fine_voxel_m=0.4, coarse_factor=2,
@@ -750,7 +697,7 @@ def test_worlds_evidence_caches_the_same_features_in_one_process_or_two(tmp_path
 
 
 def test_the_completion_grid_is_scored_against_the_coarsened_truth():
-    from scube_sim.model.eval.sensor_to_sensor import completion_grid_metrics
+    from scube_sim.converter.eval.sensor_to_sensor import completion_grid_metrics
 
     dims = coarse_dims(0.8)
     # the truth at 0.4 m: a 4 x 4 x 2-cell block of 0.8 m cells (8 x 8 x 4 stored voxels), buildings
@@ -787,10 +734,10 @@ def test_the_shipped_completion_completes_a_held_out_world_from_its_evidence(nam
     evidence`, with the truth coarsened to 0.8 m; the shipped weights are the run's last step, so
     the val split chose nothing): its cells at p >= 0.5 against the ground truth, beside the
     evidence alone's cells and the same network untrained."""
+    from scube_sim.labels import NUM_LABELS
     from scube_sim.model.checkpoint import load_model, resolve_checkpoint
     from scube_sim.model.completion.net import CompletionNet
     from scube_sim.model.semantics.stage import semantic_metrics
-    from scube_sim.labels import NUM_LABELS
 
     z = np.load(Path(__file__).resolve().parents[1] / "data" / "completion" / fixture)
     dims = tuple(int(d) for d in z["dims"])

@@ -7,6 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from scube_sim.converter.pipeline import Converter
+from scube_sim.converter.profile import load_profile, shipped_profiles
 from scube_sim.datasets import open_dataset
 from scube_sim.model.appearance.losses import evaluate_item
 from scube_sim.model.checkpoint import (
@@ -17,7 +19,6 @@ from scube_sim.model.checkpoint import (
     shipped_checkpoints,
 )
 from scube_sim.model.config import stage_configs
-from scube_sim.model.converter import Converter, load_profile, shipped_profiles
 from scube_sim.model.geometry.net import GeometryNet
 from scube_sim.model.stages import get_stage
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset

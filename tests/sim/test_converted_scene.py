@@ -11,12 +11,13 @@ from typer.testing import CliRunner
 
 from scube_sim.boxes import Box
 from scube_sim.cli import app
+from scube_sim.converter.frames import open_frames
+from scube_sim.converter.pipeline import Converter
 from scube_sim.fit import fit_voxsplat
 from scube_sim.io.pointcloud import read_pcd
 from scube_sim.labels import LABEL_IDS
 from scube_sim.lidar.config import ConfigError
 from scube_sim.mesh import TriangleMesh
-from scube_sim.model.converter import Converter, open_frames
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.runs.scenario import load_scenario
 from scube_sim.sim.converted import remove_boxes, scene_part, simulated_scene

@@ -37,12 +37,11 @@ from ...datasets.base import frames_with_context
 from ...errors import InputError
 from ...parallel.runner import run_batch
 from ...parallel.tasks import Job, Task
+from ...reconstruct.evidence import fusion_config, measure_evidence
 from ...transforms import invert_pose
 from ...worlds.groundtruth import CHUNK_CORNER
 from ..data.worlds import item_generator
-from ..evidence import fusion_config, measure_evidence
-from ..geometry.data import grid_in_box
-from ..nn.lifting import LiftGrid
+from ..nn.lifting import LiftGrid, grid_in_box
 from .features import FEATURES, coarse_dims, completion_input
 
 __all__ = ["CompletionData", "CompletionDataset", "cache_evidence", "cache_path"]

@@ -1,4 +1,4 @@
-"""The completion network's input: the evidence (`model.evidence.Evidence`) summarised on a dense
+"""The completion network's input: the evidence (`reconstruct.evidence.Evidence`) summarised on a dense
 coarse grid over the chunk, one channel per `FEATURES` entry.
 
 Grid: `voxel_size` metres (default 0.8, the paper's coarse level), anchored at the evidence's
@@ -34,11 +34,16 @@ cell from 0.5 m to its point less a band of one cell and 5 % of the depth (the d
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from ...camera.depth import project_to_pixels
+from ...reconstruct.config import CHUNK_HEIGHT_SHARE, GROUND_LABEL
+
+if TYPE_CHECKING:  # the record only: features need no stereo, so no torch
+    from ...reconstruct.evidence import Evidence
 from ...worlds.groundtruth import CHUNK_SIZE
-from ..evidence import CHUNK_HEIGHT_SHARE, GROUND_LABEL, Evidence
 
 __all__ = ["FEATURES", "INPUTS_V1", "completion_input", "coarse_dims"]
 

@@ -18,14 +18,13 @@ alone.
 from __future__ import annotations
 
 import torch
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from torch import nn
 from torch.nn import functional as F
 
 from ...config import StrictModel
 from ...labels import NUM_LABELS
-from ..geometry.dense_nets import ResBlock3d
-from .diffusion import CompletionDiffusion
+from ..nn.dense import ResBlock3d
 from .features import FEATURES, INPUTS_V1
 
 __all__ = ["CompletionModel", "CompletionNet"]
@@ -35,9 +34,7 @@ class CompletionModel(StrictModel):
     """features: the input channels the network reads, names from `features.FEATURES` (default:
     the first checkpoint's, `INPUTS_V1`); widths: channels per level (the first at the grid's
     resolution; each next one halves the box); blocks: residual blocks per level and side; groups:
-    GroupNorm groups (of this deterministic network); diffusion: instead of it, the paper's prior
-    (`diffusion.CompletionDiffusionNet`: latent diffusion over the frozen coarse VAE, conditioned
-    on the same channels; None: the deterministic network). The deterministic loss
+    GroupNorm groups. The loss
     (`stage`): `label_weight` times the label cross-entropy on the occupied cells is added to the
     occupancy BCE, whose occupied cells weigh `pos_weight`; with `subcells` s > 1, `subcell_weight`
     times the sub-cells' BCE inside the truth's occupied cells (module docstring)."""
@@ -51,7 +48,17 @@ class CompletionModel(StrictModel):
     subcells: int = Field(default=1, ge=1, le=4)
     subcell_weight: float = Field(default=1.0, ge=0, le=100)
     train_subcells_only: bool = False
-    diffusion: CompletionDiffusion | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _no_diffusion(cls, data):
+        # checkpoints written while a diffusion variant existed store `diffusion: null`
+        if isinstance(data, dict) and "diffusion" in data:
+            if data["diffusion"] is not None:
+                raise ValueError("diffusion: the diffusion completion was removed; a completion model is the "
+                                 "deterministic network only")
+            data = {k: v for k, v in data.items() if k != "diffusion"}
+        return data
 
     @field_validator("features")
     @classmethod

@@ -1,6 +1,5 @@
-"""Stage `completion` as the trainer sees it: the completion network (`net`, or the latent
-diffusion of `diffusion` where the config has that section) on cached worlds evidence (`data`),
-its loss (occupancy BCE + label cross-entropy on occupied cells; the diffusion's: v-MSE) and metrics
+"""Stage `completion` as the trainer sees it: the completion network (`net`) on cached worlds
+evidence (`data`), its loss (occupancy BCE + label cross-entropy on occupied cells) and metrics
 (IoU, mIoU, and IoU over the cells the evidence holds nothing in)."""
 
 from __future__ import annotations
@@ -14,11 +13,9 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from ...labels import NUM_LABELS
-from ..geometry.stage import frozen_vae
-from ..semantics.stage import semantic_metrics
+from ..nn.label_metrics import semantic_metrics
 from ..stages import Stage, register_stage
 from .data import CompletionData, CompletionDataset
-from .diffusion import CompletionDiffusionNet
 from .features import FEATURES
 from .net import CompletionModel, CompletionNet
 
@@ -34,17 +31,12 @@ class CompletionStage(Stage):
     epoch_aware = True
 
     def build_model(self, model_cfg: CompletionModel) -> nn.Module:
-        if model_cfg.diffusion is not None:
-            return CompletionDiffusionNet(model_cfg, load_vae=frozen_vae)
         return CompletionNet(model_cfg)
 
     def dataset(self, data_dir: Path, data_cfg: CompletionData, split: str, seed: int) -> Dataset:
         return CompletionDataset(Path(data_dir), split, data_cfg, seed)
 
     def loss(self, model: nn.Module, batch: dict) -> tuple[torch.Tensor, dict[str, float]]:
-        if isinstance(model, CompletionDiffusionNet):
-            v = model.loss(batch["features"], batch["occupancy"], batch["labels"])
-            return v, {"v_mse": float(v.detach())}
         occ_logit, lab_logit, sub_logit = model.forward_with_subcells(batch["features"])
         occ, labels = batch["occupancy"], batch["labels"]
         label_weight, pos_weight = model.cfg.label_weight, model.cfg.pos_weight

@@ -19,8 +19,7 @@ from ...errors import InputError
 from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
 from ..data.augment import AugmentConfig, CameraSelection
 from ..data.worlds import DataConfig, WorldsTorchDataset, item_generator
-from ..nn.encoding import majority_labels
-from ..nn.lifting import LiftGrid
+from ..nn.lifting import LiftGrid, grid_in_box
 
 # The cpu profile's box: the whole 102.4 m chunk in x and y, the lowest 25.6 m in z.
 DEFAULT_REGION = (float(CHUNK_CORNER[0]), float(CHUNK_CORNER[1]), float(CHUNK_CORNER[2]),
@@ -142,28 +141,6 @@ class GeometryDataset(Dataset):
         item["gt_grid"] = cfg.grid(cfg.voxel_size, lo, hi)
         item["level"] = cfg.level
         return item
-
-
-def grid_in_box(ijk: torch.Tensor, labels: torch.Tensor, visible: torch.Tensor, factor: int, stored_size: float,
-                grid: LiftGrid):
-    """A chunk grid (ijk from CHUNK_CORNER at `stored_size`) coarsened by `factor` (a coarse voxel
-    takes the most frequent label of its children and is visible if any child is) and cut to
-    `grid`'s box: (ijk (V, 3) relative to the box's corner, labels, visible), sorted by voxel."""
-    ijk = ijk.to(torch.int64) // factor
-    shift = torch.round((torch.tensor(grid.origin, dtype=torch.float64) - torch.as_tensor(CHUNK_CORNER))
-                        / grid.voxel_size).to(torch.int64)
-    rel = ijk - shift
-    dims = torch.tensor(grid.dims)
-    keep = ((rel >= 0) & (rel < dims)).all(1)
-    rel, labels, visible = rel[keep], labels[keep].to(torch.int64), visible[keep]
-    key = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
-    if factor == 1:  # the stored grid itself: unique voxels already
-        order = torch.argsort(key)
-        return rel[order], labels[order], visible[order]
-    uniq, inv = torch.unique(key, return_inverse=True)
-    vis = torch.zeros(len(uniq), dtype=torch.bool).index_put_((inv,), visible, accumulate=True)
-    out = torch.stack([uniq // (dims[1] * dims[2]), (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
-    return out, majority_labels(inv, labels, len(uniq)), vis
 
 
 def dense_target(ijk: torch.Tensor, labels: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:

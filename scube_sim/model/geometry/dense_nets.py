@@ -30,6 +30,7 @@ from torch import nn
 
 from ...config import StrictModel
 from ...labels import NUM_LABELS
+from ..nn.dense import ResBlock3d, group_norm
 
 DENOISER_LAYOUTS = ("plain", "ldm")
 
@@ -60,48 +61,6 @@ class VAEConfig(StrictModel):
     child_kernel: int | None = Field(default=None, ge=1, le=3)
 
 
-# ---------------------------------------------------------------------------- building blocks
-def _norm(channels: int, groups: int) -> nn.GroupNorm:
-    return nn.GroupNorm(math.gcd(groups, channels), channels)
-
-
-def _resample(x: torch.Tensor, how: str) -> torch.Tensor:
-    return F.avg_pool3d(x, 2) if how == "down" else F.interpolate(x, scale_factor=2, mode="nearest")
-
-
-class ResBlock3d(nn.Module):
-    """Pre-norm residual block: (B, C, X, Y, Z) -> (B, C_out, X, Y, Z), optionally adding a
-    per-sample embedding (B, E) after the first convolution. scale_shift: the embedding gives a
-    scale and a shift of the second normalisation instead (FiLM, LDM's use_scale_shift_norm).
-    resample ``down`` / ``up``: the block halves (average pooling) / doubles (nearest) the box,
-    applied to both branches after the first normalisation (LDM's resblock_updown)."""
-
-    def __init__(self, cin: int, cout: int, groups: int, emb: int = 0, scale_shift: bool = False,
-                 resample: str | None = None):
-        super().__init__()
-        if scale_shift and not emb:
-            raise ValueError("scale_shift needs an embedding (emb > 0)")
-        if resample not in (None, "down", "up"):
-            raise ValueError(f"resample: expected None, 'down' or 'up', got {resample!r}")
-        self.n1, self.c1 = _norm(cin, groups), nn.Conv3d(cin, cout, 3, padding=1)
-        self.n2, self.c2 = _norm(cout, groups), nn.Conv3d(cout, cout, 3, padding=1)
-        self.emb = nn.Linear(emb, (2 if scale_shift else 1) * cout) if emb else None
-        self.skip = nn.Conv3d(cin, cout, 1) if cin != cout else nn.Identity()
-        self.scale_shift, self.resample = scale_shift, resample
-
-    def forward(self, x, emb=None):
-        h = F.silu(self.n1(x))
-        if self.resample is not None:
-            h, x = _resample(h, self.resample), _resample(x, self.resample)
-        h = self.c1(h)
-        if self.scale_shift:
-            scale, shift = self.emb(emb)[:, :, None, None, None].chunk(2, 1)
-            return self.skip(x) + self.c2(F.silu(self.n2(h) * (1 + scale) + shift))
-        if self.emb is not None:
-            h = h + self.emb(emb)[:, :, None, None, None]
-        return self.skip(x) + self.c2(F.silu(self.n2(h)))
-
-
 class SelfAttention3d(nn.Module):
     """Multi-head self-attention over all voxels of a box (LDM's AttentionBlock): (B, C, X, Y, Z)
     -> x + proj(attention(qkv(norm(x)))), the same shape. No positional encoding: the block is
@@ -113,7 +72,7 @@ class SelfAttention3d(nn.Module):
         if heads < 1 or channels % heads:
             raise ValueError(f"attention: {channels} channels do not split into {heads} heads")
         self.heads = heads
-        self.norm = _norm(channels, groups)
+        self.norm = group_norm(channels, groups)
         self.qkv = nn.Conv3d(channels, 3 * channels, 1)
         self.proj = nn.Conv3d(channels, channels, 1)
         nn.init.zeros_(self.proj.weight)
@@ -157,7 +116,7 @@ class StructureVAE(nn.Module):
             down.append(nn.ModuleList([nn.Conv3d(cin, c, 2, stride=2)] + [ResBlock3d(c, c, g) for _ in range(cfg.blocks)]))
             cin = c
         self.down = nn.ModuleList(down)
-        self.to_latent = nn.Sequential(_norm(w[-1], g), nn.SiLU(), nn.Conv3d(w[-1], 2 * lat, 1))
+        self.to_latent = nn.Sequential(group_norm(w[-1], g), nn.SiLU(), nn.Conv3d(w[-1], 2 * lat, 1))
         self.from_latent = nn.Conv3d(lat, w[-1], 3, padding=1)
         dec_blocks = cfg.decoder_blocks if cfg.decoder_blocks is not None else max(1, cfg.blocks)
         self.dec_blocks = nn.ModuleList()
@@ -169,11 +128,11 @@ class StructureVAE(nn.Module):
             if i > 0:
                 self.up.append(nn.ConvTranspose3d(w[i], w[i - 1], 2, stride=2))
         if cfg.child_kernel is None:
-            self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8 * (1 + NUM_LABELS), 1))
+            self.child_head = nn.Sequential(group_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8 * (1 + NUM_LABELS), 1))
             self.child_labels = None
         else:
             k = cfg.child_kernel
-            self.child_head = nn.Sequential(_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8, k, padding=k // 2))
+            self.child_head = nn.Sequential(group_norm(w[0], g), nn.SiLU(), nn.Conv3d(w[0], 8, k, padding=k // 2))
             self.child_labels = nn.Conv3d(w[0], 8 * NUM_LABELS, 1)
         # running RMS of the posterior means: the diffusion works on latents / latent_std
         self.register_buffer("latent_std", torch.ones(()))
@@ -363,7 +322,7 @@ class Denoiser3d(nn.Module):
                 self.dec_attn.append(att(c, i))
             if i > 0:
                 self.ups.append(res(c, c, "up") if ldm else nn.ConvTranspose3d(c, c, 2, stride=2))
-        self.out = nn.Sequential(_norm(c, groups), nn.SiLU(), nn.Conv3d(c, latent, 3, padding=1))
+        self.out = nn.Sequential(group_norm(c, groups), nn.SiLU(), nn.Conv3d(c, latent, 3, padding=1))
         nn.init.zeros_(self.out[-1].weight)
         nn.init.zeros_(self.out[-1].bias)
         if ldm:  # LDM zero-initialises every residual branch's last convolution

@@ -20,9 +20,11 @@ import numpy as np
 import torch
 
 from ...camera.model import Intrinsics
+from ...worlds.groundtruth import CHUNK_CORNER
+from .encoding import majority_labels
 
 __all__ = ["LiftGrid", "depth_bin_centres", "depth_bin_edges", "depth_focal_loss", "depth_to_bin",
-           "feature_intrinsics", "frustum_points", "lift"]
+           "feature_intrinsics", "frustum_points", "grid_in_box", "lift"]
 
 
 def depth_bin_edges(bins: int, near: float = 0.1, far: float = 90.0) -> torch.Tensor:
@@ -130,3 +132,25 @@ def depth_focal_loss(probs: torch.Tensor, target: torch.Tensor, gamma: float = 2
     p = probs.permute(0, 2, 3, 1)[ok]  # (P, D)
     pt = p.gather(1, target[ok][:, None]).squeeze(1).clamp_min(1e-12)
     return (-(1 - pt) ** gamma * torch.log(pt)).mean()
+
+
+def grid_in_box(ijk: torch.Tensor, labels: torch.Tensor, visible: torch.Tensor, factor: int, stored_size: float,
+                grid: LiftGrid):
+    """A chunk grid (ijk from CHUNK_CORNER at `stored_size`) coarsened by `factor` (a coarse voxel
+    takes the most frequent label of its children and is visible if any child is) and cut to
+    `grid`'s box: (ijk (V, 3) relative to the box's corner, labels, visible), sorted by voxel."""
+    ijk = ijk.to(torch.int64) // factor
+    shift = torch.round((torch.tensor(grid.origin, dtype=torch.float64) - torch.as_tensor(CHUNK_CORNER))
+                        / grid.voxel_size).to(torch.int64)
+    rel = ijk - shift
+    dims = torch.tensor(grid.dims)
+    keep = ((rel >= 0) & (rel < dims)).all(1)
+    rel, labels, visible = rel[keep], labels[keep].to(torch.int64), visible[keep]
+    key = (rel[:, 0] * dims[1] + rel[:, 1]) * dims[2] + rel[:, 2]
+    if factor == 1:  # the stored grid itself: unique voxels already
+        order = torch.argsort(key)
+        return rel[order], labels[order], visible[order]
+    uniq, inv = torch.unique(key, return_inverse=True)
+    vis = torch.zeros(len(uniq), dtype=torch.bool).index_put_((inv,), visible, accumulate=True)
+    out = torch.stack([uniq // (dims[1] * dims[2]), (uniq // dims[2]) % dims[1], uniq % dims[2]], 1)
+    return out, majority_labels(inv, labels, len(uniq)), vis

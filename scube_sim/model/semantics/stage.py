@@ -10,7 +10,8 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.data import Dataset
 
-from ...labels import LABEL_NAMES, NUM_LABELS
+from ...labels import NUM_LABELS
+from ..nn.label_metrics import semantic_metrics
 from ..stages import Stage, register_stage
 from .data import VoxelGridDataset, VoxelSemanticsData, collate_grids
 from .net import VoxelSemanticsModel, VoxelSemanticsNet
@@ -47,20 +48,6 @@ class VoxelSemanticsStage(Stage):
             conf += torch.bincount(labels * NUM_LABELS + logits.argmax(1), minlength=NUM_LABELS ** 2
                                    ).reshape(NUM_LABELS, NUM_LABELS)
         return semantic_metrics(conf)
-
-
-def semantic_metrics(conf: torch.Tensor) -> dict[str, float]:
-    """conf[true, predicted] counts -> {'miou': mean IoU over labels that occur in either,
-    'accuracy', and 'iou_<label>' per such label}."""
-    tp = conf.diag().double()
-    union = conf.sum(0).double() + conf.sum(1).double() - tp
-    present = union > 0
-    iou = torch.where(present, tp / union.clamp_min(1), torch.zeros_like(tp))
-    out = {"miou": float(iou[present].mean()) if bool(present.any()) else 0.0,
-           "accuracy": float(tp.sum() / conf.sum().clamp_min(1))}
-    for i in torch.nonzero(present).squeeze(1).tolist():
-        out[f"iou_{LABEL_NAMES[i]}"] = float(iou[i])
-    return out
 
 
 register_stage(VoxelSemanticsStage())

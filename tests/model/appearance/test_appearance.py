@@ -125,13 +125,13 @@ def test_train_and_eval_through_the_cli(data, tmp_path):
     res = CliRunner().invoke(app, ["train", "appearance", "--data", str(data), "--config", str(cfg),
                                    "-o", str(tmp_path / "run")])
     assert res.exit_code == 0, res.output
-    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+    res = CliRunner().invoke(app, ["eval", "stage", "appearance", "--data", str(data), "--checkpoint",
                                    str(tmp_path / "run" / "last.pt"), "--split", "val", "-o", str(tmp_path / "m.json")])
     assert res.exit_code == 0, res.output
     metrics = json.loads((tmp_path / "m.json").read_text())["metrics"]
     assert 0 < metrics["psnr"] < 60 and 0 < metrics["ssim_t0"] <= 1
     assert "psnr_t5" not in metrics  # the checkpoint's data config: the input instant only
-    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+    res = CliRunner().invoke(app, ["eval", "stage", "appearance", "--data", str(data), "--checkpoint",
                                    str(tmp_path / "run" / "last.pt"), "--split", "val", "--no-progress",
                                    "--data-option", "eval_frames=true", "-o", str(tmp_path / "m5.json")])
     assert res.exit_code == 0, res.output
@@ -140,11 +140,11 @@ def test_train_and_eval_through_the_cli(data, tmp_path):
     assert m5["metrics"]["views_t0"] == 3 and 0 < m5["metrics"]["psnr_t5"] < 60
     # the weights alone (what a shipped checkpoint holds) evaluate the same, from a smaller file
     from scube_sim.model.checkpoint import export_weights
-    from scube_sim.model.eval.evaluate import evaluate
+    from scube_sim.model.evaluate import evaluate
     small = export_weights(tmp_path / "run" / "last.pt", tmp_path / "weights.pt")
     assert small.stat().st_size < 0.6 * (tmp_path / "run" / "last.pt").stat().st_size
     assert evaluate("appearance", small, data, split="val") == metrics
-    res = CliRunner().invoke(app, ["eval", "appearance", "--data", str(data), "--checkpoint",
+    res = CliRunner().invoke(app, ["eval", "stage", "appearance", "--data", str(data), "--checkpoint",
                                    str(tmp_path / "run" / "last.pt"), "--split", "val", "--data-option", "eval_frame=1"])
     assert res.exit_code != 0 and "eval_frame" in res.output and "not a field" in res.output
 

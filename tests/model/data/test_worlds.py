@@ -15,20 +15,13 @@ from pydantic import ValidationError
 from torch.utils.data import DataLoader
 
 from scube_sim.boxes import points_in_boxes
+from scube_sim.camera.resize import nearest_index, resize_bilinear, resize_nearest, scale_intrinsics
 from scube_sim.camera.rig import load_rig
 from scube_sim.datasets import open_dataset
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
 from scube_sim.model.data.augment import CameraSelection
-from scube_sim.model.data.worlds import (
-    DataConfig,
-    WorldsTorchDataset,
-    collate,
-    nearest_index,
-    resize_bilinear,
-    resize_nearest,
-    scale_intrinsics,
-)
+from scube_sim.model.data.worlds import DataConfig, WorldsTorchDataset, collate
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
 
 # One style, two rigs: sample i has rig RIGS[i % 2] (the samples cycle through the rigs once per

@@ -17,11 +17,11 @@ from scube_sim.cli import app
 from scube_sim.errors import InputError
 from scube_sim.labels import label_id
 from scube_sim.model.config import config_from_dict
-from scube_sim.model.geometry.data import GeometryDataConfig, grid_in_box
+from scube_sim.model.geometry.data import GeometryDataConfig
 from scube_sim.model.geometry.dense_nets import VAEConfig, prune_decode
 from scube_sim.model.geometry.net import GeometryModelConfig, GeometryNet
 from scube_sim.model.geometry.stage import grid_metrics
-from scube_sim.model.nn.lifting import LiftGrid
+from scube_sim.model.nn.lifting import LiftGrid, grid_in_box
 from scube_sim.model.stages import get_stage
 from scube_sim.model.trainer import train
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
@@ -210,14 +210,14 @@ def test_both_stages_train_resume_and_evaluate(data, tmp_path):
     run = tmp_path / "geo"
     train("geometry", config_from_dict(cfg), data, run, progress=False)
     out = tmp_path / "m.json"
-    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
+    r = CliRunner().invoke(app, ["eval", "stage", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
                                  "--split", "test", "-o", str(out)])
     assert r.exit_code == 0, r.output
     m = json.loads(out.read_text())["metrics"]
     assert 0.0 <= m["iou"] <= 1.0 and "miou" in m and "iou_visible" in m and "chamfer_invisible_q90" in m
     # the VAE's weights travel inside the conditional model's checkpoint
     (vae_run / "last.pt").unlink()
-    r = CliRunner().invoke(app, ["eval", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
+    r = CliRunner().invoke(app, ["eval", "stage", "geometry", "--data", str(data), "--checkpoint", str(run / "last.pt"),
                                  "--split", "test", "-o", str(tmp_path / "m2.json")])
     assert r.exit_code == 0, r.output
     assert json.loads((tmp_path / "m2.json").read_text())["metrics"]["iou"] == m["iou"]

@@ -15,9 +15,9 @@ from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.labels import LABEL_NAMES, NUM_LABELS, label_id
 from scube_sim.model.config import load_config
-from scube_sim.model.eval.evaluate import evaluate
+from scube_sim.model.evaluate import evaluate
+from scube_sim.model.nn.label_metrics import semantic_metrics
 from scube_sim.model.semantics.data import collate_grids
-from scube_sim.model.semantics.stage import semantic_metrics
 from scube_sim.model.stages import get_stage
 from scube_sim.model.trainer import train
 from scube_sim.worlds.dataset import DatasetConfig, generate_dataset
@@ -84,7 +84,7 @@ def test_training_lowers_the_loss_and_eval_reads_the_checkpoint(data, tmp_path):
     assert len(losses) == 8 and np.mean(losses[-2:]) < losses[0]
     # the CLI's eval on the held-out split gives the library's numbers
     out = tmp_path / "m.json"
-    r = CliRunner().invoke(app, ["eval", "voxel-semantics", "--data", str(data), "--checkpoint", str(res.last),
+    r = CliRunner().invoke(app, ["eval", "stage", "voxel-semantics", "--data", str(data), "--checkpoint", str(res.last),
                                  "--split", "test", "-o", str(out)])
     assert r.exit_code == 0, r.output
     got = json.loads(out.read_text())["metrics"]

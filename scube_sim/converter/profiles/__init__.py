@@ -1,0 +1,1 @@
+"""Shipped converter profiles (YAML): `converter.profile.load_profile` reads them by name."""

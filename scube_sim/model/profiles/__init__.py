@@ -1,1 +1,0 @@
-"""Shipped converter profiles (YAML): `model.converter.load_profile` reads them by name."""

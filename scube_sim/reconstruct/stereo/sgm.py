@@ -1,0 +1,126 @@
+"""Semi-global cost aggregation (Hirschmüller 2008) over a plane-sweep cost volume.
+
+A window cost alone decides each pixel on its 7 x 7 patch; where the patch is distorted between
+views (the side of a parked car seen from a camera driving past it changes scale and slant), weakly
+textured or partly occluded, its curve's minimum is shallow and the peak ratio low. Semi-global
+aggregation adds, along several straight paths through the image, the cost of the best path
+arriving at each (pixel, hypothesis), with a small penalty `p1` for a one-hypothesis step between
+neighbours and a large one `p2` for any larger jump:
+
+    L_r(p, d) = C(p, d) + min(L_r(p - r, d), L_r(p - r, d +- 1) + p1, min_k L_r(p - r, k) + p2)
+                - min_k L_r(p - r, k)
+
+and the aggregated cost is the mean of L_r over the paths (4: left, right, up, down; 8 adds the
+diagonals). Surfaces whose depth varies smoothly in inverse depth (planes, most of a street) get
+support from their neighbours; depth edges cost `p2` once.
+
+Units: the volume's own (census: the share of differing bits, in [0, 1]). NaN entries (a
+hypothesis no source sees at that pixel) enter the recursion as `fill` and come back NaN, so the
+winner-take-all still ignores them. `gradient_scale` > 0 lowers `p2` across image edges
+(p2 / (1 + gradient_scale |I(p) - I(p - r)|), depth edges tend to be image edges), never below p1;
+on the horizontal and vertical paths only (the diagonals keep p2).
+
+Deterministic: each path is a fixed sequence of elementwise operations (no reductions across
+threads), the same bytes whatever the thread count.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from ...errors import InputError
+
+__all__ = ["semi_global"]
+
+
+def _scan(cost: torch.Tensor, p1: float, p2: torch.Tensor) -> torch.Tensor:
+    """cost (B, D, H, W), p2 (B, 1, H, W) per pixel (the penalty into that pixel) -> L (B, D, H, W)
+    aggregated along +W (each of the B volumes scanned left to right)."""
+    c = cost.permute(3, 0, 1, 2).contiguous()  # (W, B, D, H): each step reads one contiguous slice
+    pen = p2.permute(3, 0, 1, 2).contiguous()
+    out = torch.empty_like(c)
+    prev = c[0]
+    out[0] = prev
+    step = torch.empty_like(prev)
+    for x in range(1, c.shape[0]):
+        m = prev.amin(1, keepdim=True)
+        # the best neighbour hypothesis (d - 1 or d + 1) plus p1
+        step[:, 0] = prev[:, 1]
+        step[:, -1] = prev[:, -2]
+        torch.minimum(prev[:, :-2], prev[:, 2:], out=step[:, 1:-1])
+        best = torch.minimum(torch.minimum(prev, step + p1), m + pen[x])
+        prev = out[x]
+        torch.add(c[x], best - m, out=prev)
+    return out.permute(1, 2, 3, 0)
+
+
+def _paths(cost: torch.Tensor, p1: float, p2: torch.Tensor) -> torch.Tensor:
+    """The sum of L over the +W and -W paths of cost (D, H, W) with p2 (2, 1, H, W) (into each pixel
+    from the left, from the right)."""
+    agg = _scan(torch.stack([cost, cost.flip(-1)]), p1, torch.stack([p2[0], p2[1].flip(-1)]))
+    return agg[0] + agg[1].flip(-1)
+
+
+def _diagonal(cost: torch.Tensor, shift: int) -> torch.Tensor:
+    """Shear (D, H, W) into (D, H, W + H) so that a diagonal becomes a column: row y starts at column
+    y (shift 1: the anti-diagonals x + y constant) or H - 1 - y (shift -1: the diagonals x - y
+    constant); the cells outside the image are NaN."""
+    d, h, w = cost.shape
+    out = torch.full((d, h, w + h), float("nan"), dtype=cost.dtype)
+    for y in range(h):
+        o = y if shift > 0 else h - 1 - y
+        out[:, y, o:o + w] = cost[:, y]
+    return out
+
+
+def _undiagonal(sheared: torch.Tensor, shift: int, w: int) -> torch.Tensor:
+    h = sheared.shape[1]
+    rows = []
+    for y in range(h):
+        o = y if shift > 0 else h - 1 - y
+        rows.append(sheared[:, y, o:o + w])
+    return torch.stack(rows, 1)
+
+
+def _penalty(image: torch.Tensor | None, shape, p1: float, p2: float, gradient_scale: float,
+             dim: int) -> torch.Tensor:
+    """(2, 1, H, W) p2 into each pixel from its predecessor along `dim` (-1: x, -2: y), forward then
+    backward."""
+    h, w = shape
+    if image is None or gradient_scale <= 0:
+        return torch.full((2, 1, h, w), float(p2))
+    g = image.mean(0) if image.dim() == 3 else image  # (H, W)
+    diff = (g.diff(dim=dim)).abs()
+    pad = torch.zeros((1, w)) if dim == -2 else torch.zeros((h, 1))
+    fwd = torch.cat([pad, diff], dim)  # into pixel i from i - 1
+    bwd = torch.cat([diff, pad], dim)  # into pixel i from i + 1
+    pen = torch.stack([fwd, bwd])[:, None]
+    return torch.clamp(p2 / (1.0 + gradient_scale * pen), min=p1)
+
+
+def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5,
+                image: torch.Tensor | None = None, gradient_scale: float = 0.0) -> torch.Tensor:
+    """cost (D, H, W) float32 (NaN: no candidate) -> (D, H, W) float32, the mean of the path costs
+    L_r over `paths` (4 or 8) directions (module docstring); NaN where the input is NaN.
+    image: (C, H, W) or (H, W) reference image for the edge-aware p2 (`gradient_scale` > 0)."""
+    if paths not in (4, 8):
+        raise InputError(f"semi_global: paths must be 4 or 8, got {paths}")
+    if not 0 <= p1 <= p2:
+        raise InputError(f"semi_global: penalties must satisfy 0 <= p1 <= p2, got p1={p1}, p2={p2}")
+    if cost.dim() != 3:
+        raise InputError(f"semi_global: cost must be (D, H, W), got shape {tuple(cost.shape)}")
+    nan = torch.isnan(cost)
+    c = torch.where(nan, torch.full_like(cost, fill), cost)
+    _, h, w = c.shape
+    total = _paths(c, p1, _penalty(image, (h, w), p1, p2, gradient_scale, -1))
+    pen_y = _penalty(image, (h, w), p1, p2, gradient_scale, -2)
+    total = total + _paths(c.transpose(1, 2), p1, pen_y.transpose(2, 3)).transpose(1, 2)
+    if paths == 8:
+        for shift in (1, -1):
+            # a diagonal path is a row of the sheared volume; sheared padding (NaN) is filled too
+            sh = _diagonal(c, shift)
+            sh = torch.where(torch.isnan(sh), torch.full_like(sh, fill), sh)
+            pen = torch.full((2, 1, sh.shape[1], sh.shape[2]), float(p2))
+            agg = _paths(sh.transpose(1, 2), p1, pen.transpose(2, 3)).transpose(1, 2)
+            total = total + _undiagonal(agg, shift, w)
+    return torch.where(nan, torch.full_like(total, float("nan")), total / paths)
