@@ -27,16 +27,16 @@ import numpy as np
 
 from scube_sim.converter.eval.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
 from scube_sim.converter.pipeline import Converter
-from scube_sim.converter.profile import load_profile
+from scube_sim.converter.profile import FineProfile, load_profile
 
 from .common import BENCH_DIR, write_results
 
 REPO = BENCH_DIR.parent
 
 
-# The fine geometry level (0.2 m) on the coarse prediction, grouped into the 0.4 m voxels the
-# appearance stage was trained on: the shipped cpu-fine profile's
-FINE_04 = load_profile("cpu-fine").fine
+# The fine geometry level (0.2 m, the shipped geometry-fine-cpu) on the coarse prediction, grouped into
+# the 0.4 m voxels the appearance stage was trained on; its images at the coarse level's focal length
+FINE_04 = FineProfile(checkpoint="geometry-fine-cpu", focal_px=342.5, output_voxel_size=0.4)
 
 
 def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | None]]:

@@ -100,25 +100,6 @@ def bev_compare_png(path: str | Path, panels: dict[str, tuple[np.ndarray, np.nda
     return save_png(fig, path)
 
 
-def range_images_png(path: str | Path, images: dict[str, np.ndarray], *, vmax: float | None = None,
-                     title: str = "") -> Path:
-    """Stack (rings, columns) images one above the other (NaN = no return)."""
-    plt = pyplot()
-    n = len(images)
-    fig, axes = plt.subplots(n, 1, figsize=(14, 1.6 * n + 0.8), dpi=110, squeeze=False)
-    for ax, (name, img) in zip(axes[:, 0], images.items()):
-        im = ax.imshow(img, aspect="auto", interpolation="nearest", cmap="turbo", vmin=0,
-                       vmax=vmax if vmax is not None else np.nanpercentile(img, 99) if np.isfinite(img).any() else 1)
-        ax.set_ylabel(name, fontsize=8)
-        ax.set_yticks([])
-        fig.colorbar(im, ax=ax, fraction=0.02, pad=0.01)
-    axes[-1, 0].set_xlabel("column")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    return save_png(fig, path)
-
-
 def mosaic_png(path: str | Path, images: dict[str, np.ndarray], *, title: str = "", cols: int = 3) -> Path:
     """Camera images (name -> (H, W, 3) uint8) in a grid, titled by name."""
     plt = pyplot()

@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError
-from ..transforms import invert_pose
 
 # (voxel size m, max correspondence distance m, iterations): coarse to fine.
 _SCHEDULE = ((1.0, 3.0, 30), (0.4, 1.0, 30), (0.2, 0.4, 50), (0.1, 0.2, 50))
@@ -91,6 +90,3 @@ def register_sequence(sweeps: list[np.ndarray], *, refine_to_first: int = 10) ->
     return np.stack(poses), results
 
 
-def relative_pose(poses: np.ndarray, i: int, j: int) -> np.ndarray:
-    """T_i_j: frame j expressed in frame i, from sensor-to-world poses."""
-    return invert_pose(poses[i]) @ poses[j]

@@ -469,7 +469,6 @@ class Lidar:
         rep = np.empty(uk.shape[0], np.int64)
         rep[inv[o2][first]] = sub[o2][first]
         e_pulse = uk // s
-        self._last_echoes = (e_pulse, echo_r, strength, rep)
         if mode in ("first", "nearest", "mean"):
             pick = np.r_[True, e_pulse[1:] != e_pulse[:-1]]  # lowest cluster id = nearest
         elif mode == "last":

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from ..boxes import Box
-from ..mesh import TriangleMesh
 from ..raytrace.compose import nearest_hits
 from ..raytrace.contracts import TraceableScene
 from ..raytrace.hits import Hits
@@ -356,11 +355,6 @@ class ChunkSet:
     @property
     def loaded(self) -> list[int]:
         return sorted(self._loaded)
-
-
-def mesh_part(mesh: TriangleMesh, **kw) -> Part:
-    """A part traced on a triangle mesh (its exact geometry); `kw` as for `Part`."""
-    return Part(Tracer(mesh), **kw)
 
 
 class StaticScene:

@@ -43,7 +43,7 @@ def appearance_world(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("name", ["appearance-cpu", "appearance-cpu-640"])
+@pytest.mark.parametrize("name", ["appearance-cpu"])
 def test_each_appearance_checkpoint_holds_weights_only_and_beats_its_untrained_network(appearance_world, name):
     ck = load_checkpoint(resolve_checkpoint(name))
     assert ck["stage"] == "appearance" and "optimizer" not in ck and "rng" not in ck
