@@ -20,13 +20,12 @@ from .merge import CompletionConfig
 PROFILE_DIR = Path(__file__).resolve().parent / "profiles"
 
 
-# the profile `convert` and the demo use unless told: measured geometry with the learned completion
-# (docs/converter.md, "The evidence profile", "The learned completion"); PAPER_PROFILE: the paper's
-# route, whose networks the depth evaluation reads
+# the profile `convert`, the CLI, the demo, batches and scenarios use unless told (docs/profiles.md)
 DEFAULT_PROFILE = "evidence-complete"
-
-
+# the paper's route, whose networks `eval stage` and `eval depth --method mono` default to
 PAPER_PROFILE = "cpu"
+# the checkpoint-bearing sections of a profile, in the order provenance lists them
+CHECKPOINT_KEYS = ("geometry", "fine", "appearance", "completion")
 
 
 class StageProfile(StrictModel):
@@ -120,29 +119,68 @@ class ConverterProfile(StrictModel):
                 self.evidence = EvidenceConfig()
         return self
 
+    def checkpoints(self) -> dict[str, str]:
+        """Every checkpoint the profile names, section -> path or shipped name (`CHECKPOINT_KEYS`):
+        what a conversion depends on besides the profile's values."""
+        return {k: getattr(self, k).checkpoint for k in CHECKPOINT_KEYS if getattr(self, k) is not None}
+
 
 def shipped_profiles() -> list[str]:
     return sorted(p.stem for p in PROFILE_DIR.glob("*.yaml"))
 
 
 def load_profile(profile: str | Path | ConverterProfile = DEFAULT_PROFILE) -> ConverterProfile:
-    """A profile: a `ConverterProfile`, a YAML file's path, or a shipped profile's name."""
+    """A profile: a `ConverterProfile`, a YAML file's path, or a shipped profile's name. A YAML file
+    may name a `base:` profile (a shipped name, or a path relative to the file): its keys are read
+    first and the file's own laid over them, section by section."""
     if isinstance(profile, ConverterProfile):
         return profile
+    path = _profile_path(profile)
+    data = _profile_data(path, ())
+    data.setdefault("name", path.stem)
+    try:
+        return ConverterProfile(**data)
+    except ValidationError as exc:  # each key at fault: `p.yaml: appearance.sky_size[0]: Input should be ...`
+        raise InputError(format_validation_error(exc, str(path), ConverterProfile)) from None
+
+
+def _profile_path(profile: str | Path, relative_to: Path | None = None) -> Path:
     path = Path(profile)
-    if not path.is_file():
-        if str(profile) not in shipped_profiles():
-            raise InputError(f"profile {str(profile)!r}: no such file, nor a shipped profile "
-                             f"(shipped: {', '.join(shipped_profiles())})")
-        path = PROFILE_DIR / f"{profile}.yaml"
+    if relative_to is not None and not path.is_absolute() and (relative_to / path).is_file():
+        return relative_to / path
+    if path.is_file():
+        return path
+    if str(profile) not in shipped_profiles():
+        raise InputError(f"profile {str(profile)!r}: no such file, nor a shipped profile "
+                         f"(shipped: {', '.join(shipped_profiles())})")
+    return PROFILE_DIR / f"{profile}.yaml"
+
+
+def _profile_data(path: Path, seen: tuple[Path, ...]) -> dict:
+    """The keys of the profile file at `path` over those of its `base:` (recursively)."""
+    if path.resolve() in seen:
+        chain = " -> ".join(str(p) for p in (*seen, path.resolve()))
+        raise InputError(f"{path}: base: the profiles base each other in a circle ({chain})")
     try:
         data = load_yaml(path, error=InputError)  # a duplicate key: file, line and key path
     except yaml.YAMLError as exc:
         raise InputError(f"{path}: not YAML ({exc})") from None
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping of profile keys, got {type(data).__name__}")
-    data.setdefault("name", path.stem)
-    try:
-        return ConverterProfile(**data)
-    except ValidationError as exc:  # each key at fault: `p.yaml: appearance.sky_size[0]: Input should be ...`
-        raise InputError(format_validation_error(exc, str(path), ConverterProfile)) from None
+    base = data.pop("base", None)
+    if base is None:
+        return data
+    if not isinstance(base, str) or not base:
+        raise InputError(f"{path}: base: expected a shipped profile's name or a profile file's path, got {base!r}")
+    inherited = _profile_data(_profile_path(base, path.parent), (*seen, path.resolve()))
+    inherited.pop("name", None)  # a profile's name and description are its own
+    inherited.pop("description", None)
+    return _laid_over(inherited, data)
+
+
+def _laid_over(base: dict, own: dict) -> dict:
+    """`own`'s keys over `base`'s: a mapping merged key by key, any other value replaced."""
+    out = dict(base)
+    for k, v in own.items():
+        out[k] = _laid_over(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out

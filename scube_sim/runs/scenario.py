@@ -61,7 +61,7 @@ from ..config import (
     unique_names,
     validate_model,
 )
-from ..converter.profile import DEFAULT_PROFILE, load_profile
+from ..converter.profile import DEFAULT_PROFILE, ConverterProfile, load_profile
 from ..errors import ScubeSimWarning
 from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
 from ..raytrace.tracer import Tracer
@@ -448,17 +448,11 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     conversion per chunk along the world's road, loaded as a `ChunkSet`."""
     from ..converter.frames import open_frames
     from ..converter.pipeline import TRACE_MODE
-    from ..model.checkpoint import resolve_checkpoint
 
     f = sc.scene.frames
     profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
-    # the converter's settings, its weights included (a retrained checkpoint at the same path
-    # converts again); each entry adds its frames' digest
     context = profile.context if f.context is None else f.context
-    # the profile's context left out of the key: caches made before the option existed stay valid
-    key = {"spec": f.model_dump(mode="json", exclude={"context"} if f.context is None else None), "seed": sc.seed, "profile": profile.model_dump(mode="json"),
-           "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
-                           for stage in ("geometry", "appearance") if getattr(profile, stage) is not None}}
+    key = conversion_key(f, profile, sc.seed)
     folder.mkdir(parents=True, exist_ok=True)
     if f.world is None:
         path = resolve_path(f.path, base)
@@ -496,6 +490,20 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     mode = sc.scene.depth or (scene.metadata.get("trace_mode", TRACE_MODE) if specs else TRACE_MODE)
     chunks = ChunkSet(specs, reach, {"mode": mode, **_soft_kw(sc.scene)})
     return BuiltScene(SimScene(actors=actors, chunks=chunks, static_boxes=world.boxes_static), world=world)
+
+
+def conversion_key(frames_spec: FramesSpec, profile: ConverterProfile, seed: int) -> dict:
+    """What a cached conversion of `frames_spec` depends on besides its frames: the spec, the seed,
+    the profile's values and the sha256 of every checkpoint it names (a retrained checkpoint under
+    the same name converts again). The spec's context is left out where it defers to the profile's,
+    so caches made before the option existed stay valid."""
+    from ..model.checkpoint import resolve_checkpoint
+
+    f = frames_spec
+    return {"spec": f.model_dump(mode="json", exclude={"context"} if f.context is None else None), "seed": seed,
+            "profile": profile.model_dump(mode="json"),
+            "checkpoints": {stage: sha256_file(resolve_checkpoint(name))
+                            for stage, name in profile.checkpoints().items()}}
 
 
 def route_stops(world: World, spacing_m: float) -> list[tuple[float, np.ndarray]]:
