@@ -34,9 +34,9 @@ REPO = BENCH_DIR.parent
 
 def _run(conv: Converter, frames, **kw) -> dict:
     t = time.perf_counter()
-    scene = conv.convert(frames, **kw)
+    done = conv.convert(frames, **kw)
     wall = time.perf_counter() - t
-    return {"seconds": wall, **conv.timings, "voxels": scene.num_voxels}
+    return {"seconds": wall, **done.timings, "voxels": done.scene.num_voxels}
 
 
 def reliability(conv: Converter, data: Path, split: str, n: int, k: int | None) -> tuple[list[dict], dict]:
@@ -45,7 +45,7 @@ def reliability(conv: Converter, data: Path, split: str, n: int, k: int | None) 
     conf, hit, seen = [], [], []
     for i in range(min(n, len(ds))):
         sample = ds[i]
-        ijk, _, c, observed, vs = conv.predict_voxels(sample.frames, k=k or 1)
+        ijk, _, c, observed, vs = conv.pipeline.predict_voxels(sample.frames, k=k or 1)
         gt = sample.ground_truth.coarse
         if abs(float(gt.voxel_size) - vs) > 1e-9:
             raise SystemExit(f"{sample.name}: ground truth at {gt.voxel_size} m, the converter's grid at {vs} m")
@@ -106,9 +106,9 @@ def main(argv=None) -> None:
     conv = Converter(args.profile)
     folders = sorted(p for p in (Path(args.data) / args.split).iterdir() if p.is_dir())
     rel, _ = reliability(conv, Path(args.data), args.split, args.reliability_samples,
-                         args.k if conv.geometry.cfg.mode == "diffusion" else None)
+                         args.k if conv.pipeline.geometry.cfg.mode == "diffusion" else None)
     write_results("convert_reliability", rel, list(rel[0]),
-                  notes=f"profile {args.profile} ({conv.geometry.cfg.mode}), {min(len(folders), args.reliability_samples)} "
+                  notes=f"profile {args.profile} ({conv.pipeline.geometry.cfg.mode}), {min(len(folders), args.reliability_samples)} "
                         f"{args.split} worlds, coarse voxels against the ground truth's")
     plot_reliability(rel, REPO / "docs" / "convert_reliability.png",
                      f"converter geometry ({args.profile}): precision by confidence, {args.split} split")
@@ -117,7 +117,7 @@ def main(argv=None) -> None:
     variants = {"full (sky, one geometry sample)": {},
                 "LiDAR only (no sky)": {"sky": False},
                 "LiDAR only, within 60 m": {"sky": False, "max_range": 60.0}}
-    if conv.geometry.cfg.mode == "diffusion":  # a single-step predictor draws no samples to count
+    if conv.pipeline.geometry.cfg.mode == "diffusion":  # a single-step predictor draws no samples to count
         variants[f"confidence over K = {args.k}"] = {"confidence": True, "k": args.k}
     per: dict[str, list[dict]] = {name: [] for name in variants}
     folders = folders[: args.samples]

@@ -129,7 +129,7 @@ def main(argv=None) -> None:
     world = generate_world(WorldConfig(style="urban", seed=args.seed, layout="straight", moving_vehicles=0,
                                        pedestrians=0, ego_speed_mps=8, duration_s=2))
     frames = render_frames(world, "waymo-5", 0.0)
-    scene = Converter("cpu").convert(frames, seed=0, sky=False)
+    scene = Converter("cpu").convert(frames, seed=0, sky=False).scene
     to_chunk = invert_pose(np.asarray(scene.metadata["chunk_to_world"], np.float64))
     with tempfile.TemporaryDirectory() as tmp:
         ply = Path(tmp) / "init.ply"

@@ -76,7 +76,7 @@ def main(argv=None) -> None:
     converted, truth = [], []
     for i, (t, pose) in enumerate(track(stops, description="chunks")):
         frames = render_frames(world, "waymo-5", t, ego_pose=pose)
-        vs = conv.convert(frames, seed=0, sky=False)
+        vs = conv.convert(frames, seed=0, sky=False).scene
         vs, _ = remove_boxes(vs, [a.box_at(t) for a in actors])
         converted.append(scene_part(vs, name=f"converted{i}"))
         truth.append(scene_part(gt_voxsplat(world.static, pose, 0.4), name=f"truth{i}", mode="entry"))

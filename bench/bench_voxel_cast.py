@@ -55,8 +55,8 @@ def run(repeats: int = 2) -> list[dict]:
     rows = []
     for profile in PROFILES:
         conv = Converter(_profile(profile))
-        conv.convert(frames, seed=0)  # warm-up: first-call allocations
-        sec, scene = best_per_core(lambda: conv.convert(frames, seed=0), repeats)
+        conv.convert(frames, seed=0).scene  # warm-up: first-call allocations
+        sec, scene = best_per_core(lambda: conv.convert(frames, seed=0).scene, repeats)
         rows.append({"profile": profile, "voxels": int(scene["compiled"].num_voxels),
                      "torch_loop_s": round(sec["reference"], 2), "compiled_s": round(sec["compiled"], 2),
                      "speedup": round(sec["reference"] / sec["compiled"], 2),

@@ -3,7 +3,7 @@ the completion on and off, on one measurement per log (the converter keeps the e
 scene it completed, `Converter.uncompleted`), and how much observed surface the completion
 removed.
 
-Per log: `Converter(profile).convert(open_frames(...))` writes the completed scene and the
+Per log: `Converter(profile).convert(open_frames(...)).scene` writes the completed scene and the
 evidence-alone one, then `scube-sim fidelity DATA -d D --sample I --scene S --no-baselines
 --ground-plane --regions` scores each against the real sweep of the same instant (the returns
 within 40 m inside the cameras' view, ground and above ground apart); the figures are read from
@@ -90,11 +90,12 @@ def main(argv=None) -> None:
         out = args.output / name
         out.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        scene = conv.convert(open_frames(path, dataset, sample, context=context))
+        conversion = conv.convert(open_frames(path, dataset, sample, context=context))
+        scene = conversion.scene
         seconds = time.perf_counter() - t0
         if completes:
             scene.save(out / "completed.npz")
-            conv.uncompleted.save(out / "evidence.npz")
+            conversion.uncompleted.save(out / "evidence.npz")
             done = scene.metadata["completion"]
             scenes = (("evidence alone", "evidence.npz"), ("completed", "completed.npz"))
         else:
@@ -108,7 +109,7 @@ def main(argv=None) -> None:
                 row.update({"added_cells": done["added_cells"], "removed_voxels": done["removed_voxels"],
                             "observed_voxels": done["observed_voxels"],
                             "removed_share": done["removed_voxels"] / max(done["observed_voxels"], 1),
-                            "convert_s": seconds, "completion_s": conv.timings.get("completion_s")})
+                            "convert_s": seconds, "completion_s": conversion.timings.get("completion_s")})
             rows.append(row)
             print(json.dumps(row))
     header = ["log", "scene", "above_to_surface_m", "above_plane_m", "above_median_m", "above_p90_m", "above_hits", "ground_median_m", "ground_p90_m",

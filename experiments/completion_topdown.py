@@ -47,11 +47,12 @@ def topdown(data: Path, split: str, sample: str, profile: str, out: Path) -> dic
     d = Path(data) / split / sample
     meta = json.loads((d / "meta.json").read_text(encoding="utf-8"))
     conv = Converter(profile)
-    scene = conv.convert(open_frames(d, context=conv.profile.context))
-    if conv.uncompleted is None:
+    done = conv.convert(open_frames(d, context=conv.profile.context))
+    scene = done.scene
+    if done.uncompleted is None:
         raise SystemExit(f"--profile {profile}: has no completion to draw")
     centres = scene.origin + scene.voxel_centers()
-    before = set(voxel_keys(conv.uncompleted.ijk.astype(np.int64)).tolist())
+    before = set(voxel_keys(done.uncompleted.ijk.astype(np.int64)).tolist())
     added = np.array([k not in before for k in voxel_keys(scene.ijk.astype(np.int64)).tolist()], bool)
     observed = scene.channel("observed").astype(bool) & ~np.isin(scene.labels.astype(np.int64), GROUND_IDS)
     with np.load(d / "voxels.npz") as z:
@@ -61,7 +62,7 @@ def topdown(data: Path, split: str, sample: str, profile: str, out: Path) -> dic
     objects = ~np.isin(labels, GROUND_IDS)
     truth = columns(CHUNK_CORNER + (ijk[objects] + 0.5) * size, n)
     # an added cell (`completion_voxel_size`) holds one Gaussian at its centre: drawn as the whole cell
-    k = max(1, int(round(conv.completion_voxel_size / CELL_M)))
+    k = max(1, int(round(conv.pipeline.completion_voxel_size / CELL_M)))
     add = np.kron(columns(centres[added], n // k, CELL_M * k), np.ones((k, k), bool))
     img = np.ones((n, n, 3))
     img[truth] = COLOURS["truth"]

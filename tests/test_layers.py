@@ -140,9 +140,22 @@ def _where(name: str, path: Path, line: int) -> str:
 
 
 def _heavy_modules(modules: dict[str, Path]) -> set[str]:
-    """Our modules that import a heavy third-party package at their top."""
-    return {name for name, path in modules.items()
-            if any(kind == "other" and place == "" and target in HEAVY for kind, target, _, place in _imports(name, path))}
+    """Our modules that bring a heavy third-party package in at their top: importing it themselves,
+    or importing (at their top) one of ours that does."""
+    heavy, ours = set(), {}
+    for name, path in modules.items():
+        found = list(_imports(name, path))
+        if any(kind == "other" and place == "" and target in HEAVY for kind, target, _, place in found):
+            heavy.add(name)
+        ours[name] = {target for kind, target, _, place in found if kind == "ours" and place == ""}
+    grew = True
+    while grew:
+        grew = False
+        for name, targets in ours.items():
+            if name not in heavy and targets & heavy:
+                heavy.add(name)
+                grew = True
+    return heavy
 
 
 def check(modules: dict[str, Path]) -> list[str]:

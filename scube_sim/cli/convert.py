@@ -25,10 +25,14 @@ def convert_cmd(
     profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="a shipped converter profile's name or a profile "
                                 "YAML's path (evidence-complete: stereo depth fused, what no camera saw completed, "
                                 "for LiDAR; evidence: without the completion; cpu: the paper's route, with camera views)"),
-    steps: Optional[int] = typer.Option(None, "--steps", help="DDIM steps of the geometry stage (default: the profile's)"),
-    seed: int = typer.Option(0, "--seed", help="the geometry sampler's seed"),
-    confidence: int = typer.Option(0, "--confidence", "-k", help="K geometry samples for per-voxel confidence (0: one sample, confidence 1)"),
-    sky: bool = typer.Option(True, "--sky/--no-sky", help="decode the sky panorama (--no-sky for LiDAR-only use)"),
+    steps: Optional[int] = typer.Option(None, "--steps", help="the paper's route: DDIM steps of the geometry stage "
+                                        "(default: the profile's)"),
+    seed: Optional[int] = typer.Option(None, "--seed", help="the paper's route: the geometry sampler's seed "
+                                       "(default 0)"),
+    confidence: Optional[int] = typer.Option(None, "--confidence", "-k", help="the paper's route: K geometry samples "
+                                             "for per-voxel confidence (default: one sample, confidence 1)"),
+    sky: Optional[bool] = typer.Option(None, "--sky/--no-sky", help="the paper's route: decode the sky panorama "
+                                       "(default; --no-sky for LiDAR-only use)"),
     max_range: Optional[float] = typer.Option(None, "--max-range", help="keep voxels within this many metres of the ego (a LiDAR's range)"),
     context: Optional[int] = typer.Option(None, "--context", help="also give the converter the K "
                                 "instants before and the K after the sample in the same log or scene (never across a "
@@ -36,9 +40,11 @@ def convert_cmd(
                                 "and KITTI-360 10 Hz, a worlds sample its own stored instants minus the evaluation ones "
                                 "(T+5, T+10). Default: the profile's (evidence: 4; the scube profiles: 0, they read "
                                 "the reference instant only and record the instants given)"),
-    fit_steps: Optional[int] = typer.Option(None, "--fit-steps", help="a test-time fit of the Gaussians to the input views, Adam steps (default: the profile's, 0 in the shipped ones; ~3 s each)"),
+    fit_steps: Optional[int] = typer.Option(None, "--fit-steps", help="the paper's route: a test-time fit of the "
+                                            "Gaussians to the input views, Adam steps (default: the profile's)"),
 ) -> None:
-    """Convert posed camera frames into a VoxSplat (the SCube converter: geometry, then appearance)."""
+    """Convert posed camera frames into a VoxSplat (the profile's route: measured evidence with the learned
+    completion by default, or the paper's two networks)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..converter.frames import open_frames
@@ -46,9 +52,18 @@ def convert_cmd(
 
     if output.suffix != ".npz":
         raise CliError(f"-o: expected a .npz path, got {output}")
-    if confidence == 1 or confidence < 0:
+    if confidence is not None and (confidence == 1 or confidence < 0):
         raise CliError(f"--confidence: expected 0 (off) or K >= 2 samples, got {confidence}")
     conv = Converter(profile)
+    paper = {"--steps": steps, "--seed": seed, "--confidence": confidence, "--sky" if sky else "--no-sky": sky,
+             "--fit-steps": fit_steps}
+    given = [name for name, value in paper.items() if value is not None]
+    if given and conv.profile.route != "scube":
+        raise CliError(f"{', '.join(given)}: profile {conv.profile.name!r} is route {conv.profile.route}, which does "
+                       f"not use {'it' if len(given) == 1 else 'them'} (the paper's route does: --profile cpu)")
+    options = {} if conv.profile.route != "scube" else {
+        "steps": steps, "confidence": bool(confidence and confidence > 1), "k": confidence or None,
+        "sky": True if sky is None else sky, "fit_steps": fit_steps}
     context = conv.profile.context if context is None else context
     frames = open_frames(path, dataset, sample, context=context)
     if context and not frames.context:
@@ -59,15 +74,16 @@ def convert_cmd(
     with Progress(TextColumn("fitting the Gaussians to the input views"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), transient=True, disable=not n_fit) as bar:
         task = bar.add_task("", total=n_fit)
-        vs = conv.convert(frames, steps=steps, seed=seed, confidence=confidence > 1, k=confidence or None, sky=sky,
-                          max_range=max_range, fit_steps=fit_steps,
-                          progress=lambda step, total: bar.update(task, completed=step, total=total))
+        if options:
+            options["progress"] = lambda step, total: bar.update(task, completed=step, total=total)
+        done = conv.convert(frames, seed=seed or 0, max_range=max_range, **options)
+    vs, t = done.scene, done.timings
     output.parent.mkdir(parents=True, exist_ok=True)
     vs.save(output)
-    t = conv.timings
     seen = float(vs.channel("observed").mean()) if vs.num_voxels else 0.0
     given = f" (+{len(frames.context)} context instant(s))" if frames.context else ""
     typer.echo(f"{frames.metadata.get('sample', path)}: {len(frames)} camera(s){given} -> {vs.num_voxels} voxels at "
-               f"{vs.voxel_size:g} m ({100 * seen:.1f} % observed), {vs.num_gaussians} Gaussians; geometry "
-               f"{t['geometry_s']:.1f} s, appearance {t['appearance_s']:.1f} s, peak {t['peak_mb']:.0f} MB, "
+               f"{vs.voxel_size:g} m ({100 * seen:.1f} % observed), {vs.num_gaussians} Gaussians; "
+               f"{', '.join(f'{k[:-2]} {v:.1f} s' for k, v in t.items() if k.endswith('_s'))}, "
+               f"peak {t['peak_mb']:.0f} MB, "
                f"{time.perf_counter() - t0:.1f} s -> {output}")

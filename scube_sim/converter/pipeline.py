@@ -1,358 +1,68 @@
-"""The sensor-to-sensor converter (SCube section 3): posed camera frames -> a VoxSplat.
+"""The converter: a profile's pipeline loaded once (`Converter`), and `convert` for one call.
 
-The geometry stage (`geometry.GeometryNet`, coarse level, and where the profile names one, the
-fine level conditioned on the coarse prediction: XCube's cascade) predicts semantic voxels from
-the images; the appearance stage (`appearance.AppearanceNet`) puts M Gaussians in each predicted voxel
-and decodes a sky panorama. A *profile* names both stages' checkpoints and their settings: the
-shipped ones are `profiles/<name>.yaml` in this package (`cpu` is the default), a user's own is a
-YAML file given by path (`ConverterProfile`).
-
-Frames: the chunk frame is the frames' ego frame at their reference instant (x forward, y left,
-z up, metres), as the worlds define it: ``Frames.ego_pose`` is chunk_to_world, moved down to the
-road by ``Frames.metadata["ego_height_m"]`` where an adapter's ego frame is above it (KITTI's). The VoxSplat lives
-in that frame (origin CHUNK_CORNER) with ``chunk_to_world`` in its metadata, as
-`worlds.groundtruth.gt_voxsplat` writes the ground truth, so the simulator places both the same
-way. Poses are composed in float64 before anything is cast to float32, so frames 10^6 m from the
-world origin convert as they do at the origin.
-
-Images are resized so that each camera's focal length in pixels is the one its stage was trained
-at (`StageProfile.focal_px`): a depth estimate learns how large things look at a distance, in
-pixels; any input resolution then meets the network at its training scale, and memory is bounded
-by the field of view, not by the sensor's pixel count.
+A profile's `route` picks the pipeline, and each takes only the options that mean something to
+it: `evidence.EvidencePipeline` (measured geometry, then the learned completion) and
+`scube.PaperPipeline` (the paper's two networks). Both return a `Conversion`.
 """
 
 from __future__ import annotations
 
-import contextlib
-import hashlib
-import time
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 
-from ..camera.frames import Frames, chunk_to_world, ego_poses_in_chunk
+from ..camera.frames import Frames
 from ..errors import InputError
-from ..labels import NUM_LABELS
-from ..memory import peak_mb, reset_peak
-from ..model.appearance.fit import fit_input_views
-from ..model.appearance.net import AppearanceNet, first_hit_voxels
-from ..model.checkpoint import load_model, resolve_checkpoint
-from ..model.completion.features import completion_input
-from ..model.completion.net import CompletionNet
-from ..model.geometry.data import GeometryDataConfig
-from ..model.geometry.net import GeometryNet, flat_keys, observed_voxels
-from ..reconstruct.evidence import Evidence, fusion_config, measure_evidence
-from ..reconstruct.surfels import scene_from_evidence
-from ..transforms import invert_pose
-from ..voxsplat import SCALE, VoxSplat
-from ..worlds.groundtruth import CHUNK_CORNER
-from .frames import context_record, frames_item
-from .merge import merge_completion
+from ..voxsplat import VoxSplat
+from .conversion import Conversion, checkpoint_hashes
+from .evidence import EvidencePipeline
 from .profile import DEFAULT_PROFILE, ConverterProfile, load_profile
+from .scube import TRACE_MODE, PaperPipeline
 
-# How a converted scene is traced (metadata ``trace_mode``, which `scube-sim lidar --mode auto`
-# and the demo read): its Gaussians are camera-trained blobs about half a voxel wide whose opacity
-# matters; at hard opacity their 3-sigma shells are slabs metres thick.
-TRACE_MODE = "soft"
+__all__ = ["TRACE_MODE", "Conversion", "Converter", "Pipeline", "convert", "is_loaded"]
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+class Pipeline(Protocol):
+    """A route's conversion: its networks loaded from the profile, `paths` the checkpoint files
+    they came from, `OPTIONS` the keyword options `convert` takes besides seed and max_range."""
+
+    OPTIONS: tuple[str, ...]
+    paths: dict[str, Path]
+
+    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, **options) -> Conversion:
+        ...
+
+
+PIPELINES: dict[str, type] = {"scube": PaperPipeline, "evidence": EvidencePipeline}
 
 
 class Converter:
-    """Both stages of a profile, loaded once; `convert` turns frames into a VoxSplat."""
+    """A profile's pipeline, loaded once; `convert` turns frames into a `Conversion`."""
 
     def __init__(self, profile: str | Path | ConverterProfile = DEFAULT_PROFILE):
         self.profile = load_profile(profile)
-        p = self.profile
-        self._hashes: dict[str, str] = {}
-        self.timings: dict[str, float] = {}
-        if p.route == "evidence":  # no weights to load, but the completion's
-            self._paths, self.geometry, self.fine, self.appearance = {}, None, None, None
-            self.completion = self.uncompleted = self.completion_grid = None
-            if p.completion is not None:
-                self._paths["completion"] = resolve_checkpoint(p.completion.checkpoint)
-                self.completion, run = load_model("completion", self._paths["completion"])
-                if not isinstance(self.completion, CompletionNet):
-                    raise InputError(f"{self._paths['completion']}: not a completion checkpoint")
-                self.completion_voxel_size = float(run.data.get("voxel_size", 0.8))
-            return
-        self._paths = {"geometry": resolve_checkpoint(p.geometry.checkpoint),
-                       "appearance": resolve_checkpoint(p.appearance.checkpoint)}
-        self.geometry, run = load_model("geometry", self._paths["geometry"])
-        if not isinstance(self.geometry, GeometryNet) or self.geometry.cfg.level != "coarse":
-            raise InputError(f"{self._paths['geometry']}: the converter needs a coarse-level geometry checkpoint")
-        self.data = GeometryDataConfig(**run.data)
-        self.fine = None
-        if p.fine is not None:
-            self._paths["fine"] = resolve_checkpoint(p.fine.checkpoint)
-            self.fine, frun = load_model("geometry", self._paths["fine"])
-            if not isinstance(self.fine, GeometryNet) or self.fine.cfg.level != "fine":
-                raise InputError(f"{self._paths['fine']}: profile key fine needs a fine-level geometry checkpoint")
-            # the whole region at once, as the coarse level (a training crop is not an inference box)
-            self.fine_data = GeometryDataConfig(**{**frun.data, "crop": None, "region": self.data.region})
-            if abs(self.fine_data.lift_voxel_size - self.data.voxel_size) > 1e-9:
-                raise InputError(f"{self._paths['fine']}: its sites are {self.fine_data.lift_voxel_size} m voxels; "
-                                 f"the coarse checkpoint predicts {self.data.voxel_size} m")
-            self.output_voxel_size = self._output_voxel_size(p.fine.output_voxel_size)
-        self.appearance, _ = load_model("appearance", self._paths["appearance"])
-        if not isinstance(self.appearance, AppearanceNet):
-            raise InputError(f"{self._paths['appearance']}: not an appearance checkpoint")
-
-    def _output_voxel_size(self, size: float | None) -> float:
-        fine, coarse = self.fine_data.voxel_size, self.data.voxel_size
-        if size is None:
-            return float(fine)
-        group, per_coarse = size / fine, coarse / size
-        if abs(group - round(group)) > 1e-6 or abs(per_coarse - round(per_coarse)) > 1e-6:
-            raise InputError(f"profile fine.output_voxel_size {size}: expected a multiple of the fine level's "
-                             f"{fine} m that divides the coarse level's {coarse} m")
-        return float(size)
+        self.pipeline: Pipeline = PIPELINES[self.profile.route](self.profile)
 
     def checkpoint_hashes(self) -> dict[str, str]:
-        """sha256 of each stage's checkpoint file (provenance), computed once."""
-        if not self._hashes:
-            self._hashes = {k: _sha256(v) for k, v in self._paths.items()}
-        return self._hashes
+        """sha256 of every checkpoint the profile's pipeline loaded (provenance)."""
+        return checkpoint_hashes(self.pipeline.paths)
 
-    @torch.no_grad()
-    def predict_voxels(self, frames: Frames, *, steps: int | None = None, seed: int = 0, k: int = 1):
-        """The geometry stage: -> (ijk (V, 3) int64 chunk voxels from CHUNK_CORNER, labels (V,),
-        confidence (V,) float32 (the share of k samples holding the voxel; 1 when k = 1),
-        observed (V,) bool, voxel_size metres)."""
-        item = frames_item(frames, self.profile.geometry)
-        cfg = self.data
-        item["lift_grid"], item["gt_grid"], item["level"] = cfg.grid(), cfg.grid(cfg.voxel_size), "coarse"
-        steps = steps or self.profile.geometry.sample_steps
-        # a fine level traces `observed` through its own grid: the coarse trace would be discarded
-        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed,
-                                                                            observed=self.fine is None)
-        size = float(cfg.voxel_size)
-        if self.fine is not None:
-            ijk, labels, conf, observed, size = self._refine(frames, ijk, labels, conf, seed)
-        shift = torch.round((torch.tensor(cfg.region[:3], dtype=torch.float64) - torch.as_tensor(CHUNK_CORNER))
-                            / size).to(torch.int64)
-        return ijk + shift, labels, conf, observed, size
-
-    def _refine(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, conf: torch.Tensor, seed: int):
-        """The fine level on the coarse prediction (box voxels of the coarse grid) -> the same
-        tuple as `predict_voxels` in box voxels of the output size (`FineProfile`): each voxel's
-        confidence is its coarse parent's (the fine predictor draws no samples); observed is
-        traced through the output grid itself (`observed_voxels`)."""
-        fcfg = self.fine_data
-        item = frames_item(frames, self.profile.fine)
-        item["lift_grid"], item["gt_grid"], item["level"] = fcfg.grid(), fcfg.grid(fcfg.voxel_size), "fine"
-        fijk, flabels = self.fine.predict(item, seed=seed, coarse=(ijk, labels))
-        # every fine voxel lies in a coarse site (the decoder only subdivides): its parent's confidence
-        per = round(self.data.voxel_size / fcfg.voxel_size)
-        coarse_dims = self.data.grid(self.data.voxel_size).dims
-        parent_keys = flat_keys(fijk // per, coarse_dims)
-        keys = flat_keys(ijk, coarse_dims)
-        order = torch.argsort(keys)
-        pos = torch.searchsorted(keys[order], parent_keys).clamp(max=max(len(keys) - 1, 0))
-        fconf = conf[order][pos] if len(keys) else torch.zeros(len(fijk))
-        group = round(self.output_voxel_size / fcfg.voxel_size)
-        out_grid = fcfg.grid(self.output_voxel_size)
-        if group > 1:
-            gkeys, inverse = torch.unique(flat_keys(fijk // group, out_grid.dims), return_inverse=True)
-            g = len(gkeys)
-            counts = torch.zeros(g * NUM_LABELS, dtype=torch.int64).index_add_(
-                0, inverse * NUM_LABELS + flabels, torch.ones(len(flabels), dtype=torch.int64))
-            flabels = counts.view(g, NUM_LABELS).argmax(1)  # ties: the lowest label id
-            # children of one output voxel share their coarse parent, so any child's confidence is it
-            fconf = torch.zeros(g).index_put_((inverse,), fconf)
-            _, y, z = out_grid.dims
-            fijk = torch.stack([gkeys // (y * z), (gkeys // z) % y, gkeys % z], 1)
-        # traced through the output grid itself: its cost grows with the distance in voxels
-        return fijk, flabels, fconf, observed_voxels(fijk, out_grid, item), self.output_voxel_size
-
-    @torch.no_grad()
-    def gaussians(self, frames: Frames, ijk: torch.Tensor, labels: torch.Tensor, voxel_size: float,
-                  sky: bool = True, fit_steps: int | None = None, progress=None) -> VoxSplat:
-        """The appearance stage on given voxels -> a VoxSplat in the chunk frame (with its sky
-        panorama channel when `sky`). Sky pixels are the frames' sky masks where every camera
-        has one, otherwise the pixels whose ray enters no voxel. fit_steps: test-time
-        fit (default: the profile's); progress(step, total) is called after each."""
-        steps = self.profile.appearance.fit_steps if fit_steps is None else fit_steps
-        item = frames_item(frames, self.profile.appearance, with_sky=True)
-        item.update(ijk=ijk, labels=labels, voxel_size=voxel_size)
-        item["hits"] = first_hit_voxels(item, ijk, voxel_size)
-        if "sky" not in item:
-            n, _, h, w = item["images"].shape
-            miss = (item["hits"] < 0).to(torch.float32)[:, None]
-            item["sky"] = (F.interpolate(miss, scale_factor=2, mode="nearest")[:, 0, :h, :w] > 0.5) & item["valid"]
-        out = self.appearance(item, sky=sky or steps > 0)  # the fit's loss composites the sky
-        if steps:
-            hook = None if progress is None else (lambda step, _: progress(step, steps))
-            out = fit_input_views(self.appearance, out, item, steps, on_step=hook)
-        scene = self.appearance.to_voxsplat(out, item, sky_size=tuple(self.profile.appearance.sky_size) if sky else None)
-        cap = self.profile.appearance.max_scale_voxels
-        if cap is not None:
-            scale = scene.params[..., SCALE]
-            scene.params[..., SCALE] = np.minimum(scale, np.float32(np.log(cap * voxel_size)))
-        if self.profile.appearance.gaussians_per_voxel is not None:
-            scene = scene.keep_slots(self.profile.appearance.gaussians_per_voxel)
-        return scene
-
-    @torch.no_grad()
-    def convert(self, frames: Frames, *, steps: int | None = None, seed: int = 0, confidence: bool = False,
-                k: int | None = None, sky: bool = True, max_range: float | None = None,
-                fit_steps: int | None = None, progress=None, evidence: Evidence | None = None) -> VoxSplat:
-        """Frames -> VoxSplat (chunk frame, module docstring) with labels, reflectance, the sky
-        panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
-        camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
-        (`k`, default the profile's confidence_samples) and store each voxel's share of them;
-        otherwise one sample is drawn and confidence is 1. A single-step predictor's geometry
-        draws no samples: its confidence is the decoder's occupancy probability either way
-        (``confidence_kind`` in the metadata says which). max_range: keep only the voxels whose
-        centre lies within this many metres (horizontally) of the ego origin before the
-        appearance stage (a LiDAR's range: the appearance stage's cost grows with the voxels).
-        fit_steps: a test-time fit of the appearance on the input views (default: the
-        profile's `appearance.fit_steps`); progress(step, total) after each of its steps.
-        evidence (the evidence route): these frames' `Evidence`, measured with this profile's
-        settings (`reconstruct.evidence.measure_evidence`), used instead of measuring it again (several
-        completions compared on one measurement); the scene is the one `convert` would build.
-        Same frames and seed, same bytes."""
-        if fit_steps is not None and (isinstance(fit_steps, bool) or not isinstance(fit_steps, (int, np.integer))
-                                         or fit_steps < 0):
-            raise InputError(f"fit_steps: expected an integer >= 0, got {fit_steps!r}")
+    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, **options) -> Conversion:
+        """Frames -> `Conversion` (the scene in the chunk frame, timings, intermediates). seed: the
+        paper route's sampler (an integer >= 0); max_range: metres (horizontal) from the ego a voxel's
+        centre may lie; `options`: the pipeline's own (`PaperPipeline.convert`, `EvidencePipeline.convert`),
+        any other refused with one line naming the profile's route and what it takes."""
+        unknown = sorted(set(options) - set(self.pipeline.OPTIONS))
+        if unknown:
+            takes = ", ".join(self.pipeline.OPTIONS)
+            raise InputError(f"{', '.join(unknown)}: profile {self.profile.name!r} (route {self.profile.route}) "
+                             f"does not use {'it' if len(unknown) == 1 else 'them'}; it takes seed, max_range, {takes}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
         if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
             raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
-        if self.profile.route == "evidence":
-            return self._convert_evidence(frames, max_range, evidence)
-        if evidence is not None:
-            raise InputError(f"evidence: profile {self.profile.name!r} is route {self.profile.route!r}, which "
-                             f"measures none")
-        with _one_torch_thread():
-            return self._convert_networks(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
-                                          max_range=max_range, fit_steps=fit_steps, progress=progress)
-
-    def _convert_networks(self, frames: Frames, *, steps, seed, confidence, k, sky, max_range, fit_steps,
-                          progress) -> VoxSplat:
-        """The paper's route (`convert`'s arguments, checked there)."""
-        fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
-        if k is not None and k < 1:
-            raise InputError(f"k: expected at least one geometry sample, got {k}")
-        k = (k or self.profile.confidence_samples) if confidence else 1
-        if not isinstance(seed, (int, np.integer)) or seed < 0:
-            raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
-        reset_peak()
-        t0 = time.perf_counter()
-        ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), k=k)
-        if max_range is not None:
-            centres = torch.as_tensor(CHUNK_CORNER[:2]) + (ijk[:, :2].double() + 0.5) * vs
-            keep = centres.norm(dim=1) <= max_range
-            ijk, labels, conf, observed = ijk[keep], labels[keep], conf[keep], observed[keep]
-        t1 = time.perf_counter()
-        scene = self.gaussians(frames, ijk, labels, vs, sky=sky, fit_steps=fit_steps, progress=progress)
-        t2 = time.perf_counter()
-        self.timings = {"geometry_s": t1 - t0, "appearance_s": t2 - t1, "peak_mb": peak_mb()}
-        scene.set_channel("observed", observed.numpy())
-        scene.set_channel("confidence", conf.numpy().astype(np.float32))
-        hashes = self.checkpoint_hashes()
-        scene.metadata.update({
-            "source": "scube_sim.convert",
-            "profile": self.profile.name,
-            "geometry_checkpoint": {"path": self.profile.geometry.checkpoint, "sha256": hashes["geometry"]},
-            "appearance_checkpoint": {"path": self.profile.appearance.checkpoint, "sha256": hashes["appearance"]},
-            "fine_checkpoint": (None if self.fine is None else
-                                {"path": self.profile.fine.checkpoint, "sha256": hashes["fine"]}),
-            "sample_steps": int(steps or self.profile.geometry.sample_steps or self.geometry.cfg.sample_steps),
-            "max_range_m": None if max_range is None else float(max_range),
-            "fit_steps": fit_steps,
-            "seed": int(seed),
-            "confidence_samples": int(k),
-            "geometry_mode": self.geometry.cfg.mode,
-            "trace_mode": TRACE_MODE,
-            "confidence_kind": ("decoder occupancy probability" if self.geometry.cfg.mode == "predictor"
-                                else f"share of {k} geometry samples"),
-            "cameras": list(frames.names),
-            "timestamp": float(frames.timestamp),
-            "frames": {str(key): str(v) for key, v in frames.metadata.items()},
-        })
-        if frames.context:  # recorded only with context: a single instant's output stays as it was
-            scene.metadata["instants"] = context_record(frames)
-            scene.metadata["instants_used"] = "reference only (the profile's stages read one instant)"
-        return scene
-
-
-    def _convert_evidence(self, frames: Frames, max_range: float | None, ev: Evidence | None = None) -> VoxSplat:
-        """The evidence route (`reconstruct.evidence`), with the completion where the profile names one:
-        steps, seed, K, sky and fit steps do not apply. `ev`: the frames' evidence, measured before
-        (stereo_s then 0)."""
-        reset_peak()
-        t0 = time.perf_counter()
-        parts: dict[str, float] = {"stereo_s": 0.0}
-        cfg = self.profile.evidence
-        if ev is None:
-            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts)
-        scene = scene_from_evidence(ev, cfg)
-        scene.metadata.update({"cameras": list(frames.names), "timestamp": float(frames.timestamp)})
-        t1 = time.perf_counter()
-        parts["fusion_s"] = t1 - t0 - parts["stereo_s"]
-        completed = None
-        self.uncompleted = self.completion_grid = None
-        if self.completion is not None:
-            self.uncompleted = scene  # the evidence alone (`eval sensor-to-sensor` scores both)
-            feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                     pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
-            sub = None
-            with _one_torch_thread():
-                occ_logit, lab_logit, sub_logit = self.completion.forward_with_subcells(torch.from_numpy(feats)[None])
-                if sub_logit is not None:
-                    sub = torch.sigmoid(sub_logit[0]).double().numpy()
-            occ = torch.sigmoid(occ_logit[0]).double().numpy()
-            lab = lab_logit[0].argmax(0).numpy()
-            # the coarse grid, for scoring (`eval sensor-to-sensor`): probabilities, labels, the input
-            self.completion_grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": ev.corner,
-                                    "voxel_size": self.completion_voxel_size}
-            scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
-                                                self.profile.completion, ego_poses=ego_poses_in_chunk(frames),
-                                                subcells=sub, boxes=ev.boxes)
-            parts["completion_s"] = time.perf_counter() - t1
-        if max_range is not None:
-            centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size
-            scene = scene.select_voxels(np.linalg.norm(centres, axis=1) <= max_range)
-        self.timings = {"geometry_s": time.perf_counter() - t0, "appearance_s": 0.0, "peak_mb": peak_mb(), **parts}
-        scene.metadata.update({
-            "source": "scube_sim.convert",
-            "profile": self.profile.name,
-            "route": "evidence",
-            "max_range_m": None if max_range is None else float(max_range),
-            "frames": {str(key): str(v) for key, v in frames.metadata.items()},
-            "evidence": self.profile.evidence.model_dump(mode="json"),
-        })
-        if completed is not None:
-            scene.metadata["completion"] = {**self.profile.completion.model_dump(mode="json"),
-                                            "checkpoint_sha256": self.checkpoint_hashes()["completion"],
-                                            "voxel_size": self.completion_voxel_size, **completed}
-            scene.metadata["confidence_kind"] = ("fused occupancy probability; unobserved ground: a constant; "
-                                                 "completed: the network's occupancy probability")
-        if frames.context:
-            scene.metadata["instants"] = context_record(frames)
-            scene.metadata["instants_used"] = "all: stereo over every camera of every instant given"
-        return scene
-
-
-@contextlib.contextmanager
-def _one_torch_thread():
-    """torch on one intra-op thread for the block, restored afterwards. The networks' convolutions
-    and matrix products split their sums by thread count, so their float results (1e-6 apart) and
-    the file's bytes would depend on it; `convert` and a batch worker must write the same file.
-    Costs about 1.4x on 2 cores (cpu profile: 1.6 s -> 2.2 s); a batch runs samples side by side."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(threads)
+        return self.pipeline.convert(frames, seed=int(seed), max_range=max_range, **options)
 
 
 _CACHE: dict[str, Converter] = {}
@@ -360,19 +70,18 @@ _CACHE: dict[str, Converter] = {}
 
 def is_loaded(profile: str | Path | ConverterProfile) -> bool:
     """Whether `convert` already holds this profile's converter in this process."""
-    return (profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)) in _CACHE
+    return _cache_key(profile) in _CACHE
 
 
-def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_PROFILE, steps: int | None = None,
-            seed: int = 0, confidence: bool = False, k: int | None = None, sky: bool = True,
-            max_range: float | None = None, fit_steps: int | None = None) -> VoxSplat:
-    """`Converter(profile).convert(frames, ...)`, with the loaded converter kept per profile name
-    or path for the next call."""
-    key = profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)
+def _cache_key(profile: str | Path | ConverterProfile) -> str:
+    return profile.model_dump_json() if isinstance(profile, ConverterProfile) else str(profile)
+
+
+def convert(frames: Frames, *, profile: str | Path | ConverterProfile = DEFAULT_PROFILE, seed: int = 0,
+            max_range: float | None = None, **options) -> VoxSplat:
+    """`Converter(profile).convert(frames, ...).scene`, with the loaded converter kept per profile
+    name or path for the next call."""
+    key = _cache_key(profile)
     if key not in _CACHE:
         _CACHE[key] = Converter(profile)
-    return _CACHE[key].convert(frames, steps=steps, seed=seed, confidence=confidence, k=k, sky=sky,
-                               max_range=max_range, fit_steps=fit_steps)
-
-
-__all__ = ["Converter", "convert", "is_loaded"]
+    return _CACHE[key].convert(frames, seed=seed, max_range=max_range, **options).scene

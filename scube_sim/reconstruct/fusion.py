@@ -11,8 +11,8 @@ where its log-odds reach `occupied_logodds`.
 Sparse: only voxels that some pixel's point falls in (the candidates) are tracked; a miss
 elsewhere is dropped (nothing there to carve). The walk along the rays (`_misses`, each ray
 sampled every half voxel) runs in the compiled trace core where it is built (`compiled.carve_misses`,
-the same bytes as the NumPy walk it is tested against; worlds test 0: the fusion 6.9 -> 1.7 s,
-`python -m bench.bench_fusion` for the ratio). So a wall seen at 5 m in one view and seen through
+the same bytes as the NumPy walk it is tested against, and faster: `python -m bench.bench_fusion`
+compares them). So a wall seen at 5 m in one view and seen through
 to 10 m by a later confident view loses its 5 m voxels (tests/model/test_fusion.py), and memory
 grows with the surfaces, not with the volume (a dense 0.2 m chunk is 512^3 cells).
 
@@ -27,16 +27,12 @@ confidence; colours from the pixels.
 
 Unsure pixels (`weak_confidence` <= confidence < `min_confidence`, off by default): stereo's
 confidence is conservative on near objects at grazing angles and on repetitive or faint texture,
-where most depths are right yet unsure (worlds test 35, SIDE_LEFT: 73 % of the pixels within 40 m
-within 5 % of the truth, 43 % confident). Such pixels add their hit like the others but carve
+where most depths are right yet unsure. Such pixels add their hit like the others but carve
 nothing, and a voxel that no confident pixel hits is occupied only where `weak_views` images hit
 it: a wrong match lands somewhere else in each view, a right one in the same voxel. Their points
 weigh `weak_fit_weight` times their confidence in the surfel fit (a voxel holding confident points
-too keeps their surfel). Through the `evidence` route (stereo's weak pixels from 0.25 agreement,
-`weak_confidence` 0.1, 2 views, fit weight 0.1; held-in worlds val 0-7, HDL-64E at the input pose):
-seen-object rays median / p90 / returning 0.157 m / 6.52 m / 92.0 % -> 0.150 / 4.25 / 93.2 %, seen
-ground 0.282 / 1.01 / 99.3 % -> 0.292 / 1.02 / 99.5 %; from 0.4 agreement p90 4.63 m; at full fit
-weight the seen ground's median 0.299 m.
+too keeps their surfel). The `evidence` profile turns them on: they fill near objects' sides that
+confident pixels leave open, and their low fit weight keeps their noise off the road.
 
 Moving objects (`DepthObservation.uncarved`): an image taken at another instant than the one fused
 saw through the space where a moving object stands at that instant; its rays carve nothing inside
@@ -227,7 +223,6 @@ def _misses(obs_points, depth, conf, origin_cam, candidates: np.ndarray, origin:
     walk below, the same bytes); None: the tracer's default (`compiled.default_core_name`). threads:
     the compiled walk's (0: one per core; the bytes do not depend on it)."""
     vs = cfg.voxel_size
-    n = len(candidates)
     step = 0.5 * vs
     # per ray, batch by batch as the walk below (the same bytes): where it starts, its direction, how far it carves
     direction, reach = np.zeros((len(obs_points), 3)), np.zeros(len(obs_points))

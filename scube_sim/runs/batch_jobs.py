@@ -212,10 +212,17 @@ class ConvertJob(Job):
     def prepare(self, out):
         from ..model.checkpoint import resolve_checkpoint
 
-        profile = load_profile(self.settings.profile)
+        s = self.settings
+        profile = load_profile(s.profile)
+        unset = {"steps": s.steps is None, "confidence": s.confidence == 0, "sky": s.sky}
+        paper = [k for k, off in unset.items() if not off]
+        if paper and profile.route != "scube":
+            raise BatchError(f"batch convert settings: {', '.join(paper)}: profile {profile.name!r} is route "
+                             f"{profile.route}, which does not use {'it' if len(paper) == 1 else 'them'}")
+        # every checkpoint the profile names: a retrained one under the same name converts again
         self._weights = {"profile": profile.model_dump(mode="json"),
-                         "checkpoints": {stage: sha256_file(resolve_checkpoint(getattr(profile, stage).checkpoint))
-                                         for stage in ("geometry", "appearance") if getattr(profile, stage) is not None}}
+                         "checkpoints": {stage: sha256_file(resolve_checkpoint(name))
+                                         for stage, name in profile.checkpoints().items()}}
 
     def tasks(self, inputs, out):
         paths = [Path(p) for p in inputs]
@@ -255,8 +262,9 @@ class ConvertJob(Job):
         context = load_profile(s.profile).context if s.context is None else s.context
         frames = open_frames(task.params["path"], s.dataset, task.params["sample"], context=context)
         loaded = not is_loaded(s.profile)
-        vs = convert(frames, profile=s.profile, steps=s.steps, seed=s.seed, confidence=s.confidence > 1,
-                               k=s.confidence or None, sky=s.sky, max_range=s.max_range)
+        options = {} if load_profile(s.profile).route != "scube" else {
+            "steps": s.steps, "confidence": s.confidence > 1, "k": s.confidence or None, "sky": s.sky}
+        vs = convert(frames, profile=s.profile, seed=s.seed, max_range=s.max_range, **options)
         vs.save(folder / SCENE_FILE)
         return {"model_loaded": loaded, "voxels": vs.num_voxels, "gaussians": vs.num_gaussians}
 

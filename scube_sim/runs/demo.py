@@ -132,7 +132,8 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
 
     t = time.perf_counter()
     conv = Converter(profile)
-    scene = conv.convert(frames, seed=seed)
+    done = conv.convert(frames, seed=seed)
+    scene = done.scene
     times[f"convert 5 cameras ({conv.profile.name})"] = time.perf_counter() - t
     # the converter's own trace mode (soft: its Gaussians are camera-trained blobs; at hard opacity
     # the sensor sits inside the ground's 3-sigma shells); the ground truth's are thin surfels
@@ -162,8 +163,8 @@ def _convert_and_compare(out: Path, frames: Frames, profile: str, lidar: Lidar, 
                     title=f"{lidar.config.name}, sensor frame: the converted scene beside the ground truth")
     times["write converted outputs"] = time.perf_counter() - t
     echo(f"converter (profile {profile}): {scene}; {100 * float(scene.channel('observed').mean()):.1f} % of voxels "
-         f"seen by the cameras; geometry {conv.timings['geometry_s']:.1f} s, appearance "
-         f"{conv.timings['appearance_s']:.1f} s")
+         f"seen by the cameras; "
+         f"{', '.join(f'{k[:-2]} {v:.1f} s' for k, v in done.timings.items() if k.endswith('_s'))}")
     echo(f"{lidar.config.name} on both VoxSplats against the mesh, on the rays whose mesh return lies inside the "
          f"fitted region:")
     echo(f"{'scene':<30s} {'rays':>7s} {'median |dr|':>12s} {'p90 |dr|':>10s} {'hit agreement':>14s}")

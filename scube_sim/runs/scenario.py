@@ -529,7 +529,9 @@ def _cached_conversion(stem: Path, frames, key: dict, profile, seed: int, max_ra
         return VoxSplat.load(npz)
     if progress:
         progress(f"converting {len(frames)} camera images (profile {profile.name})")
-    scene = Converter(profile).convert(frames, seed=seed, sky=False, max_range=max_range)
+    # a scenario's sensors are LiDARs: the paper's route skips the sky (the evidence route has none)
+    options = {"sky": False} if profile.route == "scube" else {}
+    scene = Converter(profile).convert(frames, seed=seed, max_range=max_range, **options).scene
     scene.save(npz)
     with atomic_path(meta_path) as tmp:
         Path(tmp).write_text(json.dumps({"key": key, "sha256": sha256_file(npz)}))

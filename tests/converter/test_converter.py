@@ -82,7 +82,7 @@ def test_the_same_file_whatever_torch_s_thread_count(tiny_converter, tmp_path):
     try:
         for n in (2, 1):
             torch.set_num_threads(n)
-            files.append(conv.convert(_frames(tiny_converter), seed=1).save(tmp_path / f"t{n}.npz").read_bytes())
+            files.append(conv.convert(_frames(tiny_converter), seed=1).scene.save(tmp_path / f"t{n}.npz").read_bytes())
             assert torch.get_num_threads() == n  # the caller's setting is restored
     finally:
         torch.set_num_threads(threads)
@@ -92,14 +92,14 @@ def test_the_same_file_whatever_torch_s_thread_count(tiny_converter, tmp_path):
 def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_conversion(tiny_converter):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
-    one = conv.convert(frames, seed=1)
-    many = conv.convert(frames, seed=1, confidence=True)
+    one = conv.convert(frames, seed=1).scene
+    many = conv.convert(frames, seed=1, confidence=True).scene
     assert many.metadata["confidence_samples"] == 3
     np.testing.assert_array_equal(one.ijk, many.ijk)
     c = many.channel("confidence")
     assert set(np.round(c * 3).astype(int).tolist()) <= {1, 2, 3}
     # the share each voxel gets is the count of samples (seeds 1, 2, 3) that hold it
-    sets = [{tuple(v) for v in conv.convert(frames, seed=s).ijk.tolist()} for s in (1, 2, 3)]
+    sets = [{tuple(v) for v in conv.convert(frames, seed=s).scene.ijk.tolist()} for s in (1, 2, 3)]
     expect = np.array([sum(tuple(v) in s for s in sets) / 3 for v in many.ijk.tolist()], np.float32)
     np.testing.assert_allclose(c, expect, atol=1e-6)
 
@@ -107,17 +107,17 @@ def test_confidence_is_counted_over_k_samples_and_the_first_is_the_plain_convers
 def test_a_lidar_only_conversion_skips_the_sky_and_keeps_the_gaussians(tiny_converter):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
-    full = conv.convert(frames, seed=0)
-    lidar = conv.convert(frames, seed=0, sky=False)
+    full = conv.convert(frames, seed=0).scene
+    lidar = conv.convert(frames, seed=0, sky=False).scene
     assert "sky_panorama" not in lidar.channels and "sky_panorama" in full.channels
     np.testing.assert_array_equal(lidar.params, full.params)
-    near = conv.convert(frames, seed=0, sky=False, max_range=30.0)
+    near = conv.convert(frames, seed=0, sky=False, max_range=30.0).scene
     centres = full.voxel_centers() + full.origin
     inside = np.linalg.norm(centres[:, :2], axis=1) <= 30.0
     assert 0 < near.num_voxels == int(inside.sum()) < full.num_voxels
     np.testing.assert_array_equal(near.ijk, full.ijk[inside])
     with pytest.raises(InputError, match="max_range"):
-        conv.convert(frames, max_range=-1.0)
+        conv.convert(frames, max_range=-1.0).scene
 
 
 def test_a_fit_to_the_input_views_is_a_profile_knob_with_provenance(tiny_converter, tmp_path):
@@ -125,21 +125,21 @@ def test_a_fit_to_the_input_views_is_a_profile_knob_with_provenance(tiny_convert
     the Gaussians move; recorded in the metadata; deterministic; LiDAR-only keeps no sky."""
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
-    plain = conv.convert(frames, seed=0)
+    plain = conv.convert(frames, seed=0).scene
     steps = []
-    fitted = conv.convert(frames, seed=0, fit_steps=3, progress=lambda step, total: steps.append((step, total)))
+    fitted = conv.convert(frames, seed=0, fit_steps=3, progress=lambda step, total: steps.append((step, total))).scene
     assert steps == [(1, 3), (2, 3), (3, 3)]
     assert plain.metadata["fit_steps"] == 0 and fitted.metadata["fit_steps"] == 3
     np.testing.assert_array_equal(fitted.ijk, plain.ijk)
     assert np.isfinite(fitted.params).all() and not np.array_equal(fitted.params, plain.params)
-    again = conv.convert(frames, seed=0, fit_steps=3)
+    again = conv.convert(frames, seed=0, fit_steps=3).scene
     np.testing.assert_array_equal(again.params, fitted.params)
     np.testing.assert_array_equal(again.channel("sky_panorama"), fitted.channel("sky_panorama"))
-    lidar = conv.convert(frames, seed=0, fit_steps=3, sky=False)
+    lidar = conv.convert(frames, seed=0, fit_steps=3, sky=False).scene
     assert "sky_panorama" not in lidar.channels
     np.testing.assert_array_equal(lidar.params, fitted.params)
     with pytest.raises(InputError, match="fit_steps"):
-        conv.convert(frames, fit_steps=-2)
+        conv.convert(frames, fit_steps=-2).scene
     r = CliRunner().invoke(app, ["convert", str(tiny_converter["sample"]), "--profile", str(tiny_converter["profile"]),
                                  "--fit-steps", "-1", "-o", str(tmp_path / "x.npz")])
     assert r.exit_code == 2 and "--fit-steps" in r.output and not (tmp_path / "x.npz").exists()
@@ -156,8 +156,8 @@ def _moved(frames: Frames, offset) -> Frames:
 def test_frames_a_million_metres_out_convert_to_the_same_scene(tiny_converter):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
-    near = conv.convert(frames, seed=2)
-    far = conv.convert(_moved(frames, np.array([1.0e6, -1.0e6, 30.0])), seed=2)
+    near = conv.convert(frames, seed=2).scene
+    far = conv.convert(_moved(frames, np.array([1.0e6, -1.0e6, 30.0])), seed=2).scene
     np.testing.assert_array_equal(near.ijk, far.ijk)
     np.testing.assert_allclose(far.means(), near.means(), rtol=0, atol=1e-4)
     shift = np.array(far.metadata["chunk_to_world"])[:3, 3] - np.array(near.metadata["chunk_to_world"])[:3, 3]
@@ -184,7 +184,7 @@ def test_any_image_size_meets_the_network_at_its_focal_length(tiny_converter):
     # the profile's focal length is the dataset camera's: the same field of view, the same width
     assert abs(large[1] - base.intrinsics.width) <= 1
     np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.05)
-    vs = conv.convert(frames, seed=0)
+    vs = conv.convert(frames, seed=0).scene
     assert np.isfinite(vs.params).all()
 
 
@@ -194,14 +194,14 @@ def test_a_camera_that_sees_only_sky_and_frames_without_sky_masks_give_defined_o
     bare = copy.deepcopy(frames)
     for im in bare.images:  # a real adapter's frames: no depth, semantics or sky masks
         im.depth = im.semantic = im.sky = im.instance = None
-    vs = conv.convert(bare, seed=0)
+    vs = conv.convert(bare, seed=0).scene
     assert vs.channel("sky_panorama").shape == (8, 16, 3) and np.isfinite(vs.channel("sky_panorama")).all()
     up = np.eye(4)  # 2 m over the ego, optical axis (camera z) straight up, camera x to the ego's right
     up[:3, :3] = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # columns x, y, z
     up[:3, 3] = [0.0, 0.0, 2.0]
     pose = frames.ego_pose @ up
     sky_only = Frames([_camera("UP", 32, 24, 16.0, pose)], frames.ego_pose, 0.0, {"sample": "up"})
-    vs = conv.convert(sky_only, seed=0)
+    vs = conv.convert(sky_only, seed=0).scene
     assert np.isfinite(vs.params).all() and vs.channel("sky_panorama").shape == (8, 16, 3)
 
 
@@ -209,15 +209,15 @@ def test_bad_input_gives_clear_errors(tiny_converter, tmp_path):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
     with pytest.raises(InputError, match="no images"):
-        conv.convert(Frames([], frames.ego_pose, 0.0))
+        conv.convert(Frames([], frames.ego_pose, 0.0)).scene
     with pytest.raises(InputError, match="expected a scube_sim.camera.Frames"):
-        conv.convert({"images": []})
+        conv.convert({"images": []}).scene
     dup = copy.deepcopy(frames)
     dup.images[1].name = dup.images[0].name
     with pytest.raises(InputError, match="camera names must be unique"):
-        conv.convert(dup)
+        conv.convert(dup).scene
     with pytest.raises(InputError, match="seed"):
-        conv.convert(frames, seed=-1)
+        conv.convert(frames, seed=-1).scene
     with pytest.raises(InputError, match="shipped"):
         load_profile("no-such-profile")
     bad = tmp_path / "bad.yaml"
@@ -246,7 +246,7 @@ def test_real_frames_convert_and_a_lidar_only_log_is_refused(tiny_converter, sha
     conv = Converter(tiny_converter["profile"])
     item = frames_item(frames, conv.profile.geometry)
     np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.01)
-    vs = conv.convert(frames, seed=0, sky=False)
+    vs = conv.convert(frames, seed=0, sky=False).scene
     assert np.isfinite(vs.params).all() and vs.metadata["cameras"] == frames.names
     assert vs.channel("observed").shape == (vs.num_voxels,)
     av2 = require(shared_data / "argoverse2-sensor-log-7fab2350")
@@ -258,13 +258,13 @@ def test_one_camera_and_twenty_cameras_convert(tiny_converter):
     conv = Converter(tiny_converter["profile"])
     frames = _frames(tiny_converter)
     one = Frames(frames.images[:1], frames.ego_pose, 0.0, {"sample": "one"})
-    assert np.isfinite(conv.convert(one, seed=0).params).all()
+    assert np.isfinite(conv.convert(one, seed=0).scene.params).all()
     many = []
     for i in range(20):  # the rig's cameras again and again, each a new name
         im = copy.deepcopy(frames.images[i % len(frames.images)])
         im.name = f"cam{i:02d}"
         many.append(im)
-    vs = conv.convert(Frames(many, frames.ego_pose, 0.0, {"sample": "twenty"}), seed=0)
+    vs = conv.convert(Frames(many, frames.ego_pose, 0.0, {"sample": "twenty"}), seed=0).scene
     assert np.isfinite(vs.params).all() and len(vs.metadata["cameras"]) == 20
 
 
@@ -278,22 +278,22 @@ def test_an_ego_frame_above_the_road_is_moved_down_by_its_height(tiny_converter)
     lift[2, 3] = 1.5
     raised.ego_pose = raised.ego_pose @ lift
     raised.metadata["ego_height_m"] = 1.5
-    a, b = conv.convert(frames, seed=0), conv.convert(raised, seed=0)
+    a, b = conv.convert(frames, seed=0).scene, conv.convert(raised, seed=0).scene
     np.testing.assert_array_equal(a.ijk, b.ijk)
     np.testing.assert_allclose(a.params, b.params, rtol=0, atol=1e-5)
     np.testing.assert_allclose(np.array(a.metadata["chunk_to_world"]), np.array(b.metadata["chunk_to_world"]),
                                rtol=0, atol=1e-9)
     raised.metadata["ego_height_m"] = "tall"
     with pytest.raises(InputError, match="ego_height_m"):
-        conv.convert(raised)
+        conv.convert(raised).scene
 
 
 def test_a_profile_keeps_the_m_most_opaque_gaussians_per_voxel(tiny_converter):
     prof = load_profile(tiny_converter["profile"])
     one = prof.model_copy(update={"appearance": prof.appearance.model_copy(update={"gaussians_per_voxel": 1})})
     frames = _frames(tiny_converter)
-    full = Converter(prof).convert(frames, seed=0, sky=False)
-    cut = Converter(one).convert(frames, seed=0, sky=False)
+    full = Converter(prof).convert(frames, seed=0, sky=False).scene
+    cut = Converter(one).convert(frames, seed=0, sky=False).scene
     assert full.gaussians_per_voxel == 2 and cut.gaussians_per_voxel == 1
     np.testing.assert_array_equal(cut.ijk, full.ijk)
     np.testing.assert_allclose(cut.opacities()[:, 0], np.where(full.valid, full.opacities(), -1).max(1), rtol=1e-6)
@@ -336,9 +336,9 @@ def _with_fine(tiny_converter, fine_ck, **fine):
 
 def test_the_fine_level_subdivides_the_coarse_prediction(tiny_converter, tiny_fine):
     frames = _frames(tiny_converter)
-    coarse = Converter(load_profile(tiny_converter["profile"])).convert(frames, seed=0, sky=False)
+    coarse = Converter(load_profile(tiny_converter["profile"])).convert(frames, seed=0, sky=False).scene
     conv = Converter(_with_fine(tiny_converter, tiny_fine))
-    fine = conv.convert(frames, seed=0, sky=False)
+    fine = conv.convert(frames, seed=0, sky=False).scene
     assert (coarse.voxel_size, fine.voxel_size) == (3.2, 1.6) and len(fine.ijk) > 0
     # every fine voxel is a child of a coarse one (both indexed from the same chunk corner), and
     # carries its parent's confidence
@@ -351,16 +351,16 @@ def test_the_fine_level_subdivides_the_coarse_prediction(tiny_converter, tiny_fi
     assert meta["fine_checkpoint"]["sha256"] == hashlib.sha256(tiny_fine.read_bytes()).hexdigest()
     assert coarse.metadata["fine_checkpoint"] is None
     # the same frames and seed: the same scene
-    again = conv.convert(frames, seed=0, sky=False)
+    again = conv.convert(frames, seed=0, sky=False).scene
     np.testing.assert_array_equal(again.ijk, fine.ijk)
     np.testing.assert_array_equal(again.params, fine.params)
 
 
 def test_the_fine_level_groups_into_the_output_voxel_size(tiny_converter, tiny_fine):
     frames = _frames(tiny_converter)
-    fine = Converter(_with_fine(tiny_converter, tiny_fine)).convert(frames, seed=0, sky=False)
+    fine = Converter(_with_fine(tiny_converter, tiny_fine)).convert(frames, seed=0, sky=False).scene
     grouped = Converter(_with_fine(tiny_converter, tiny_fine, output_voxel_size=3.2)).convert(frames, seed=0,
-                                                                                               sky=False)
+                                                                                               sky=False).scene
     assert grouped.voxel_size == 3.2
     # an output voxel wherever one of its 8 children is, labelled by the children's most common label
     # (ties: the lowest id)

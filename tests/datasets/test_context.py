@@ -104,11 +104,11 @@ def test_a_conversion_with_context_is_the_same_scene_and_records_the_instants(ti
     from scube_sim.converter.pipeline import Converter
 
     conv = Converter(tiny_converter["profile"])
-    plain = conv.convert(open_frames(tiny_converter["sample"]), sky=False)
+    plain = conv.convert(open_frames(tiny_converter["sample"]), sky=False).scene
     frames = open_frames(tiny_converter["sample"])
     neighbour = Frames(frames.images, frames.ego_pose, frames.timestamp + 0.1, log=frames.log, offset=1)
     frames.context = [neighbour]
-    with_context = conv.convert(frames, sky=False)
+    with_context = conv.convert(frames, sky=False).scene
     np.testing.assert_array_equal(with_context.params, plain.params)
     np.testing.assert_array_equal(with_context.ijk, plain.ijk)
     assert "instants" not in plain.metadata  # one instant: the metadata of before

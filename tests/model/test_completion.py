@@ -587,7 +587,7 @@ def plain_corridor():
     from scube_sim.converter.pipeline import Converter
     from scube_sim.converter.profile import ConverterProfile
 
-    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames())
+    return Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG)).convert(_frames()).scene
 
 
 def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(completion_checkpoint, plain_corridor):
@@ -597,11 +597,13 @@ def test_a_completion_profile_keeps_every_confident_surface_of_the_corridor(comp
     plain = plain_corridor
     comp = CompletionConfig(checkpoint=str(completion_checkpoint))
     conv = Converter(ConverterProfile(name="corridor-c", route="evidence", evidence=CFG, completion=comp))
-    out = conv.convert(_frames())
+    done = conv.convert(_frames())
+    out = done.scene
     meta = out.metadata["completion"]
     assert meta["voxel_size"] == VS and len(meta["checkpoint_sha256"]) == 64
     assert meta["observed_voxels"] == int(plain.channel("observed").sum())
-    assert "completion_s" in conv.timings
+    assert {"stereo_s", "fusion_s", "completion_s"} <= set(done.timings) and "geometry_s" not in done.timings
+    assert done.uncompleted is not None and done.completion_grid is not None
     # every observed voxel at or above keep_confidence is there, with its Gaussians unchanged
     keep = plain.channel("observed").astype(bool) & (plain.channel("confidence") >= comp.keep_confidence)
     from scube_sim.voxsplat import voxel_keys
@@ -620,7 +622,7 @@ def _completed_corridor():
     comp = load_profile(DEFAULT_PROFILE).completion
     assert comp is not None, "the default profile has no completion"
     return Converter(ConverterProfile(name="corridor-c", route="evidence", evidence=CFG, completion=comp)).convert(
-        _frames(), max_range=30.0)
+        _frames(), max_range=30.0).scene
 
 
 def completed_corridor_digest() -> str:
@@ -697,6 +699,7 @@ def test_worlds_evidence_caches_the_same_features_in_one_process_or_two(tmp_path
 
 
 def test_the_completion_grid_is_scored_against_the_coarsened_truth():
+    from scube_sim.converter.conversion import CompletionGrid
     from scube_sim.converter.eval.sensor_to_sensor import completion_grid_metrics
 
     dims = coarse_dims(0.8)
@@ -709,7 +712,7 @@ def test_the_completion_grid_is_scored_against_the_coarsened_truth():
     occ[20:24, 30:34, 2:4] = 0.9  # exactly the block
     feats = np.zeros((len(FEATURES), *dims), np.float32)
     feats[CH["occupied"], 20:22, 30:34, 2:4] = 1.0  # the evidence holds half of it
-    grid = {"occupancy": occ, "labels": lab, "features": feats, "corner": CORNER, "voxel_size": 0.8}
+    grid = CompletionGrid(occ, lab, feats, np.asarray(CORNER, np.float64), 0.8)
     m = completion_grid_metrics(grid, voxels)
     assert m["completion_iou"] == 1.0 and m["completion_miou"] == 1.0 and m["evidence_iou"] == 0.5
     occ[24:28, 30:34, 2:4] = 0.9  # as much again beside it: IoU 1/2

@@ -109,7 +109,7 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(held
 
     def scores(c: Converter) -> tuple[float, float]:
         """(IoU, the share of predicted voxels that the ground truth holds with the same label)."""
-        ijk, labels, conf, observed, _ = c.predict_voxels(sample.frames)
+        ijk, labels, conf, observed, _ = c.pipeline.predict_voxels(sample.frames)
         assert bool(((conf > 0) & (conf <= 1)).all()) and 0 < float(observed.float().mean()) < 1
         keys = list(map(tuple, ijk.tolist()))
         both = sum(k in truth for k in keys)
@@ -118,9 +118,9 @@ def test_every_shipped_converter_profile_loads_and_its_geometry_has_learned(held
 
     trained = scores(conv)
     torch.manual_seed(0)
-    fresh = GeometryNet(conv.geometry.cfg).eval()
-    fresh.vae.load_state_dict(conv.geometry.vae.state_dict())
-    conv.geometry = fresh
+    fresh = GeometryNet(conv.pipeline.geometry.cfg).eval()
+    fresh.vae.load_state_dict(conv.pipeline.geometry.vae.state_dict())
+    conv.pipeline.geometry = fresh
     untrained = scores(conv)
     # occupancy: the untrained network decodes the VAE's zero latent, a plausible ground already
     # (measured: IoU 0.334 against 0.296, same-label share 0.72 against 0.17)

@@ -107,7 +107,7 @@ def _convert(update: dict | None = None):
 
     cfg = CFG.model_copy(update=update or {})
     return Converter(ConverterProfile(name="corridor", route="evidence", evidence=cfg)).convert(_frames(),
-                                                                                              max_range=30.0)
+                                                                                              max_range=30.0).scene
 
 
 @pytest.fixture(scope="module")
@@ -295,12 +295,13 @@ def test_a_measured_evidence_converts_to_the_same_bytes_as_the_frames(scene):
     frames = _frames()
     ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), CFG)
     conv = Converter(ConverterProfile(name="corridor", route="evidence", evidence=CFG))
-    again = conv.convert(frames, max_range=30.0, evidence=ev)
-    assert conv.timings["stereo_s"] == 0.0
+    done = conv.convert(frames, max_range=30.0, evidence=ev)
+    again = done.scene
+    assert done.timings["stereo_s"] == 0.0
     assert np.array_equal(again.ijk, scene.ijk) and np.array_equal(again.params, scene.params)
     assert again.metadata == scene.metadata
-    with pytest.raises(InputError, match="evidence: profile 'cpu' is route 'scube'"):
-        Converter(load_profile("cpu")).convert(frames, evidence=ev)
+    with pytest.raises(InputError, match=r"evidence: profile 'cpu' \(route scube\) does not use it"):
+        Converter(load_profile("cpu")).convert(frames, evidence=ev).scene
 
 
 def test_an_earlier_instant_as_a_second_reference_adds_what_only_it_saw(scene):

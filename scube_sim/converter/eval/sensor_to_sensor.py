@@ -10,10 +10,10 @@ representation's own error: the upper bound any converter meets) and the convert
 own trace mode, metadata ``trace_mode``). Poses: the sensor on the ego at the input instant and
 moved `ahead` metres along the ego's heading (the paper's LiDAR simulation drives forward through
 the converted scene). Straight ahead is not where the road goes where it bends: a pose can stand
-inside or against a building (worlds test 8, 60 m on). So the rows are also given over the poses a
-car can stand at (`pose_clear`: the ego's box and 1 m around it free of the truth's objects; on the
-40 held-out worlds 34 at the input pose, 29 at 20 m, 26 at 60 m). The sensor model is geometric: no range noise, no drops, strongest return,
-no ego-body box, so the figures are the scenes', not the sensor's.
+inside or against a building. So the rows are also given over the poses a car can stand at
+(`pose_clear`: the ego's box and 1 m around it free of the truth's objects). The sensor model is
+geometric: no range noise, no drops, strongest return, no ego-body box, so the figures are the
+scenes', not the sensor's.
 
 Rays compared: those whose mesh return lies inside the converted chunk (0.5 m in from its faces).
 Seen / unseen: whether the mesh return's fine ground-truth voxel was seen by an input camera
@@ -58,6 +58,7 @@ from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, gt_voxsplat
 from ...worlds.textures import world_albedo
 from ..frames import open_frames
 from ..merge import CompletionConfig
+from ..conversion import CompletionGrid
 from ..pipeline import Converter
 from ..profile import DEFAULT_PROFILE
 
@@ -222,10 +223,11 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     frames = open_frames(sample_dir, context=context)
     reset_peak()
     t0 = time.perf_counter()
-    scene = conv.convert(frames, seed=seed, **(convert_options or {}))
+    done = conv.convert(frames, seed=seed, **(convert_options or {}))
+    scene = done.scene
     seconds = time.perf_counter() - t0
-    stages = {"seconds": seconds, "geometry_s": conv.timings["geometry_s"],
-              "appearance_s": conv.timings["appearance_s"], "peak_mb": peak_mb()}
+    # the route's own stages (the paper's: geometry_s, appearance_s; evidence: stereo_s, fusion_s, completion_s)
+    stages = {"seconds": seconds, **{k: v for k, v in done.timings.items() if k.endswith("_s")}, "peak_mb": peak_mb()}
     ijk = scene.ijk
     vox = cached["voxels"]
     gt_ijk = vox["coarse_ijk"].astype(np.int64)
@@ -242,15 +244,13 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
     t1 = time.perf_counter()
     rows = list(cached["rows"])
-    grid = getattr(conv, "completion_grid", None)
-    if grid is not None:
-        stages.update(completion_grid_metrics(grid, vox))
-        done = scene.metadata.get("completion", {})
-        stages["completion_added_cells"] = float(done.get("added_cells", 0))
-        stages["completion_removed_share"] = done.get("removed_voxels", 0) / max(done.get("observed_voxels", 0), 1)
-        stages["completion_s"] = conv.timings.get("completion_s", float("nan"))
+    if done.completion_grid is not None:
+        stages.update(completion_grid_metrics(done.completion_grid, vox))
+        merged = scene.metadata.get("completion", {})
+        stages["completion_added_cells"] = float(merged.get("added_cells", 0))
+        stages["completion_removed_share"] = merged.get("removed_voxels", 0) / max(merged.get("observed_voxels", 0), 1)
     # with a completion: the same measurement without it, traced from the same poses
-    alone = getattr(conv, "uncompleted", None)
+    alone = done.uncompleted
     alone_tracer = None if alone is None else Tracer(alone, mode=trace_mode or alone.metadata.get("trace_mode", "entry"),
                                                      **(trace_options or {}))
     for ref, p in zip(cached["refs"], cached["poses"]):
@@ -269,15 +269,15 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
             "voxels": len(ijk), "observed_fraction": float(np.mean(scene.channel("observed")))}
 
 
-def completion_grid_metrics(grid: dict, voxels: dict) -> dict:
-    """The completion's coarse grid (`Converter.completion_grid`) against the ground truth's coarse
+def completion_grid_metrics(grid: CompletionGrid, voxels: dict) -> dict:
+    """The completion's coarse grid (`Conversion.completion_grid`) against the ground truth's coarse
     voxels coarsened to it (occupied if any child is, the most frequent label): IoU of the cells at
     p >= 0.5, mIoU of their labels (over the labels present in the truth or the prediction, on
     the cells both hold), and the evidence alone's IoU (the cells holding an observed voxel)."""
-    vs, occ, lab = float(grid["voxel_size"]), grid["occupancy"] >= 0.5, grid["labels"]
+    vs, occ, lab = float(grid.voxel_size), grid.occupancy >= 0.5, grid.labels
     stored = float(voxels["coarse_voxel_size"])
     factor = int(round(vs / stored))
-    box = LiftGrid(tuple(float(v) for v in grid["corner"]), vs, tuple(int(d) for d in occ.shape))
+    box = LiftGrid(tuple(float(v) for v in grid.corner), vs, tuple(int(d) for d in occ.shape))
     rel, labels, _ = grid_in_box(torch.from_numpy(voxels["coarse_ijk"].astype(np.int64)),
                                  torch.from_numpy(voxels["coarse_labels"].astype(np.int64)),
                                  torch.from_numpy(np.asarray(voxels["coarse_visible"], bool)), factor, stored, box)
@@ -286,7 +286,7 @@ def completion_grid_metrics(grid: dict, voxels: dict) -> dict:
     gt[rel[:, 0], rel[:, 1], rel[:, 2]] = True
     gt_lab = np.full(occ.shape, -1, np.int64)
     gt_lab[rel[:, 0], rel[:, 1], rel[:, 2]] = labels
-    evidence = grid["features"][FEATURES.index("occupied")] > 0
+    evidence = grid.features[FEATURES.index("occupied")] > 0
     both = occ & gt
     n = NUM_LABELS
     conf = np.bincount(gt_lab[both] * n + lab[both], minlength=n * n).reshape(n, n)
