@@ -6,11 +6,12 @@ Factors (each value one run point; the default point is run once and shared by e
 - context: the ±K instants `datasets.base.frames_with_context` adds (0: only the other cameras at
   the reference instant): 0, 1, 2, 4, 8;
 - StereoConfig fields, read generically: sources 1, 2, 3, 4, 6; hypotheses 32, 64, 128, 192;
-  scale 0.25, 0.5, 0.75, 1.0; cost ad, ncc, census; aggregation seen, penalty. A built-in factor
-  that is no field of StereoConfig is skipped; the default's own value is always one of a factor's
-  points. `--vary field=v1,v2,...` (repeatable) replaces or adds a factor (`none` for None, e.g.
-  `--vary sgm_paths=0,4,8` or `--vary coarse_scale=none,0.5`); `--points f1,f2` runs only those
-  factors (and the default).
+  scale 0.25, 0.5, 0.75, 1.0. A built-in factor that is no field of StereoConfig is skipped; the
+  default's own value is always one of a factor's points. `--vary field=v1,v2,...` (repeatable)
+  replaces or adds a factor (`none` for None, e.g. `--vary sgm_paths=0,4,8` or
+  `--vary max_rel_error=none,0.05`); `--points f1,f2` runs only those factors (and the default).
+  The matching cost and the aggregation are no longer StereoConfig choices (census, the best k of
+  the sources that see a pixel); experiments/stereo_costs.py compares the costs on the sweep itself.
 
 Data (held out: the test split and the KITTI-360 acceptance frames; nothing is tuned on them):
 - worlds: samples `--worlds-samples` (default 0-5) of `--worlds` (default /work/data/ctx_worlds6)
@@ -50,7 +51,7 @@ killed run continues where it stopped; a changed default is a new point). `--fre
 
 Run (1 thread; the full study, 18 points x 42 images):
     OMP_NUM_THREADS=1 python -m experiments.stereo_trade
-small: `--worlds-samples 0 --cameras 0 --kitti-frames 4 --points sources,cost --label trade_smoke`.
+small: `--worlds-samples 0 --cameras 0 --kitti-frames 4 --points sources,scale --label trade_smoke`.
 Outputs: experiments/results/<label>.{json,md} (one row per point: factor, value, both datasets'
 metrics, on the front or not), docs/<label>.png (coverage against seconds per image, one panel per
 dataset); <label> is stereo_trade by default.
@@ -78,7 +79,7 @@ from .common import EXPERIMENTS_DIR, RESULTS, write_results
 from .stereo_tune import KITTI_DEFAULT, _ints, _value, band_rows, image_sets
 
 FACTORS = {"context": [0, 1, 2, 4, 8], "sources": [1, 2, 3, 4, 6], "hypotheses": [32, 64, 128, 192],
-           "scale": [0.25, 0.5, 0.75, 1.0], "cost": ["ad", "ncc", "census"], "aggregation": ["seen", "penalty"]}
+           "scale": [0.25, 0.5, 0.75, 1.0]}
 DEFAULT_CONTEXT = 4
 WORLDS_DEFAULT = Path("/work/data/ctx_worlds6")
 DOCS = EXPERIMENTS_DIR.parent / "docs"
@@ -282,7 +283,8 @@ def mover_safe(pt: dict) -> tuple[bool, float]:
     return bool(share <= MAX_MOVER_WRONG), float(share)
 
 
-def table_rows(pts: list[dict], subs: dict[str, dict], done: dict[str, dict]) -> tuple[list[dict], dict[str, list[int]]]:
+def table_rows(pts: list[dict], subs: dict[str, dict],
+               done: dict[str, dict]) -> tuple[list[dict], dict[str, list[int]]]:
     """One row per point (factor, value, config, `<dataset> <metric>` columns, `<dataset> front`) and
     dataset -> the row indices on its Pareto front."""
     rows = [{"factor": pt["factor"], "value": pt["value"], "context": pt["context"], "config": pt["config"]}
@@ -322,8 +324,8 @@ def plot(rows: list[dict], fronts: dict[str, list[int]], factors: dict[str, list
         n = rows[0][f"{ds} images"]
         ax.set_title(f"{ds}: {n} reference image(s), one factor at a time")
     fig.suptitle(f"Plane-sweep stereo trade: confident (conf >= {DEFAULT_STEREO_CONFIDENCE:g}) object coverage "
-                 f"0-40 m vs time\nhollow markers: δ<1.25 < {MIN_DELTA:g} or the planted unboxed mover let through (not eligible "
-                 f"for the front)", fontsize=11)
+                 f"0-40 m vs time\nhollow markers: δ<1.25 < {MIN_DELTA:g} or the planted unboxed mover let through "
+                 f"(not eligible for the front)", fontsize=11)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
@@ -341,7 +343,8 @@ def _panel(ax, ds: str, rows: list[dict], front: list[int], factors: dict[str, l
     if none:
         ax.text(0.99, 0.02, "0 % coverage (not drawn): " + ", ".join(none), transform=ax.transAxes, ha="right",
                 fontsize=8)
-    ok = np.array([r[f"{ds} delta_1.25"] >= MIN_DELTA and not r.get("mover_wrong", 0.0) > MAX_MOVER_WRONG for r in rows])
+    ok = np.array([r[f"{ds} delta_1.25"] >= MIN_DELTA and not r.get("mover_wrong", 0.0) > MAX_MOVER_WRONG
+                   for r in rows])
     for j, f in enumerate(factors):
         idx = [0] + [i for i, r in enumerate(rows) if r["factor"] == f]
         idx.sort(key=lambda i: _order(default_value(f, rows[i])))
@@ -391,8 +394,9 @@ def write_outputs(rows, fronts, factors, subs, args) -> None:
              f"share of object pixels; abs_*: median |error| (m) per band; median_rel, delta_1.25: confident pixels "
              f"0-40 m; s_per_image, s_per_set (a sample's reference images), peak_mb. front: on the Pareto front "
              f"(min seconds per image, times within {100 * TIME_TOL:g} % tied, max coverage, min median_rel, among "
-             f"delta_1.25 >= {MIN_DELTA:g} and mover_wrong <= {MAX_MOVER_WRONG:g}: the share of the planted unboxed mover "
-             f"confidently wrong, tests/reconstruct/stereo/test_mvs.py's scene with the point's factor; NaN: not applicable); "
+             f"delta_1.25 >= {MIN_DELTA:g} and mover_wrong <= {MAX_MOVER_WRONG:g}: the share of the planted unboxed "
+             f"mover confidently wrong, tests/reconstruct/stereo/test_mvs.py's scene with the point's factor; NaN: not "
+             f"applicable); "
              f"front_time_coverage: the same without the error. Plot: docs/{args.label}.png")
     write_results(args.label, rows, header, notes)
     plot(rows, fronts, factors, subs, DOCS / f"{args.label}.png")
@@ -431,7 +435,8 @@ def main(argv=None) -> None:
     for ds, front in fronts.items():
         names = [f"{rows[i]['factor']}={rows[i]['value']}" for i in front]
         which = "the front of time and coverage alone" if ds.endswith("time_coverage") else "the Pareto front"
-        print(f"{ds.split()[0]}: the default is {'on' if 0 in front else 'NOT on'} {which} ({', '.join(names) or 'empty'})")
+        on = "on" if 0 in front else "NOT on"
+        print(f"{ds.split()[0]}: the default is {on} {which} ({', '.join(names) or 'empty'})")
 
 
 if __name__ == "__main__":

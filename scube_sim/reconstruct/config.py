@@ -25,68 +25,56 @@ CHUNK_HEIGHT_SHARE = 0.25  # the chunk's z extent, a share of its size (as the w
 
 
 class StereoConfig(StrictModel):
-    """Plane-sweep multi-view stereo settings (module docstring). Depths in metres."""
+    """Plane-sweep multi-view stereo settings (`reconstruct.stereo.mvs`, whose module docstring
+    numbers the steps named here). Depths in metres; pixels at `scale` unless said otherwise."""
 
-    sources: int = Field(default=4, ge=1, le=64)  # source views per reference
-    hypotheses: int = Field(default=128, ge=3, le=4096)  # depth planes, uniform in 1/depth (step 5b: why 128)
-    near_m: float = Field(default=2.0, gt=0)
-    far_m: float = Field(default=90.0, gt=0)
-    cost: Literal["ad", "ncc", "census"] = "census"
-    window: int = Field(default=7, ge=3, le=31)  # the cost's window (census bits and aggregation), odd
-    scale: float = Field(default=0.5, gt=0, le=1)  # of the given image's resolution
-    min_baseline_m: float = Field(default=0.05, ge=0)
-    max_axis_angle_deg: float = Field(default=60.0, gt=0, le=180)
-    # the source choice's preferred motion per hypothesis step, in pixels of the swept images (at `scale`)
+    # steps 1-3: the images, the source views and the sweep
+    sources: int = Field(default=4, ge=1, le=64)  # source views per reference: more is steadier and slower
+    hypotheses: int = Field(default=128, ge=3, le=4096)  # depth planes, uniform in 1/depth: more is finer, slower
+    near_m: float = Field(default=2.0, gt=0)  # the nearest plane: lower to reach closer objects, at coarser steps
+    far_m: float = Field(default=90.0, gt=0)  # the farthest plane, beyond which stereo measures nothing
+    window: int = Field(default=7, ge=3, le=31)  # the census window (odd): wider for faint texture, blurs depth edges
+    scale: float = Field(default=0.5, gt=0, le=1)  # images are swept at this share of their resolution: lower is faster
+    min_baseline_m: float = Field(default=0.05, ge=0)  # a source closer to the reference camera gives no parallax
+    max_axis_angle_deg: float = Field(default=60.0, gt=0, le=180)  # a source turned further away is not used
+    # the source choice's preferred motion per hypothesis step, in pixels of the swept images
     good_step_px: float = Field(default=0.5, gt=0)
-    agreement_tolerance: int = Field(default=2, ge=0)  # hypotheses
-    peak_full: float = Field(default=0.6, gt=0)  # peak ratio at which that factor of the confidence reaches 1
+    # step 7: the confidence
+    agreement_tolerance: int = Field(default=2, ge=0)  # hypotheses between a source's own minimum and the winner
+    # peak ratio at which that factor of the confidence reaches 1: lower trusts flatter minima (and chance matches)
+    peak_full: float = Field(default=0.6, gt=0)
+    # steps 4 and 4b: moving boxed objects
     moved_m: float = Field(default=0.1, gt=0)  # a box whose centre moved more than this between instants moves
-    box_margin_m: float = Field(default=0.3, ge=0)
-    # step 4b: each boxed object that moved, swept again in its own frame (off: its pixels use the
-    # reference instant's other cameras only); objects covering fewer pixels than this (at `scale`) are not
+    box_margin_m: float = Field(default=0.3, ge=0)  # a moving box's mask grows by this
+    # each boxed object that moved, swept again in its own frame (off: its pixels use the
+    # reference instant's other cameras only); on where the frames carry boxes of moving actors
     movers: bool = False
-    mover_min_px: int = Field(default=64, ge=1)
-    chunk: int = Field(default=8, ge=1, le=256)  # hypotheses per warp and cost batch (memory)
-    # aggregation: "penalty": best k of all sources, an unseen entry costs `unseen_cost` (default
-    # UNSEEN_COST of the cost); "seen": best k of the sources that see the entry
-    aggregation: Literal["penalty", "seen"] = "seen"
-    unseen_cost: float | None = Field(default=None, ge=0)
+    mover_min_px: int = Field(default=64, ge=1)  # objects covering fewer pixels than this are not swept again
+    chunk: int = Field(default=8, ge=1, le=256)  # step 3: hypotheses per warp and cost batch: lower to save memory
+    # step 7, continued
     lone_credit: float = Field(default=0.5, ge=0, le=1)  # agreement of a pixel only one usable source sees
-    lone_peak_full: float = Field(default=0.8, gt=0)  # `peak_full` for such a pixel (module docstring, step 7)
-    match_px: float = Field(default=0.25, gt=0)  # sub-pixel precision of a match (pixels at `scale`)
-    max_rel_error: float | None = Field(default=0.05, gt=0)  # confidence scaled down where the expected relative depth error exceeds this (step 7)
+    lone_peak_full: float = Field(default=0.8, gt=0)  # `peak_full` for such a pixel (no other source can contradict it)
+    match_px: float = Field(default=0.25, gt=0)  # sub-pixel precision of a match, for the expected depth error
+    # confidence scaled down where the expected relative depth error exceeds this (None: off)
+    max_rel_error: float | None = Field(default=0.05, gt=0)
     min_agreement: float = Field(default=0.7, ge=0, le=1)  # confidence 0 below this agreement ...
-    # ... or, from `weak_agreement` up (None: off), at most `weak_cap` (an unsure pixel the fusion
-    # takes only where other views hit the same voxel)
+    # ... or, from `weak_agreement` up (None: off), at most `weak_cap`: an unsure pixel the fusion
+    # takes only where other views hit the same voxel (`FusionConfig.weak_confidence`)
     weak_agreement: float | None = Field(default=None, ge=0, le=1)
-    weak_cap: float = Field(default=0.45, ge=0, le=1)
-    # coarse-to-fine: sweep every hypothesis at scale x coarse_scale, then re-sweep at `scale` a
-    # per-pixel band of 2 refine_steps + 1 hypotheses within refine_span coarse steps (None: one pass)
-    coarse_scale: float | None = Field(default=None, gt=0, le=1)
-    refine_steps: int = Field(default=4, ge=1)
-    refine_span: float = Field(default=1.5, gt=0)
-    # semi-global aggregation of the aggregated volume (`sgm.semi_global`): 0 (off), 4 or 8 paths;
-    # penalties in the cost's units for a one-hypothesis step and for any larger jump between neighbours
+    weak_cap: float = Field(default=0.45, ge=0, le=1)  # keep below the fusion's `min_confidence`
+    # step 5b: semi-global aggregation of the aggregated volume (`sgm.semi_global`): 0 (off), 4 or 8
+    # paths; penalties in the cost's units for a one-hypothesis step and for any larger jump
+    # between neighbours: a larger `sgm_p2` smooths more and rounds off depth edges
     sgm_paths: Literal[0, 4, 8] = 4
     sgm_p1: float = Field(default=0.03, ge=0)
     sgm_p2: float = Field(default=0.2, ge=0)
-    sgm_gradient: float = Field(default=0.0, ge=0)  # p2 / (1 + sgm_gradient |dI|) across image edges
-    # geometric consistency (step 7c): the best `consistency_views` sources get their own depth maps;
-    # a reference depth must come back from one of them within consistency_px and consistency_rel
-    consistency_views: int = Field(default=0, ge=0)
-    consistency_px: float = Field(default=1.0, gt=0)
-    consistency_rel: float = Field(default=0.02, gt=0)
-    consistency_agree: int = Field(default=1, ge=1)  # of the views that can check a pixel, this many must agree
-    # gap filling (step 9): runs of unsure pixels up to this angle between agreeing confident ones (0: off)
+    # step 9: gap filling: unsure runs of pixels up to this angle between agreeing confident ones (0: off)
     fill_gap_deg: float = Field(default=0.0, ge=0, le=45)
     fill_tolerance: float = Field(default=0.03, gt=0, le=1)  # relative depth difference of the two ends
     # ... or (None: off) the line through the two ends (in inverse depth), extended this share of the
-    # run beyond each end (at least 2 pixels), meets the confident pixels there within fill_tolerance:
-    # a plane seen obliquely, whose ends' depths differ (step 9)
+    # run beyond each end (at least 2 pixels), meets the confident pixels there within
+    # `fill_tolerance`: a plane seen obliquely, whose ends' depths differ
     fill_coplanar: float | None = Field(default=None, gt=0, le=4)
-    # a filled pixel's share of its ends' (smaller) confidence; fusion ignores pixels below its
-    # min_confidence (0.5), so a share under 1 drops most filled pixels there
-    fill_confidence: float = Field(default=1.0, ge=0, le=1)
 
 
 class FusionConfig(BaseModel):
@@ -128,7 +116,7 @@ class EvidenceConfig(StrictModel):
     ground_max_slope_deg: float = Field(default=30.0, gt=0, le=90)  # ... if its surface tilts at most this
     ground_confidence: float = Field(default=0.5, ge=0, le=1)  # confidence of ground voxels no camera saw
     # beyond the measured ground the height field's rise over its plane decays with this length
-    # (`ground.fit_height_field`; None: carried unchanged, as before 2026-12-05)
+    # (`ground.fit_height_field`; None: carried unchanged to the chunk's edge)
     ground_fill_decay_m: float | None = Field(default=8.0, gt=0, le=10_000)
     fill_ground: bool = True  # ground surfels under the columns no observed ground voxel covers
     # surfels on the frames' boxed objects at T where no camera saw them (a car beside the ego,
@@ -145,14 +133,12 @@ class EvidenceConfig(StrictModel):
     # the surfels' thickness, a share of the voxel: depth noise spreads a voxel's points across the
     # surface, and at hard opacity a thick surfel is hit early by 3 sigma / sin(incidence) (a
     # grazing ray along the road); the build flattens LiDAR surfels the same way. Thinner gives
-    # the road back its range and lets a grazing ray slip between neighbouring surfels (held-in
-    # worlds val 0-7, references [0, -3, 3]: 0.1 / 0.03 / 0.01 -> seen ground median 0.328 / 0.298
-    # / 0.283 m, seen-object rays p90 2.80 / 2.90 / 2.99 m; the `evidence` profile takes 0.03)
+    # the road back its range but lets a grazing ray slip between neighbouring surfels (the
+    # `evidence` profile takes 0.03, where three references add their depth noise to the road)
     max_normal_share: float = Field(default=0.1, gt=0)
     # an observed ground point within this of the height field is moved onto it, its footprint laid
-    # flat (None: left where stereo put it). Stereo scatters the road's points about the surface
-    # (worlds: seen ground median |dr| 0.3 m at hard opacity); the field, a median over 1 m cells,
-    # is steadier. A step taller than this (a kerb) keeps its points (`snap_ground`)
+    # flat (None: left where stereo put it). Stereo scatters the road's points about the surface;
+    # the field, a median over 1 m cells, is steadier. A step taller than this (a kerb) keeps its points (`snap_ground`)
     ground_snap_m: float | None = Field(default=None, gt=0, le=1)
     # an observed surfel off the road, its centre more than `min_width_above_m` over the height
     # field, is at least this share of the voxel wide (standard deviation along both tangents;
@@ -161,6 +147,6 @@ class EvidenceConfig(StrictModel):
     # voxel slips between them to what lies behind; a voxel the fusion holds occupied is crossed by
     # its surface. 0.144 = 1 / (2 sqrt 12): each of the 2 x 2 Gaussians of a voxel spans its quarter
     # of the face (`widen_surfels`). Surfels near the ground keep their size: a wall's widened foot
-    # meets the rays to the road before it (the `evidence` profile's comment has the trade)
+    # meets the rays to the road before it
     min_width_share: float | None = Field(default=None, gt=0, le=1)
     min_width_above_m: float = Field(default=0.3, ge=0, le=100)

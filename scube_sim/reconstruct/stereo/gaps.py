@@ -48,20 +48,21 @@ def _fill_rows(depth: np.ndarray, conf: np.ndarray, max_gap: int, tol: float,
     return np.where(ok, filled, np.nan).astype(np.float32), np.where(ok, c, 0).astype(np.float32)
 
 
-def fill_gaps(depth: np.ndarray, conf: np.ndarray, max_gap_px: int, tol: float, share: float,
+def fill_gaps(depth: np.ndarray, conf: np.ndarray, max_gap_px: int, tol: float,
               allowed: np.ndarray | None = None, sure_above: float = 0.0,
               coplanar: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Step 9 (module docstring): (H, W) depth (metres, NaN where none) and confidence with the
     unsure pixels (confidence at most `sure_above`: 0, or a weak pixel's cap) of `allowed` (H, W)
     bool (default all) that a row or column gap of at most `max_gap_px` pixels fills (its ends
-    agreeing, or with `coplanar` in line with the pixels beyond them: `_fill_rows`); confident
-    pixels keep theirs."""
+    agreeing, or with `coplanar` in line with the pixels beyond them: `_fill_rows`), each with the
+    smaller of its ends' confidences (the mean of the row's and the column's where both fill it);
+    confident pixels keep theirs."""
     if max_gap_px < 1:
         return depth, conf
     dr, cr = _fill_rows(depth, conf, max_gap_px, tol, sure_above, coplanar)
     dc, cc = (a.T for a in _fill_rows(depth.T, conf.T, max_gap_px, tol, sure_above, coplanar))
     both = np.isfinite(dr) & np.isfinite(dc)
     d = np.where(both, 0.5 * (dr + dc), np.where(np.isfinite(dr), dr, dc))
-    c = np.where(both, 0.5 * (cr + cc), np.where(np.isfinite(dr), cr, cc)) * np.float32(share)
+    c = np.where(both, 0.5 * (cr + cc), np.where(np.isfinite(dr), cr, cc))
     take = np.isfinite(d) & (conf <= sure_above) & (True if allowed is None else allowed)
     return (np.where(take, d, depth).astype(np.float32), np.where(take, c, conf).astype(np.float32))

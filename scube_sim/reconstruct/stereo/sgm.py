@@ -16,9 +16,7 @@ support from their neighbours; depth edges cost `p2` once.
 
 Units: the volume's own (census: the share of differing bits, in [0, 1]). NaN entries (a
 hypothesis no source sees at that pixel) enter the recursion as `fill` and come back NaN, so the
-winner-take-all still ignores them. `gradient_scale` > 0 lowers `p2` across image edges
-(p2 / (1 + gradient_scale |I(p) - I(p - r)|), depth edges tend to be image edges), never below p1;
-on the horizontal and vertical paths only (the diagonals keep p2).
+winner-take-all still ignores them.
 
 Deterministic: each path is a fixed sequence of elementwise operations (no reductions across
 threads), the same bytes whatever the thread count.
@@ -82,27 +80,9 @@ def _undiagonal(sheared: torch.Tensor, shift: int, w: int) -> torch.Tensor:
     return torch.stack(rows, 1)
 
 
-def _penalty(image: torch.Tensor | None, shape, p1: float, p2: float, gradient_scale: float,
-             dim: int) -> torch.Tensor:
-    """(2, 1, H, W) p2 into each pixel from its predecessor along `dim` (-1: x, -2: y), forward then
-    backward."""
-    h, w = shape
-    if image is None or gradient_scale <= 0:
-        return torch.full((2, 1, h, w), float(p2))
-    g = image.mean(0) if image.dim() == 3 else image  # (H, W)
-    diff = (g.diff(dim=dim)).abs()
-    pad = torch.zeros((1, w)) if dim == -2 else torch.zeros((h, 1))
-    fwd = torch.cat([pad, diff], dim)  # into pixel i from i - 1
-    bwd = torch.cat([diff, pad], dim)  # into pixel i from i + 1
-    pen = torch.stack([fwd, bwd])[:, None]
-    return torch.clamp(p2 / (1.0 + gradient_scale * pen), min=p1)
-
-
-def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5,
-                image: torch.Tensor | None = None, gradient_scale: float = 0.0) -> torch.Tensor:
+def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5) -> torch.Tensor:
     """cost (D, H, W) float32 (NaN: no candidate) -> (D, H, W) float32, the mean of the path costs
-    L_r over `paths` (4 or 8) directions (module docstring); NaN where the input is NaN.
-    image: (C, H, W) or (H, W) reference image for the edge-aware p2 (`gradient_scale` > 0)."""
+    L_r over `paths` (4 or 8) directions (module docstring); NaN where the input is NaN."""
     if paths not in (4, 8):
         raise InputError(f"semi_global: paths must be 4 or 8, got {paths}")
     if not 0 <= p1 <= p2:
@@ -112,9 +92,9 @@ def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fil
     nan = torch.isnan(cost)
     c = torch.where(nan, torch.full_like(cost, fill), cost)
     _, h, w = c.shape
-    total = _paths(c, p1, _penalty(image, (h, w), p1, p2, gradient_scale, -1))
-    pen_y = _penalty(image, (h, w), p1, p2, gradient_scale, -2)
-    total = total + _paths(c.transpose(1, 2), p1, pen_y.transpose(2, 3)).transpose(1, 2)
+    pen = torch.full((2, 1, h, w), float(p2))  # into each pixel, forward and backward along a path
+    total = _paths(c, p1, pen)
+    total = total + _paths(c.transpose(1, 2), p1, pen.transpose(2, 3)).transpose(1, 2)
     if paths == 8:
         for shift in (1, -1):
             # a diagonal path is a row of the sheared volume; sheared padding (NaN) is filled too

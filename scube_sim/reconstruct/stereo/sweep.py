@@ -25,24 +25,21 @@ invalid; every cost's window averages over its valid pixels only, and the census
 bits whose neighbour is valid.
 
 Census: computed on the warped image (for every hypothesis), not once on the source and then
-warped with nearest sampling (``census_source`` in `sweep_cost`, kept to measure the choice).
+warped with nearest sampling (``census_source`` in `sweep_cost`, the cheaper alternative).
 The warp with a fronto-parallel plane maps the source's neighbourhood onto the reference's
 window geometry (scale and perspective), so the two bit strings describe the same patch of the
 surface; the source's own census describes a window of source pixels, which under forward motion
 covers a different extent of the surface, and nearest sampling snaps sub-pixel shifts (the cost
 curve becomes a staircase: under a translation every pixel of a fronto-parallel plane snaps by
-the same fraction, so aggregation does not smooth it). experiments/stereo_costs.py measures both
-(results/stereo_costs_before.md, one source two frames back, median relative error over pixels
-under 40 m: KITTI-360 4.9 % on the warped image against 6.5 % on the source, the worlds 2.8 %
-against 3.2 %; on the warped image it costs 1.5 to 2 times the time).
+the same fraction, so aggregation does not smooth it). experiments/stereo_costs.py compares the
+two (experiments/results/stereo_costs_before.md).
 The per-pixel Hamming distance is averaged over the same window as `cost_ad`'s differences: alone
-(B = 48 bits per pixel, a cost in steps of 1/48) its curve has flat bottoms and outliers (on
-tests/stereo's textured plane: median depth error 0.59 %, 1 % of the pixels off by over 50 %;
-aggregated over 7 x 7: 0.17 % and under 0.6 %).
+(B = 48 bits per pixel, a cost in steps of 1/48) its curve has flat bottoms and outliers, which
+the window's mean smooths.
 
 Speed: the census compares each offset's neighbours on the slice where they lie on the image
-(no shifted copies; counts in uint8) and the box filter runs as a row then a column pass: 3.6
-times faster than shifted copies and a 2D box, equal to within float rounding (1e-7).
+(no shifted copies; counts in uint8) and the box filter runs as a row then a column pass, equal
+to shifted copies and a 2D box within float rounding (1e-7).
 
 Determinism: no atomics and no reductions whose order depends on the thread count (grid_sample's
 forward, average pooling and elementwise operations compute each output from a fixed sequence of

@@ -23,10 +23,10 @@ def test_an_unsure_band_on_a_tilted_plane_takes_the_plane_s_depth():
     conf = np.ones((H, W), np.float32)
     conf[10:18, 20:30] = 0  # a textureless patch, 8 rows x 10 columns
     depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
-    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2)
     hole = conf == 0
     np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
-    assert np.all(c[hole] == np.float32(0.5))  # half of its ends' confidence (1)
+    assert np.all(c[hole] == np.float32(1.0))  # its ends' confidence
     assert np.array_equal(d[~hole], depth[~hole]) and np.array_equal(c[~hole], conf[~hole])
 
 
@@ -37,20 +37,20 @@ def test_a_depth_step_a_wide_gap_and_sky_stay_holes():
     conf[:, 20:30] = 0  # the unsure band straddles the step: left end 5 m, right end 30 m
     conf[30:, :] = 0  # and the bottom rows are unsure with nothing below them
     depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
-    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03)
     assert np.isnan(d[:30, 20:30]).all() and (c[:30, 20:30] == 0).all()  # never across the step
     assert np.isnan(d[30:]).all()  # no confident pixel below: no column gap, and rows are all unsure
     # the same plane, a gap wider than the bound
     conf2 = np.ones((H, W), np.float32)
     conf2[:, 10:40] = 0  # 30 columns
-    d2, _ = fill_gaps(np.where(conf2 > 0, far, np.nan).astype(np.float32), conf2, 12, 0.03, 0.5)
+    d2, _ = fill_gaps(np.where(conf2 > 0, far, np.nan).astype(np.float32), conf2, 12, 0.03)
     assert np.isnan(d2[:, 10:40]).all()
     # sky is never filled, even between two agreeing walls
     conf3 = np.ones((H, W), np.float32)
     conf3[5:10, 20:25] = 0
     sky = np.zeros((H, W), bool)
     sky[5:10, 20:25] = True
-    d3, _ = fill_gaps(np.where(conf3 > 0, far, np.nan).astype(np.float32), conf3, 12, 0.03, 0.5, ~sky)
+    d3, _ = fill_gaps(np.where(conf3 > 0, far, np.nan).astype(np.float32), conf3, 12, 0.03, ~sky)
     assert np.isnan(d3[sky]).all()
 
 
@@ -96,12 +96,12 @@ def test_weak_pixels_in_a_band_are_filled_and_are_no_ends():
     conf[12:14, 24:26] = 0.4  # weak pixels inside the band, their depth a wrong match
     depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
     depth[12:14, 24:26] = 40.0
-    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5, sure_above=0.45)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, sure_above=0.45)
     hole = conf < 1
     np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
-    assert np.all(c[hole] == np.float32(0.5))
+    assert np.all(c[hole] == np.float32(1.0))
     # the default (sure_above 0): the weak pixels are ends and keep their wrong depth
-    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.2, share=0.5)
+    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.2)
     assert np.all(d0[12:14, 24:26] == 40.0)
 
 
@@ -116,21 +116,21 @@ def test_an_oblique_plane_s_band_fills_only_where_its_ends_lie_in_line():
     conf[10:18, 20:30] = 0
     depth = np.where(conf > 0, truth, np.nan).astype(np.float32)
     hole = conf == 0
-    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5)
+    d0, _ = fill_gaps(depth, conf, max_gap_px=12, tol=0.03)
     assert np.isnan(d0[hole]).all()
-    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, share=0.5, coplanar=0.5)
+    d, c = fill_gaps(depth, conf, max_gap_px=12, tol=0.03, coplanar=0.5)
     np.testing.assert_allclose(d[hole], truth[hole], rtol=1e-5)
-    assert np.all(c[hole] == np.float32(0.5))
+    assert np.all(c[hole] == np.float32(1.0))
     assert np.array_equal(d[~hole], depth[~hole]) and np.array_equal(c[~hole], conf[~hole])
     # the line must reach sure pixels beyond both ends: a band from top to bottom (no column
     # gaps) 2 pixels from the image's left edge has none 5 pixels beyond its left end
     edge = np.ones((H, W), np.float32)
     edge[:, 2:12] = 0
-    de, _ = fill_gaps(np.where(edge > 0, truth, np.nan).astype(np.float32), edge, 12, 0.03, 0.5, coplanar=0.5)
+    de, _ = fill_gaps(np.where(edge > 0, truth, np.nan).astype(np.float32), edge, 12, 0.03, coplanar=0.5)
     assert np.isnan(de[:, 2:12]).all()
     # a pole's edge at column 25 before a wall: 5 m ends left, 30 m right, nothing in line
     step = np.where(np.arange(W) < 25, plane_depth([0, 0, 1], 5.0), plane_depth([0, 0, 1], 30.0))
     cs = np.ones((H, W), np.float32)
     cs[:, 20:30] = 0
-    ds, _ = fill_gaps(np.where(cs > 0, step, np.nan).astype(np.float32), cs, 12, 0.03, 0.5, coplanar=0.5)
+    ds, _ = fill_gaps(np.where(cs > 0, step, np.nan).astype(np.float32), cs, 12, 0.03, coplanar=0.5)
     assert np.isnan(ds[:, 20:30]).all()

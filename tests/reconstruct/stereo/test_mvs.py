@@ -143,7 +143,8 @@ def test_a_fully_occluded_source_gives_no_confident_wrong_depth():
     # cross-checked one (the aggregation makes its chance matches look peaked), 0 now
     assert _confident_wrong(alone, gt, np.ones_like(gt, bool)) == 0
     # beside three sources that see the plane, it is outvoted: the plane keeps its depth
-    good = [_shot("cam", _pose((dx, dy, 0.0)), 0.1 * o)[0] for o, dx, dy in ((-1, -1.0, 0.2), (2, 1.2, -0.3), (-2, -1.4, -0.2))]
+    good = [_shot("cam", _pose((dx, dy, 0.0)), 0.1 * o)[0]
+            for o, dx, dy in ((-1, -1.0, 0.2), (2, 1.2, -0.3), (-2, -1.4, -0.2))]
     res = stereo_depth(_frames(ref, {1: [blocked], -1: [good[0]], 2: [good[1]], -2: [good[2]]}), 0, CFG)
     assert len(res.sources) == 4
     inner = _plane_interior(16)
@@ -318,31 +319,18 @@ def test_sky_gets_no_depth():
     assert (res.confidence[30:] >= 0.5).mean() > 0.5
 
 
-def test_coarse_to_fine_and_the_default_half_scale_recover_the_plane():
-    # a sweep at half resolution, alone (the default scale) or refined at full resolution in a
-    # per-pixel band (coarse_scale): the plane's depth within 1 %, nothing confidently wrong
+def test_the_default_half_scale_recovers_the_plane():
+    # a sweep at half resolution (the default scale): the plane's depth within 1 %, nothing confidently wrong
     ref, gt = _shot("ref", _pose(), 0.0)
     left, _ = _shot("cam", _pose((-1.0, 0.2, 0.0)), -0.1)
     right, _ = _shot("cam", _pose((1.0, -0.1, 0.0)), 0.1)
     frames = _frames(ref, {-1: [left], 1: [right]})
     inner = _plane_interior(12)
-    for cfg in (CFG.model_copy(update={"scale": 0.5}), CFG.model_copy(update={"coarse_scale": 0.5})):
-        res = stereo_depth(frames, 0, cfg)
-        confident = res.confidence >= 0.5
-        assert confident[inner].mean() > 0.6, (cfg.scale, cfg.coarse_scale, confident[inner].mean())
-        rel = np.abs(res.depth[confident] - gt[confident]) / gt[confident]
-        assert np.median(rel) < 0.01 and rel.max() < 0.05, (cfg.scale, cfg.coarse_scale, np.median(rel), rel.max())
-
-
-def test_the_penalty_aggregation_keeps_the_plane():
-    ref, gt = _shot("ref", _pose(), 0.0)
-    left, _ = _shot("cam", _pose((-1.0, 0.2, 0.0)), -0.1)
-    right, _ = _shot("cam", _pose((1.0, -0.1, 0.0)), 0.1)
-    res = stereo_depth(_frames(ref, {-1: [left], 1: [right]}), 0, CFG.model_copy(update={"aggregation": "penalty"}))
+    res = stereo_depth(frames, 0, CFG.model_copy(update={"scale": 0.5}))
     confident = res.confidence >= 0.5
-    assert confident[_plane_interior(8)].mean() > 0.8
+    assert confident[inner].mean() > 0.6, confident[inner].mean()
     rel = np.abs(res.depth[confident] - gt[confident]) / gt[confident]
-    assert np.median(rel) < 0.0025
+    assert np.median(rel) < 0.01 and rel.max() < 0.05, (np.median(rel), rel.max())
 
 
 @pytest.mark.parametrize("paths", [4, 8])
@@ -364,36 +352,6 @@ def test_inconsistent_settings_are_refused_by_name(update, key):
     src, _ = _shot("cam", _pose((1.0, 0.2, 0.0)), 0.1)
     with pytest.raises(InputError, match=key):
         stereo_depth(_frames(ref, {1: [src]}), 0, CFG.model_copy(update=update))
-
-
-def test_the_reprojection_check_accepts_exact_depth_and_rejects_a_wrong_one():
-    from scube_sim.reconstruct.stereo.mvs import _consistent
-    from scube_sim.transforms import invert_pose
-
-    ref, gt_ref = _shot("ref", _pose(), 0.0)
-    src, gt_src = _shot("cam", _pose((1.0, 0.2, 0.0)), 0.1)
-    ref_to_src = invert_pose(src.cam_to_world) @ ref.cam_to_world
-    k = INTR.K
-    checked, consistent = _consistent(torch.from_numpy(gt_ref), k, torch.from_numpy(gt_src), k, ref_to_src, 1.0, 0.01)
-    checked, consistent = checked.numpy(), consistent.numpy()
-    # the source sees all but the reference's left F * 1 m / 10 m = 12 columns and top 0.2 F / 10 = 2.4 rows
-    assert checked[3:, 13:].all() and not checked[:, :11].any() and not checked[:2].any()
-    assert consistent[checked].all()
-    _, off = _consistent(torch.from_numpy(gt_ref * 1.05), k, torch.from_numpy(gt_src), k, ref_to_src, 1.0, 0.01)
-    assert not off.numpy()[checked].any()
-
-
-def test_the_geometric_check_rejects_the_moving_object_semi_global_lets_through():
-    cfg = CFG.model_copy(update={"sgm_paths": 4, "min_agreement": 0.0})  # the aggregation alone
-    frames, gt, on_box = _moving_scene({-2: (0.3, -0.8, BOX_Z), -1: (-0.2, 0.7, BOX_Z), 1: (0.4, -0.6, BOX_Z)},
-                                       with_boxes=False)
-    # measured: 78 of the 2080 object pixels confidently wrong without the check, 7 with it
-    assert _confident_wrong(stereo_depth(frames, 0, cfg), gt, on_box) > 0.02 * on_box.sum()
-    checked = cfg.model_copy(update={"consistency_views": 2, "consistency_agree": 2})
-    res = stereo_depth(frames, 0, checked)
-    assert _confident_wrong(res, gt, on_box) <= 0.005 * on_box.sum(), _confident_wrong(res, gt, on_box)
-    plane = ~on_box & _plane_interior(10)
-    assert _confident_wrong(res, gt, plane) <= 0.01 * plane.sum()
 
 
 def test_moved_pixels_cover_the_box_of_an_object_that_moved_and_nothing_for_one_that_stood():

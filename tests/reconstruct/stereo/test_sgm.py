@@ -13,10 +13,9 @@ DIRECTIONS_4 = [(0, 1), (0, -1), (1, 0), (-1, 0)]
 DIRECTIONS_8 = DIRECTIONS_4 + [(1, 1), (-1, -1), (1, -1), (-1, 1)]
 
 
-def _reference(cost: np.ndarray, directions, p1=P1, p2=P2, p2_map=None) -> np.ndarray:
+def _reference(cost: np.ndarray, directions, p1=P1, p2=P2) -> np.ndarray:
     """L_r(p, d) = C(p, d) + min(L(p - r, d), L(p - r, d +- 1) + p1, min_k L(p - r, k) + p2) - min_k L(p - r, k),
-    L = C where p - r is outside the image; the mean over the directions. p2_map(direction, y, x): the
-    penalty into (y, x) along that direction (default p2)."""
+    L = C where p - r is outside the image; the mean over the directions."""
     d_count, h, w = cost.shape
     total = np.zeros_like(cost, dtype=np.float64)
     for dy, dx in directions:
@@ -31,9 +30,8 @@ def _reference(cost: np.ndarray, directions, p1=P1, p2=P2, p2_map=None) -> np.nd
                     continue
                 prev = lr[:, py, px]
                 m = prev.min()
-                pen = p2 if p2_map is None else p2_map((dy, dx), y, x)
                 for d in range(d_count):
-                    cands = [prev[d], m + pen]
+                    cands = [prev[d], m + p2]
                     if d > 0:
                         cands.append(prev[d - 1] + p1)
                     if d < d_count - 1:
@@ -50,21 +48,6 @@ def test_matches_the_recursion_written_out(paths):
     got = semi_global(torch.from_numpy(cost), P1, P2, paths=paths).numpy()
     want = _reference(cost, DIRECTIONS_4 if paths == 4 else DIRECTIONS_8)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
-
-
-def test_the_edge_aware_penalty_follows_the_image_gradient():
-    rng = np.random.default_rng(4)
-    cost = rng.uniform(0, 1, (5, 4, 6)).astype(np.float32)
-    image = rng.uniform(0, 1, (4, 6)).astype(np.float32)
-    scale = 5.0
-
-    def p2_map(direction, y, x):
-        dy, dx = direction
-        g = abs(image[y, x] - image[y - dy, x - dx])
-        return max(P2 / (1 + scale * g), P1)
-
-    got = semi_global(torch.from_numpy(cost), P1, P2, image=torch.from_numpy(image), gradient_scale=scale).numpy()
-    np.testing.assert_allclose(got, _reference(cost, DIRECTIONS_4, p2_map=p2_map), rtol=0, atol=1e-5)
 
 
 def test_a_smooth_surface_in_noise_is_recovered_and_unseen_entries_stay_nan():
