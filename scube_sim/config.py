@@ -91,7 +91,7 @@ class Range:
 SEED = Range(ge=0, le=2**32 - 1, integer=True)  # numpy's and torch's seeds alike
 SAMPLE_INDEX = Range(ge=0, integer=True)
 DDIM_STEPS = Range(ge=1, le=1000, integer=True)  # the geometry stage's sampler (its training schedule: 1000 steps)
-FIT_STEPS = Range(ge=0, le=10_000, integer=True)  # the test-time fit: ~3 s a step, so at most ~8 h
+FIT_STEPS = Range(ge=0, le=10_000, integer=True)  # the test-time fit: each step renders; the cap keeps a run to hours
 CONTEXT_INSTANTS = Range(ge=0, le=100, integer=True)
 CONFIDENCE_SAMPLES = Range(ge=0, le=64, integer=True)  # K (0: off; 1 is refused where it is read)
 MAX_RANGE_M = Range(gt=0, le=10_000, unit="metres")  # as a LiDAR's range.max_m

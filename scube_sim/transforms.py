@@ -185,7 +185,7 @@ def invert_pose(t: np.ndarray) -> np.ndarray:
 
 
 # The (N, 3) x (3, 3) products below are einsum, not `@`: `@` goes to BLAS, whose worker threads
-# then spin for a while and take the cores from the tracer's threads (a LiDAR sweep ran 1.5x slower).
+# then spin for a while and take the cores from the tracer's threads, slowing the sweep.
 
 
 def transform_points(t: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -222,7 +222,7 @@ def interpolate_poses(t0: np.ndarray, t1: np.ndarray, s: np.ndarray) -> np.ndarr
     equal rotations), evaluated without a quaternion per pose: `slerp` gives q(s) = a(s) q0 +
     b(s) q1 (before normalising), and the matrix of a quaternion is a quadratic form over its
     squared norm, so R(s) = (a^2 H0 + a b H01 + b^2 H1) / |q(s)|^2 with three constant (3, 3)
-    matrices. It equals `quat_to_rotmat(slerp(...))` to a few float64 ulps at 3x-5x its speed:
+    matrices. It equals `quat_to_rotmat(slerp(...))` to a few float64 ulps, and is faster:
     a sweep asks for one pose per distinct fire time (tens of thousands)."""
     return SlerpSegment(t0, t1)(s)
 

@@ -69,7 +69,7 @@ def one_torch_thread():
     """torch on one intra-op thread for the block, restored afterwards. The networks' convolutions
     and matrix products split their sums by thread count, so their float results (1e-6 apart) and
     the file's bytes would depend on it; `convert` and a batch worker must write the same file.
-    Costs about 1.4x on 2 cores (cpu profile: 1.6 s -> 2.2 s); a batch runs samples side by side."""
+    It costs a single conversion its second core; a batch runs samples side by side instead."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:

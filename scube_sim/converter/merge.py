@@ -3,47 +3,35 @@ VoxSplat, the observation winning wherever the two disagree.
 
 Per coarse cell (`features` grid) the network gives an occupancy probability p and a label:
 
-- **added**: a cell with p >= `add_threshold` (0.9: completion-v3-cpu's cells at p 0.5-0.9 are empty
-  in the truth for a third to two thirds, at 0.99 and above for none, worlds val; at 0.5 the blobs
-  of parked cars drawn too long stood around the LiDAR driven 20 m ahead, worlds test 12: 5 593 of
-  its 33 202 unseen ground rays a metre or more short) that holds no observed voxel, whose
-  free-space rays are fewer than `free_veto_samples` (the cameras saw through it: it stays empty
-  whatever the network says), that borders a cell below the threshold (a surface, not the inside of
-  a building) and whose label is not a ground class (the height field already holds the ground no
-  camera saw), whose Gaussian would not reach into the ego's own body at any instant given
-  (`ego_box`, grown by the sphere's radius) and that is not joined (26-neighbours, among the cells
-  to add) to one that would: the space the ego car filled or drove through holds nothing else, yet
-  no camera sees it, and a network that has learnt that a hole in the observed road is a car puts
-  one there (worlds test 6: a car blob 0.7 m from the LiDAR, whose rays then ended inside its
-  minimum range, 18 % of the ground rays lost; test 30: the cells around the box, 1.6-1.9 m from the
-  LiDAR, 21 % of its seen rays short), and that, where it holds the ground height field (its centre
-  under `footprint_height_m` over it, where set: 0.4 m, half a cell), has a body standing on it (the
-  cell above occupied and not seen through, or observed): a ground cell with nothing above it is
-  either the ground labelled as an object or the floor of a building (the worlds' buildings are
-  closed meshes, their floors fill the ground cells of the footprint, and the network learns to draw
-  them), neither of which a sensor outside sees, and its sphere, 0.6 m round, stands on the road
-  (worlds val, completion-v3-cpu at 0.5: 16 k such cells added of 25 k, 96 % with nothing above,
-  12 % of them ground or terrain in the truth); off by default: those floors also stand for the
-  foot of walls nobody saw, and on worlds test 0-19 the rule lost most of the objects' gain for the unseen
-  ground it spared (docs/converter.md), and that, with `objects_in_boxes` where the frames carry
-  boxes, is no vehicle, rider or pedestrian outside all of them (`BOXED_IDS`: the boxes say where
-  those stand; the network drew parked cars too long, and their blobs stood on the road the
-  LiDAR driven 20 m ahead sees: 40 held-out worlds, the unseen ground's p90 there 2.76 -> 2.54 m,
-  the evidence alone's 2.55) -- gets one round Gaussian at its centre whose 3-sigma sphere
-  (`blob_radius`, a share of the cell: 0.75, so that four neighbours' spheres close the gap between
-  them at hard opacity) stands for the cell (where in the cell the surface lies, nobody measured;
-  with a network's sub-cell head, one Gaussian on each sub-cell it holds occupied instead,
-  `subcell_threshold`, its sphere the same share of the sub-cell; or, `subcell_mode` centroid, the
-  cell's one sphere moved to its sub-cells' centres weighted by their probabilities: both measured
-  on worlds test 0-19, docs/converter.md "Sub-cells", and both lose to the centred sphere: the
-  smaller or moved spheres open gaps between neighbours' that rays slip through), labelled by the network,
-  `observed` 0, `confidence` p;
+- **added**: a cell gets one round Gaussian at its centre, labelled by the network, `observed` 0,
+  `confidence` p, when all of these hold:
+  - p >= `add_threshold` (0.9): lower, the network's unsure cells are often empty in the truth,
+    and their blobs stand on the road a LiDAR ahead sees;
+  - it holds no observed voxel, and fewer than `free_veto_samples` free-space rays crossed it (the
+    cameras saw through it: it stays empty whatever the network says);
+  - it borders a cell below the threshold (a surface, not the inside of a building);
+  - its label is not a ground class (the height field already holds the ground no camera saw);
+  - its Gaussian would not reach into the ego's body at any instant given (`ego_box`, grown by the
+    sphere's radius), nor is it joined (26-neighbours, among the cells to add) to one that would: no
+    camera sees the space the ego filled, and a network that learnt that a hole in the road is a
+    car puts one there, inside the LiDAR's minimum range;
+  - with `footprint_height_m` set (off by default), a cell whose centre lies under that height over
+    the ground height field has a body standing on it (the cell above occupied and not seen through,
+    or observed): a ground cell with nothing above is the ground labelled as an object or a
+    building's floor, which no sensor outside sees; off, because those floors also stand for the
+    foot of walls nobody saw;
+  - with `objects_in_boxes`, where the frames carry boxes, a vehicle, rider or pedestrian cell lies
+    inside one of them (`BOXED_IDS`: the boxes say where those stand).
+  The sphere's 3-sigma radius is `blob_radius` (0.75 of the cell, so that four neighbours' spheres
+  close the gap between them at hard opacity): where in the cell the surface lies, nobody measured.
+  With a network's sub-cell head, one Gaussian on each sub-cell it holds occupied instead
+  (`subcell_threshold`, its sphere the same share of the sub-cell); or, `subcell_mode` centroid, the
+  cell's one sphere moved to its sub-cells' centres weighted by their probabilities. The centred
+  sphere is the default: smaller or moved spheres open gaps between neighbours that rays slip through.
 - **removed**: an observed voxel above the ground (not labelled a ground class) whose fused
   probability is below `keep_confidence` (one view's unsure stereo) in a cell with p <
-  `remove_threshold` is dropped as noise (worlds test 0-9 before ground voxels were spared: 2.2 %
-  of the observed voxels, ground rays returning 99.7 -> 97.1 %); a voxel at or above
-  `keep_confidence` is never removed, whatever p (tests plant a confident wall and a network
-  that wants it gone);
+  `remove_threshold` is dropped as noise; ground voxels are spared, since dropping them opens holes
+  in the road. A voxel at or above `keep_confidence` is never removed, whatever p.
 - **labelled**: an observed voxel in a cell with p >= `add_threshold` takes the network's label
   there (the geometry alone knows only ground and not ground); the rest keep theirs.
 """
@@ -77,9 +65,8 @@ class CompletionConfig(StrictModel):
     """A profile's `completion:` section (module docstring for the merge's rules)."""
 
     checkpoint: str  # a shipped name or a path
-    # completion-v3-cpu's cells at p 0.5-0.8 are empty in the truth for a third (buildings) to two
-    # thirds (cars), at p >= 0.99 for none (worlds val): at 0.5 its blobs stood around the LiDAR
-    # 20 m ahead (module docstring)
+    # the occupancy a cell needs to be added or to relabel observed voxels: lower adds the network's
+    # unsure cells, often empty in the truth (module docstring)
     add_threshold: float = Field(default=0.9, gt=0, lt=1)
     remove_threshold: float = Field(default=0.1, ge=0, lt=1)
     keep_confidence: float = Field(default=0.65, ge=0, le=1)
@@ -95,14 +82,13 @@ class CompletionConfig(StrictModel):
     # where the frames carry boxes (a log's tracked or annotated objects), a cell the network labels
     # as a class such boxes hold (`BOXED_IDS`: vehicles, riders, pedestrians) is added only where its
     # centre lies in one of them: the boxes say where those objects stand, and the evidence route
-    # already fills the boxed ones no camera saw (`EvidenceConfig.fill_boxes`). Worlds test 12,
-    # 20 m ahead: 2 725 of its 33 202 unseen ground rays a metre or more short on the blobs of
-    # parked cars drawn too long (docs/converter.md, "Blobs outside the boxes"; on in the
-    # `evidence-complete` profile; off here: a log whose boxes miss objects loses their blobs)
+    # already fills the boxed ones no camera saw (`EvidenceConfig.fill_boxes`). Turn on where the
+    # boxes are complete (as in `evidence-complete`): it drops blobs of objects drawn where none
+    # stand; off by default, since a log whose boxes miss objects loses their blobs
     objects_in_boxes: bool = False
     # an added cell whose centre lies under this height over the ground height field needs an
     # occupied cell above it (0: off, the default; 0.4, half a 0.8 m cell: the cell that holds the
-    # ground; measured in docs/converter.md: it spares the ground and loses the objects' gains)
+    # ground). On, it spares the unseen ground but drops the foot of walls and objects nobody saw
     footprint_height_m: float = Field(default=0.0, ge=0, le=25.6)
     # the ego car's body, ego frame on the road (x forward, metres): wide enough for a frame whose
     # origin is the rear axle (nuScenes, Waymo: about 1 m of car behind it and 4 ahead) and for one

@@ -62,8 +62,8 @@ class AppearanceProfile(StageProfile):
     tolerates a few wide, faint Gaussians that fill background; a LiDAR tracing at hard opacity
     sees each as a wall k standard deviations out, and one around the sensor hides everything.
     fit_steps: Adam steps of a test-time fit after the network (`appearance.fit_input_views`: the
-    Gaussians and the panorama fitted to the input views themselves; about 3 s per step for a
-    5-camera 0.4 m grid on 2 cores; 0: the network's prediction as it is, the paper's method)."""
+    Gaussians and the panorama fitted to the input views themselves, each step a render of every
+    view; 0: the network's prediction as it is, the paper's method)."""
 
     sky_size: tuple[Annotated[int, Field(ge=8, le=8192)], Annotated[int, Field(ge=8, le=16384)]] = (128, 256)
     fit_steps: int = FIT_STEPS.field(0)  # a test-time fit on the input views (`appearance.fit_input_views`)
@@ -79,7 +79,7 @@ class AppearanceProfile(StageProfile):
 
 
 # The sky decoder's working memory per panorama pixel: directions (float64), sampled features,
-# the decoder's layers and the colours (float32); measured order of magnitude, rounded up.
+# the decoder's layers and the colours (float32), rounded up.
 SKY_BYTES_PER_PIXEL = 384
 
 

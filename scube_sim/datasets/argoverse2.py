@@ -20,9 +20,8 @@ Frames:
   sweep times exactly; otherwise it is interpolated).
 - Each feather holds both LiDARs. ``laser_number`` 0-31 is ``up_lidar``, 32-63 ``down_lidar``.
   av2-api's ``Sweep`` keeps the 64 numbers together and does not document the split; the data do: in
-  its own sensor frame every laser's points lie on one cone (per-laser elevation std 0.05 degrees
-  median, beyond 5 m; medians within 0.04 degrees of the VLP-32C table), while in the other
-  sensor's frame they smear (std 0.17 degrees median). av2 users split the same way (av2-api
+  its own sensor frame every laser's points lie on one cone at the VLP-32C table's elevation,
+  while in the other sensor's frame they smear. av2 users split the same way (av2-api
   issue #82, following #77: "laser number [0, 31] -> top lidar, [32, 63] -> bottom lidar").
 - AV2 numbers the 32 lasers of each sensor in its own order, not Velodyne's. ``LidarSweep.ring``
   is the channel index of our VLP-32C preset (Velodyne's laser id, the order of
@@ -33,12 +32,10 @@ Motion compensation: AV2 sweep points are ego-motion compensated, every point ex
 ego frame at the sweep timestamp. av2-api says so in ``src/av2/structures/sweep.py`` (class
 ``Sweep``: "We have egomotion-compensated the lidar sensor data to the egovehicle reference
 timestamp (`timestamp_ns`)"), and its Rust loader (``rust/src/io.rs``, ``read_accumulate_lidar``)
-moves whole sweeps with the single pose at each sweep timestamp. The data agree: static points
-of sweep 0 and sweep 1 (3-20 m, above 0.3 m) align with a nearest-neighbour median of 21.2 mm
-when each sweep uses the pose at its timestamp, 22.9 mm when each point uses the pose at its own
-time (and 39.7 mm with no ego motion at all); scaling the offsets by -1..1 puts the minimum at 0.
-So ``motion_compensated`` is True; ``pose_fn`` is still given (sensor-to-world from the 200 Hz
-pose stream) for per-point timing.
+moves whole sweeps with the single pose at each sweep timestamp. The data agree: two sweeps'
+static points align best when each sweep uses the pose at its timestamp, not when each point
+uses the pose at its own time. So ``motion_compensated`` is True; ``pose_fn`` is still given
+(sensor-to-world from the 200 Hz pose stream) for per-point timing.
 """
 
 from __future__ import annotations

@@ -27,7 +27,8 @@ class IcpResult:
 
 
 def _o3d():
-    """open3d, imported on first use (~0.6 s): `kitti` imports this module, but only logs without poses run ICP."""
+    """open3d, imported on first use (slow to import): `kitti` imports this module, but only logs
+    without poses run ICP."""
     import open3d
 
     return open3d

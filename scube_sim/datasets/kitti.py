@@ -158,7 +158,7 @@ class KittiRawDataset:
     ego = the Velodyne frame; sample k's timestamp = frame number k x 0.1 s (the 10 Hz rate).
     The camera is triggered when the scanner faces forward, so the image and the sweep share
     the timestamp. Sweeps are marked ``motion_compensated=True`` although KITTI does not deskew
-    them: at the ~2.3 m/s of this drive a point is off by at most ~0.12 m (half a 0.1 s turn),
+    them: at this drive's low speed a point is off by at most half a turn's motion,
     and by nothing straight ahead where the timestamp is taken. Reflectance 0-1
     (``intensity_max`` 1); no ring index in the files.
     """

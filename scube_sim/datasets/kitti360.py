@@ -78,9 +78,9 @@ from .kitti import camera_from_projection, read_image, read_velodyne
 LIDAR = "velodyne"
 LIDAR_MODEL = "hdl64e"
 CAMERA = "image_00"
-# The Velodyne's height above the road. The road plane (open3d RANSAC, 3-20 m) lies 1.68-1.79 m
-# below it over the 20 sweeps of the excerpt (median 1.76 m; the road is cambered), consistent
-# with KITTI's documented 1.73 m on the same kind of rig (Geiger et al., IJRR 2013), used here.
+# The Velodyne's height above the road: KITTI's documented 1.73 m on the same kind of rig (Geiger
+# et al., IJRR 2013); the road plane fitted to the excerpt's sweeps agrees to a few centimetres
+# (the road is cambered).
 VELODYNE_HEIGHT_M = 1.73
 FRAME_PERIOD_S = 0.1  # 10 Hz
 

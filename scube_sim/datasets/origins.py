@@ -11,17 +11,17 @@ instead; one that does not is checked here, on two figures read from the points 
   seen from the stated origin (the two directions within `SEEN_THROUGH_DEG`, the far one more than
   0.5 m + 5 % of the range further; where the sweep has ring ids, pairs on one ring are skipped:
   neighbours along a scan line across a depth edge, or one laser's two echoes). A single sensor
-  sees nothing behind what it hit: on the real single-sensor sweeps in ../shared/data, nuScenes
-  0.16 %, each Argoverse 2 unit 0.00 % (ring ids), KITTI raw 2.1-2.2 % and the camera-cropped
-  KITTI object frame 6.7 % (no ring ids: depth edges count); Argoverse 2's two units merged in
-  its ego frame: 21 %.
+  sees nothing behind what it hit: the real single-sensor sweeps in ../shared/data stay under
+  `MAX_SEEN_THROUGH` (without ring ids, depth edges count), Argoverse 2's two units merged in its
+  ego frame do not (the figures per log: docs/lidar-intensity-and-drop.md).
 - **origin height**: the stated origin's height above the ground under it (the median over
   2 m cells 3-40 m away of each cell's lowest return, along world z). A LiDAR's rays start above
   the road; a stated origin within `MIN_ORIGIN_HEIGHT_M` of it (or under it) is an ego frame at
-  ground level, not a sensor (roof sensors: 1.5-1.8 m here; Argoverse 2's ego origin: -0.2 m).
+  ground level, not a sensor (a roof sensor stands well above it; Argoverse 2's ego origin lies
+  at the road).
 
 Merged clouds whose sensors sit close together (Argoverse 2's two units, 12 cm apart, seen from
-the upper one: 3.5 % seen through) pass: traced from either origin they differ by centimetres.
+the upper one) pass: traced from either origin they differ by centimetres.
 """
 
 from __future__ import annotations

@@ -21,10 +21,10 @@ Frames (DGP's ``dgp/utils/pose.py``, ``structures/bounding_box_3d.py`` and the t
 
 - Every datum carries its own sensor pose in the scene's world frame (``pose``: quaternion
   ``qw qx qy qz`` + translation, metres) at its own timestamp, so each camera is posed where it
-  was when it fired (about 91 ms before the LiDAR in the test scene), not through the static
-  calibration (the two differ by up to 5 cm there, with the ego motion).
+  was when it fired (before the LiDAR in the test scene), not through the static calibration
+  (the two differ by the ego's motion in between).
 - ``extrinsics[k]`` = sensor k's pose in the vehicle frame (x forward, y left, z up; in the test
-  scene its origin lies on the road: returns 2-6 m away lie at z 0.0-0.1 m, so no
+  scene its origin lies on the road: near returns on the road lie at z about 0, so no
   ``ego_height_m`` is set). ``Sample.ego_pose`` = the LiDAR datum's pose @ inv(its extrinsic)
   (the first camera's where a sample has no point cloud).
 - Cameras: OpenCV (x right, y down, z forward); pinhole ``fx fy cx cy`` with OpenCV's pixel
@@ -45,16 +45,15 @@ stored stamp.
 
 **The LiDAR cloud has no single origin.** The test scene's cloud is stored in the vehicle
 frame, whose origin is on the road (the LIDAR extrinsic is identity), and the scene stores no
-per-point sensor id (point_format X Y Z INTENSITY) nor the measuring units' mounts. Checked with
-`origins.check_origin` on all three sweeps: 43.9-44.7 % of the returns lie behind another return
-as seen from the stated origin (one sensor: under 10 %) and that origin is 0.48-0.52 m *below*
-the ground the check finds. So the
+per-point sensor id (point_format X Y Z INTENSITY) nor the measuring units' mounts.
+`origins.check_origin` fails on every sweep: far more returns lie behind another return, as seen
+from the stated origin, than one sensor allows, and that origin lies below the ground. So the
 sweep is left single-origin (its origins cannot be told from the data) and
 `origins.require_single_origin` flags it (MergedCloudError): build and fidelity refuse it unless
-``assume_single_origin``. (Restated 1.6 m above the vehicle origin, as from one roof unit, it
-would pass at 6.8 %: a guess this adapter does not make.) The camera converter does not use the
-sweep. The boxes' ``num_points`` are 4.9-6.3x the returns inside them (boxes with 100 or more):
-the stored cloud is thinner than the one annotated.
+``assume_single_origin``. (Restated at a roof unit's height above the vehicle origin it would
+pass: a guess this adapter does not make.) The camera converter does not use the sweep. The
+boxes' ``num_points`` exceed the returns inside them several times: the stored cloud is thinner
+than the one annotated.
 
 LiDAR model (`LIDAR_MODEL`): there is no preset for this sensor (a merged, non-spinning pattern;
 the README likens the rig to DDAD's), so ``Sample.lidars`` holds the VLS-128 preset (the

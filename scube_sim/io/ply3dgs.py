@@ -60,7 +60,7 @@ def _load_vertex(path: Path):
         if fh.readline(8).strip() != b"ply":
             raise InputError(f"{path}: not a PLY file (no 'ply' magic line)")
     try:
-        ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: 500x slower
+        ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: far slower
     except PlyParseError as exc:  # header errors and early end-of-file alike
         raise InputError(f"{path}: malformed or truncated PLY ({exc})") from None
     except (ValueError, TypeError, UnicodeDecodeError) as exc:  # e.g. a negative element count in the header

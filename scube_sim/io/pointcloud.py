@@ -396,7 +396,7 @@ def read_ply_points(path: str | Path) -> np.ndarray:
     only; list properties such as a mesh's are skipped)."""
     path = Path(path)
     try:
-        ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: 500x slower
+        ply = PlyData.read(str(path), mmap=True)  # mmap=False parses row by row: far slower
     except PlyParseError as exc:
         raise InputError(f"{path}: malformed or truncated PLY ({exc})") from None
     if "vertex" not in ply:

@@ -41,7 +41,7 @@ _KSIGMA = 3.0  # extent = the 3-sigma ellipsoids' bounding box
 
 
 def _pxr() -> SimpleNamespace:
-    """pxr's modules, imported on first use (~0.2 s): `scube_sim.sim` imports this module for its UsdSink, and
+    """pxr's modules, imported on first use (slow to import): `scube_sim.sim` imports this module for its UsdSink, and
     only a run that writes a stage needs USD."""
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdVol, Vt
 

@@ -343,8 +343,8 @@ class LidarConfig(StrictModel):
         return self
 
 
-# A sweep's rays, sub-rays included, are traced and held in memory at once (about 10^8 of them
-# took over 6 GB); past this many a sensor file is refused instead of exhausting the machine, and
+# A sweep's rays, sub-rays included, are traced and held in memory at once (BYTES_PER_TRACED_RAY
+# each and more); past this many a sensor file is refused instead of exhausting the machine, and
 # below it, where the machine has less memory available than the sweep needs (BYTES_PER_TRACED_RAY).
 MAX_RAYS_PER_SWEEP = 1 << 25  # 33.5 M
 BYTES_PER_TRACED_RAY = 64

@@ -16,8 +16,8 @@ from ..errors import InputError, ScubeSimError
 from . import compiled
 
 BACKENDS = ("open3d", "embreex", "compiled")
-# Measured by `make bench` (bench/bench_tracer.py): open3d's multi-threaded Embree sweeps faster on
-# this 2-core machine for every scene size and proxy of the reference walk; see README. Meshes
+# From `make bench` (bench/bench_tracer.py, docs/tracer.md): open3d's multi-threaded Embree sweeps
+# faster for every scene size and proxy of the reference walk. Meshes
 # themselves go to the compiled core where it is built (`default_mesh_backend`).
 DEFAULT_BACKEND = "open3d"
 

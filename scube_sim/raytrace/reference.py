@@ -7,8 +7,8 @@ names a Gaussian (or a voxel's Gaussians), which is tested exactly (gaussian_mat
 re-cast from just past each face until the next face lies beyond the best exact hit: the result
 is the exact nearest hit, whatever the overlap of the proxies, for rays that start outside every
 proxy. A hard ray starting inside one (t_min > 0 inside a Gaussian) meets that proxy only at its
-exit face, and the walk may stop at a farther hit before reaching it: 67 of 4 000 random rays in
-`tests/raytrace/test_core.py`'s scene. The compiled core has no such blind spot. Soft mode composites every
+exit face, and the walk may stop at a farther hit before reaching it (a few of the random rays
+in `tests/raytrace/test_core.py`'s scene). The compiled core has no such blind spot. Soft mode composites every
 contribution front to back until the transmittance falls below its threshold.
 
 Frames: everything here is in the scene's local frame (world = local + origin), float64, with

@@ -53,14 +53,15 @@ class Tracer:
     core: 'compiled' | 'reference' | a `TraceCore`; default: `compiled.default_core_name()` (the
     compiled core where it is built; the environment variable SCUBE_SIM_CORE overrides).
     threads: the compiled core's threads (0: all cores); soft_k_buffer: its soft contributions
-    gathered per traversal (3DGRT's k-buffer; 256 measured fastest on the shipped splats, see
-    `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
+    gathered per traversal (3DGRT's k-buffer; the default 256 is the fastest on the shipped splats
+    in `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
     backend: 'open3d', 'embreex' or 'compiled', the Embree engine for meshes and for the reference
     core's proxies; default: meshes on the compiled core where it is built (the `threads` knob
     applies), the reference core's proxies on open3d. proxy: the reference core's 'octahedron' |
-    'icosahedron' (per Gaussian) or 'voxel_box' (one box per voxel). exact_order: the reference core's True (default) returns
-    the nearest exact hit; False stops each ray at the first exact hit found in proxy order
-    (faster; its range error on overlapping Gaussians is measured by `make bench`).
+    'icosahedron' (per Gaussian) or 'voxel_box' (one box per voxel). exact_order: the reference
+    core's True (default) returns the nearest exact hit; False stops each ray at the first exact
+    hit found in proxy order (faster; its range error on overlapping Gaussians is measured by
+    `make bench`).
     labels: (N,) per-Gaussian labels for a bare `Gaussians` scene.
     A VoxSplat's `reflectance` channel (measured reflectance per Gaussian) is copied into each
     hit's `reflectance` (NaN where the scene has none); the attribute `reflectance` holds it per

@@ -39,7 +39,7 @@ from .options import check_build_options
 
 
 def _scipy() -> SimpleNamespace:
-    """The scipy pieces used here, imported on first use (~0.35 s): `runs.batch_jobs` imports this module at its top,
+    """The scipy pieces used here, imported on first use: `runs.batch_jobs` imports this module at its top,
     and only building a scene (or scoring one) needs them."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
@@ -374,11 +374,11 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
     """Fit a VoxSplat (origin = acc.origin) to accumulated points.
 
     Where the sweeps were meshed (`acc.faces`), the triangles are sampled at the voxel size and
-    each sample brings its sub-triangle's exact covariance (finer sampling changed nothing
-    measurable on KITTI and took 2.4x longer) (the same fit as the worlds' ground
-    truth); returns in no triangle (thin poles, isolated hits) are fitted as points with their
-    neighbourhood patch (`surface_patches`); with `all_points` every return adds its patch too,
-    which carries the surface a little past the mesh's borders. max_normal_scale caps each Gaussian's thickness
+    each sample brings its sub-triangle's exact covariance (the same fit as the worlds' ground
+    truth; finer sampling only costs time, the covariance already being exact); returns in no
+    triangle (thin poles, isolated hits) are fitted as points with their neighbourhood patch
+    (`surface_patches`); with `all_points` every return adds its patch too, which carries the
+    surface a little past the mesh's borders. max_normal_scale caps each Gaussian's thickness
     (metres, std) so range noise does not inflate surfaces. reflectance: estimate the returns'
     reflectance (`return_reflectance`; a return in no triangle with its neighbourhood's normal)
     and store its mean per Gaussian as the `reflectance` channel (a

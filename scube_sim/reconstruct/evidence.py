@@ -14,29 +14,22 @@ the ground are at least that share of a voxel wide (`widen_surfels`). With `fill
 frames' boxed objects at T (a log's tracked or annotated boxes) get surfels where no camera saw
 them (`box_samples`): a car its silhouette, anything else its box, labelled by the box, unobserved,
 never in a voxel an observed point holds nor where an image saw through: a car waiting beside the
-ego, behind the side cameras, takes a third of a 360-degree sweep's rays. The scene traces at hard
+ego, behind the side cameras, fills much of a 360-degree sweep. The scene traces at hard
 opacity (`entry`): its Gaussians are flat surfels on measured surfaces.
 
 References (`references`, offsets from T; default T and T-3): each instant's images are stereo
 references in turn (`Frames.around`), each against all the other images, and every depth map is
 fused. A forward-driving camera sees the parked cars and hedges beside it at T at grazing angles
-from close by, where stereo's sources disagree (KITTI-360 frame 3010: 89 % of the object pixels
-within 8 m get no confidence, though 77 % of their depths are right); 3 frames back it saw them less
-obliquely, farther off. Pixels whose object moved between that instant and T (boxes,
-`stereo.moved_pixels`) are left out. With `stereo.movers`, each boxed object that moved is also
-swept in its own frame in T's images (`reconstruct.stereo.mvs` step 4b: its depth at T, which the instants
-around T cannot give otherwise), and the images of the other references carve nothing inside the
-boxes where those objects stand at T (`DepthObservation.uncarved`). Measured on KITTI-360 frame 3010
-(context 4, `scube-sim fidelity --regions`, replayed real rays above the ground in the camera's
-view: median |dr|, p90, hit agreement; geometry time beside another job): [0] 1.87 m, 81 %, 26 s;
-[0, -3] 0.168 m, 2.22 m, 94.6 %, 47 s; [0, -4] 0.178 m, 3.06 m, 93.2 %, 30 s; [0, -2, -4] 0.163 m,
-1.58 m, 94.9 %, 78 s. Each reference costs one more stereo pass per camera. A later instant serves
-too (the `evidence` profile's [0, -3, 3]): 3 instants on, the cameras see what lies ahead of T
-nearer and the sides of what T passes less obliquely (held-in worlds val 0-7, HDL-64E at the input
-pose, seen-object rays median / p90 / returning: [0, -3] 0.150 m / 4.25 m / 93.2 %; [0, -3, 3] 0.164
-/ 2.80 / 94.9; [0, -3, 2] 0.169 / 2.91 / 94.7; [0, 3] 0.146 / 3.63 / 92.7; [0, -3, 2, 3] 0.181 /
-2.71 / 95.3). Every view adds its depth noise to the road (seen ground median 0.292 -> 0.328 m with
-[0, -3, 3]), which the profile's thinner surfels (`max_normal_share` 0.03) take back to 0.298 m.
+from close by, where stereo's sources disagree and most depths get no confidence, right or not;
+3 frames back it saw them less obliquely, farther off. A later instant serves too (the `evidence`
+profile's [0, -3, 3]): 3 instants on, the cameras see what lies ahead of T nearer and the sides
+of what T passes less obliquely. Each reference costs one more stereo pass per camera, and every
+view adds its depth noise to the road, which thinner surfels (`max_normal_share`) take back.
+Pixels whose object moved between that instant and T (boxes, `stereo.moved_pixels`) are left out.
+With `stereo.movers`, each boxed object that moved is also swept in its own frame in T's images
+(`reconstruct.stereo.mvs` step 4b: its depth at T, which the instants around T cannot give
+otherwise), and the images of the other references carve nothing inside the boxes where those
+objects stand at T (`DepthObservation.uncarved`).
 
 Frame: the output is in the chunk frame `to_chunk` maps the world into (the converter's chunk:
 x forward, z up from the road under the ego), voxels anchored at `CHUNK_CORNER` (the paper's

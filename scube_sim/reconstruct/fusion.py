@@ -79,7 +79,8 @@ class FusedGrid:
     passed through). Points on them (the pixels' points in occupied voxels): points (N, 3) float64
     world metres, weights (N,) float32 (the pixels' confidence), colors (N, 3) float32 in [0, 1],
     patch (N, 6) float32 m^2 (each pixel's footprint covariance, xx xy xz yy yz zz), normals (N, 3)
-    float32 (unit, sign arbitrary; zero at a depth edge), voxel (N,) int64 index into ijk. `carved` (C, 3) int64: candidates the misses outweighed."""
+    float32 (unit, sign arbitrary; zero at a depth edge), voxel (N,) int64 index into ijk.
+    `carved` (C, 3) int64: candidates the misses outweighed."""
 
     voxel_size: float
     origin: np.ndarray

@@ -15,8 +15,8 @@ final height is the median of the points within `band_m` of that estimate. Cells
 ring by ring outwards from the observed ones (a hole between two slopes is bridged, not
 flattened to the plane), each ring's height over the plane a step nearer the plane where
 `fill_decay_m` is given: past the last measured cells, far stereo's noisiest heights would
-otherwise be carried to the chunk's edge (worlds, flat roads: 0.5-0.8 m above them 50-90 m
-ahead). No cell observed: the plane itself.
+otherwise be carried to the chunk's edge, well above a flat road. No cell observed: the plane
+itself.
 """
 
 from __future__ import annotations

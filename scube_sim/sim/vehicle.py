@@ -12,12 +12,11 @@ transform to get a sensor pose.
 
 RAV4 parameters (`RAV4_WHEELBASE`, `RAV4_STEER_RATIO`): the 2017 RAV4's wheelbase is 2.66 m
 (2 660 mm, manufacturer spec; openpilot uses 2.65) and the steering ratio 15.7 is a nominal
-*low-speed* value (openpilot's tuned value is 16.88, its comment quotes 14.5 end-to-end). On the
-comma2k19 RAV4 log (highway, 17 m/s, steering-wheel angles within +-5 deg) the ratio that best
-maps the steering angle to the ground-truth yaw rate is 22-34 (an *effective* ratio that absorbs
-understeer at speed; poorly conditioned there), and the position drift is dominated instead by
-the steering sensor's zero offset (about -0.15 deg) and the wheel-speed scale (the wheels read
-0.85 % slow). Those two are `steer_offset_deg` and `speed_scale` (defaults 0 and 1: nominal,
+*low-speed* value (openpilot's tuned value is 16.88, its comment quotes 14.5 end-to-end). On a
+highway log (small steering angles) the ratio that best maps the steering angle to the yaw rate
+is well above it (an *effective* ratio that absorbs understeer at speed; poorly conditioned
+there), and the position drift comes instead from the steering sensor's zero offset and the
+wheel-speed scale. Those two are `steer_offset_deg` and `speed_scale` (defaults 0 and 1: nominal,
 uncalibrated); `calibrate_bicycle` estimates them against a reference trajectory, and
 `tools/can_drift.py` prints the numbers.
 """

@@ -149,9 +149,9 @@ def _nearest_distance_sum(sites: np.ndarray, queries: np.ndarray, method: str = 
     """Sum over the (Q, 3) int64 voxels `queries` of the Euclidean distance (in voxels) to the nearest
     of the (S, 3) `sites` (S > 0). Both methods are exact: a k-d tree, or a dense Euclidean distance
     transform over the two sets' bounding box (scipy.ndimage), whose cost does not grow with the
-    distances. A tree's does, on a voxel lattice's many equidistant neighbours: 0.37 M queries, most
-    over 16 voxels from 1.06 M sites, took minutes, the transform 7 s. 'auto' asks the tree for
-    every query within `_NEAR` voxels (a second or so for a million) and the transform for the rest
+    distances. A tree's does, on a voxel lattice's many equidistant neighbours: far queries take it
+    minutes where the transform takes seconds. 'auto' asks the tree for every query within `_NEAR`
+    voxels (cheap: few equidistant neighbours there) and the transform for the rest
     where they are many and the box fits `_EDT_MAX_BOX`."""
     if not len(queries):
         return 0.0

@@ -3,7 +3,7 @@ a semantic voxel grid, through a structure VAE and an image-conditioned latent d
 
 One level of the hierarchy at a time (`level: coarse | fine` in the data config; this module
 holds the dense coarse level, whose box is small enough to be dense on a CPU: 128 x 128 x 32 cells
-of 0.8 m, 0.5 M cells, of which ~9 % are occupied).
+of 0.8 m, 0.5 M cells, most of them empty).
 
 **Structure VAE** (`StructureVAE`): the ground-truth grid (occupancy + one-hot label per voxel) is
 encoded by strided 3D convolutions to a latent of `latent_channels` at 2^L times the voxel size

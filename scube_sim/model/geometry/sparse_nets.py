@@ -178,7 +178,7 @@ def row_ids(*arrays: torch.Tensor) -> list[torch.Tensor]:
         if sum(bits) <= 62:
             # Each column shifted to start at 0 and packed, the first most significant: one int64
             # per row in the same order, and a 1-D unique (torch.unique(dim=0) sorts rows
-            # generically, ~30 % of a fine-VAE training step).
+            # generically, a large share of a fine-VAE training step).
             key = torch.zeros(len(rows), dtype=torch.int64)
             for c, b in enumerate(bits):
                 key = (key << b) | (rows[:, c].to(torch.int64) - lo[c])

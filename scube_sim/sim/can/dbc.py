@@ -31,7 +31,7 @@ _RATE_UNITS = {"deg/s": math.pi / 180.0, "°/s": math.pi / 180.0, "rad/s": 1.0}
 
 def load_dbc(dbc):
     """A cantools Database and a name for messages: path -> (db, path); Database -> (db, label)."""
-    import cantools  # about 0.25 s to import: only when a DBC is used
+    import cantools  # slow to import: only when a DBC is used
 
     if isinstance(dbc, (str, os.PathLike)):
         path = Path(dbc)

@@ -4,7 +4,7 @@
 `dbc.CanVehicleDecoder` (optionally paced in real time) and answers `pose_at(t)`;
 `CanTrajectory` presents it as a simulator `PoseSource`. Times are seconds on the source's
 clock (the window's start = 0); poses (4, 4) float64 rear-axle-to-world.
-python-can is imported where a bus or a log is opened (about 0.2 s to import).
+python-can is imported where a bus or a log is opened (slow to import).
 """
 
 from __future__ import annotations

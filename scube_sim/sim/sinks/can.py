@@ -1,5 +1,5 @@
 """A sink that announces every finished frame on a CAN bus. python-can is imported when the
-sink opens its bus or sends (about 0.2 s to import)."""
+sink opens its bus or sends (slow to import)."""
 
 from __future__ import annotations
 

@@ -30,8 +30,8 @@ tools open as it is, holding every frame committed. Only a kill during a commit'
 (a few milliseconds a frame) leaves an MCAP without its footer ("File end magic is invalid"),
 or metadata.yaml one frame behind it: ``scube-sim bag-reindex FOLDER`` (`reindex_bag`) cuts it
 back to its last whole chunk and rewrites the summary and metadata.yaml; on a bag that reads as
-it is, it changes nothing. The summary grows by about 125 bytes a frame (1.5 MB after 12,000
-frames, about 13 ms a commit then).
+it is, it changes nothing. The summary grows by a chunk index entry a frame, so a long run's
+commits grow slower with it.
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ class RosbagConfig(RosNamesConfig):
 
 
 def _rosbags() -> SimpleNamespace:
-    """What this sink uses of rosbags, imported on first use (~0.05 s): `scube_sim.sim` imports this module, and
+    """What this sink uses of rosbags, imported on first use: `scube_sim.sim` imports this module, and
     only a run that writes a bag needs it."""
     from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
     from rosbags.rosbag2 import Reader, StoragePlugin, Writer

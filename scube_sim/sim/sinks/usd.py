@@ -76,7 +76,7 @@ CLIP_SET = "default"
 
 
 def _pxr() -> SimpleNamespace:
-    """pxr's modules, imported on first use (~0.2 s): `scube_sim.sim` imports this sink, and only a run that
+    """pxr's modules, imported on first use (slow to import): `scube_sim.sim` imports this sink, and only a run that
     writes a stage needs USD."""
     from pxr import Gf, Sdf, Tf, Usd, UsdGeom, Vt
 
