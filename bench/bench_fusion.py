@@ -62,7 +62,7 @@ def _same(a, b) -> bool:
 
 def run(repeats: int = 2) -> list[dict]:
     from scube_sim.converter.profile import load_profile
-    from scube_sim.reconstruct.evidence import fuse_evidence, fusion_config
+    from scube_sim.reconstruct.evidence import fuse_evidence
     from scube_sim.reconstruct.fusion import fuse_depth
     from scube_sim.reconstruct.surfels import scene_from_evidence
 
@@ -72,7 +72,7 @@ def run(repeats: int = 2) -> list[dict]:
     cfg = profile.evidence
     obs, corner, to_chunk = _observations(profile)
     stages = {
-        "fusion (fuse_depth)": lambda: fuse_depth(obs, fusion_config(cfg), origin=corner),
+        "fusion (fuse_depth)": lambda: fuse_depth(obs, cfg.fusion_at_stereo_scale(), origin=corner),
         "after stereo (fusion, ground, surfels)": lambda: scene_from_evidence(fuse_evidence(obs, corner, to_chunk,
                                                                                             cfg), cfg),
     }

@@ -70,7 +70,6 @@ def run_case(n: int, repeat: int) -> dict:
 
 def run_oracle() -> dict:
     import numpy as np
-
     from tests.model.test_splat_render import oracle
 
     intr, scene = frustum_scene(10_000, seed=1, width=64, height=64)

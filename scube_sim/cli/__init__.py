@@ -8,7 +8,7 @@ import warnings
 import typer
 
 from ..errors import ScubeSimWarning
-from . import convert, model, realdata, runs, scene, worlds  # noqa: F401  (each registers its commands)
+from . import build, convert, eval, lidar, runs, train, worlds  # noqa: F401  (each registers its commands)
 from ._common import EXIT_INTERRUPTED, EXIT_USAGE, CliError, app, datasets_app, handle_errors, worlds_app
 
 __all__ = ["EXIT_INTERRUPTED", "EXIT_USAGE", "CliError", "app", "datasets_app", "handle_errors", "main",

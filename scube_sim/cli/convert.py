@@ -62,7 +62,7 @@ def convert_cmd(
         raise CliError(f"{', '.join(given)}: profile {conv.profile.name!r} is route {conv.profile.route}, which does "
                        f"not use {'it' if len(given) == 1 else 'them'} (the paper's route does: --profile cpu)")
     options = {} if conv.profile.route != "scube" else {
-        "steps": steps, "confidence": bool(confidence and confidence > 1), "k": confidence or None,
+        "steps": steps, "confidence": bool(confidence and confidence > 1), "confidence_samples": confidence or None,
         "sky": True if sky is None else sky, "fit_steps": fit_steps}
     context = conv.profile.context if context is None else context
     frames = open_frames(path, dataset, sample, context=context)

@@ -7,28 +7,15 @@ import contextlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from ..camera.frames import Frames
 from ..run_manifest import sha256_file
 from ..voxsplat import VoxSplat
 from .frames import context_record
+from .merge import CompletionGrid
 
 __all__ = ["CompletionGrid", "Conversion", "checkpoint_hashes", "context_metadata", "one_torch_thread"]
-
-
-@dataclass
-class CompletionGrid:
-    """The completion network's coarse grid, for scoring (`eval sensor-to-sensor`): occupancy (X, Y, Z)
-    float64 probabilities, labels (X, Y, Z) int64, the input features (C, X, Y, Z) float32, the grid's
-    corner (3,) metres in the chunk frame and its voxel_size, metres."""
-
-    occupancy: np.ndarray
-    labels: np.ndarray
-    features: np.ndarray
-    corner: np.ndarray
-    voxel_size: float
 
 
 @dataclass

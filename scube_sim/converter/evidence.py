@@ -17,11 +17,11 @@ from ..memory import peak_mb, reset_peak
 from ..model.checkpoint import load_model, resolve_checkpoint
 from ..model.completion.features import completion_input
 from ..model.completion.net import CompletionNet
-from ..reconstruct.evidence import Evidence, fusion_config, measure_evidence
+from ..reconstruct.evidence import Evidence, measure_evidence
 from ..reconstruct.surfels import scene_from_evidence
 from ..transforms import invert_pose
-from .conversion import CompletionGrid, Conversion, checkpoint_hashes, context_metadata, one_torch_thread
-from .merge import merge_completion
+from .conversion import Conversion, checkpoint_hashes, context_metadata, one_torch_thread
+from .merge import CompletionGrid, merge_completion
 from .profile import ConverterProfile
 
 __all__ = ["EvidencePipeline"]
@@ -68,7 +68,7 @@ class EvidencePipeline:
         if self.completion is not None:
             uncompleted = scene
             feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                     pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
+                                     pixel_stride=cfg.fusion_at_stereo_scale().pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
             sub = None
             with one_torch_thread():
                 occ_logit, lab_logit, sub_logit = self.completion.forward_with_subcells(torch.from_numpy(feats)[None])
@@ -77,9 +77,8 @@ class EvidencePipeline:
             occ = torch.sigmoid(occ_logit[0]).double().numpy()
             lab = lab_logit[0].argmax(0).numpy()
             grid = CompletionGrid(occ, lab, feats, np.asarray(ev.corner, np.float64), self.completion_voxel_size)
-            scene, completed = merge_completion(scene, feats, occ, lab, ev.corner, self.completion_voxel_size,
-                                                self.profile.completion, ego_poses=ego_poses_in_chunk(frames),
-                                                subcells=sub, boxes=ev.boxes)
+            scene, completed = merge_completion(scene, grid, self.profile.completion,
+                                                ego_poses=ego_poses_in_chunk(frames), subcells=sub, boxes=ev.boxes)
             parts["completion_s"] = time.perf_counter() - t1
         if max_range is not None:
             centres = scene.origin[:2] + (scene.ijk[:, :2] + 0.5) * scene.voxel_size

@@ -38,6 +38,7 @@ Per coarse cell (`features` grid) the network gives an occupancy probability p a
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -104,6 +105,20 @@ class CompletionConfig(StrictModel):
         return self
 
 
+
+@dataclass
+class CompletionGrid:
+    """The completion network's coarse grid, for scoring (`eval sensor-to-sensor`): occupancy (X, Y, Z)
+    float64 probabilities, labels (X, Y, Z) int64, the input features (C, X, Y, Z) float32, the grid's
+    corner (3,) metres in the chunk frame and its voxel_size, metres."""
+
+    occupancy: np.ndarray
+    labels: np.ndarray
+    features: np.ndarray
+    corner: np.ndarray
+    voxel_size: float
+
+
 def _free_samples(features: np.ndarray) -> np.ndarray:
     """The ray samples per cell, back from the `free_rays` channel (features docstring)."""
     v = features[_FREE_RAYS].astype(np.float64)
@@ -162,21 +177,21 @@ def _subcell_centroids(ai: np.ndarray, subcells: np.ndarray, s: int, corner: np.
     return corner + (np.einsum("ak,akd->ad", w, sub_ijk.astype(np.float64)) + 0.5) * (voxel_size / s)
 
 
-def merge_completion(scene: VoxSplat, features: np.ndarray, occupancy: np.ndarray, labels: np.ndarray,
-                     corner: np.ndarray, voxel_size: float, cfg: CompletionConfig,
+def merge_completion(scene: VoxSplat, grid: CompletionGrid, cfg: CompletionConfig, *,
                      ego_poses: np.ndarray | None = None,
                      subcells: np.ndarray | None = None, boxes: tuple[Box, ...] = ()) -> tuple[VoxSplat, dict]:
     """The evidence `scene` (chunk frame; channels `observed`, `confidence`) with the network's
-    `occupancy` (X, Y, Z) probabilities and `labels` (X, Y, Z) ids merged (module docstring), on the
-    coarse grid of `voxel_size` metres from `corner` (3,) whose input was `features` (C, X, Y, Z).
+    coarse `grid` merged (module docstring): its occupancy probabilities and label ids on the cells
+    of `grid.voxel_size` metres from `grid.corner`, whose input was `grid.features`.
     ego_poses: (K, 4, 4) ego-to-chunk poses (on the road) of the instants the evidence came from,
     whose ego boxes nothing is added into (default: the chunk origin's alone). boxes: the frames'
     boxed objects at T (chunk frame; `cfg.objects_in_boxes`). Returns (the scene, counts: cells
     added, ground cells left out for want of a body above, cells kept out of the ego's box (or
     joined to it), object cells left out for lying in no box, observed voxels removed, relabelled,
     and the observed voxels before)."""
+    features, occupancy, labels, corner = grid.features, grid.occupancy, grid.labels, grid.corner
     dims = np.array(occupancy.shape)
-    vs = float(voxel_size)
+    vs = float(grid.voxel_size)
     observed = scene.channel("observed").astype(bool)
     conf = scene.channel("confidence").astype(np.float32)  # compared as stored
     centres = scene.origin + scene.voxel_centers()

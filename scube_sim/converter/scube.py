@@ -53,7 +53,7 @@ TRACE_MODE = "soft"
 class PaperPipeline:
     """The paper's route of a profile (route `scube`): its networks loaded once."""
 
-    OPTIONS = ("steps", "confidence", "k", "sky", "fit_steps", "progress")
+    OPTIONS = ("steps", "confidence", "confidence_samples", "sky", "fit_steps", "progress")
 
     def __init__(self, profile: ConverterProfile):
         self.profile = p = profile
@@ -171,12 +171,13 @@ class PaperPipeline:
 
     @torch.no_grad()
     def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, steps: int | None = None,
-                confidence: bool = False, k: int | None = None, sky: bool = True, fit_steps: int | None = None,
+                confidence: bool = False, confidence_samples: int | None = None,
+                sky: bool = True, fit_steps: int | None = None,
                 progress=None) -> Conversion:
         """Frames -> the scene (chunk frame, module docstring) with labels, reflectance, the sky
         panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
         camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
-        (`k`, default the profile's confidence_samples) and store each voxel's share of them;
+        (`confidence_samples`, default the profile's) and store each voxel's share of them;
         otherwise one sample is drawn and confidence is 1. A single-step predictor's geometry
         draws no samples: its confidence is the decoder's occupancy probability either way
         (``confidence_kind`` in the metadata says which). max_range: keep only the voxels whose
@@ -189,15 +190,16 @@ class PaperPipeline:
                                          or fit_steps < 0):
             raise InputError(f"fit_steps: expected an integer >= 0, got {fit_steps!r}")
         with one_torch_thread():
-            return self._convert(frames, seed=seed, max_range=max_range, steps=steps, confidence=confidence, k=k,
+            return self._convert(frames, seed=seed, max_range=max_range, steps=steps, confidence=confidence,
+                                 confidence_samples=confidence_samples,
                                  sky=sky, fit_steps=fit_steps, progress=progress)
 
-    def _convert(self, frames: Frames, *, seed, max_range, steps, confidence, k, sky, fit_steps,
-                 progress) -> Conversion:
+    def _convert(self, frames: Frames, *, seed, max_range, steps, confidence, confidence_samples, sky,
+                 fit_steps, progress) -> Conversion:
         fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
-        if k is not None and k < 1:
-            raise InputError(f"k: expected at least one geometry sample, got {k}")
-        k = (k or self.profile.confidence_samples) if confidence else 1
+        if confidence_samples is not None and confidence_samples < 1:
+            raise InputError(f"confidence_samples: expected at least one geometry sample, got {confidence_samples}")
+        k = (confidence_samples or self.profile.confidence_samples) if confidence else 1
         reset_peak()
         t0 = time.perf_counter()
         ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), k=k)

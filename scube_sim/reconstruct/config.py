@@ -150,3 +150,8 @@ class EvidenceConfig(StrictModel):
     # meets the rays to the road before it
     min_width_share: float | None = Field(default=None, gt=0, le=1)
     min_width_above_m: float = Field(default=0.3, ge=0, le=100)
+
+    def fusion_at_stereo_scale(self) -> FusionConfig:
+        """The fusion settings the route uses: `fusion` with the depth maps' pixel stride (a depth
+        map at stereo scale s holds one measurement per 1 / s pixels)."""
+        return self.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / self.stereo.scale))})

@@ -49,12 +49,12 @@ from ..boxes import Box, points_in_boxes
 from ..camera.frames import Frames
 from ..errors import InputError
 from ..worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE
-from .config import CHUNK_HEIGHT_SHARE, GROUND_LABEL, OTHER_LABEL, EvidenceConfig, FusionConfig
+from .config import CHUNK_HEIGHT_SHARE, GROUND_LABEL, OTHER_LABEL, EvidenceConfig
 from .fusion import DepthObservation, FusedGrid, fuse_depth
 from .ground import HeightField, fit_height_field, flat_height_field
 from .stereo import moved_boxes, moved_pixels, stereo_depth
 
-__all__ = ["Evidence", "chunk_bounds", "fuse_evidence", "fusion_config", "grid_corner", "measure_evidence"]
+__all__ = ["Evidence", "chunk_bounds", "fuse_evidence", "grid_corner", "measure_evidence"]
 
 
 REAR_AXIS_X = -0.5  # a camera looks back when its optical axis' forward component (chunk frame) is below this
@@ -129,7 +129,7 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
                 conf = np.where(moved_pixels(im, at.boxes, frames.boxes, cfg.stereo), np.float32(0), conf)
                 if cfg.stereo.movers:
                     # nor is the space where it stands at T free because this image saw through it
-                    uncarved = tuple(_in_frame(b, to_chunk, cfg.stereo.box_margin_m)
+                    uncarved = tuple(box_in_frame(b, to_chunk, cfg.stereo.box_margin_m)
                                      for b in moved_boxes(at.boxes, frames.boxes, cfg.stereo)[1])
             moved = dataclasses.replace(im, cam_to_world=to_chunk @ im.cam_to_world)
             observations.append(DepthObservation(moved, res.depth, conf, uncarved))
@@ -137,15 +137,15 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
     movers = ()
     if cfg.stereo.movers:  # their surfaces at T, measured: a car's hood is no road
         here = {id(b): b for f in frames.context for b in moved_boxes(frames.boxes, f.boxes, cfg.stereo)[0]}
-        movers = tuple(_in_frame(b, to_chunk, cfg.stereo.box_margin_m) for b in here.values())
+        movers = tuple(box_in_frame(b, to_chunk, cfg.stereo.box_margin_m) for b in here.values())
     ev = fuse_evidence(observations, grid_corner(frames, to_chunk), to_chunk, cfg, objects=movers,
-                       boxes=tuple(_in_frame(b, to_chunk, 0.0) for b in frames.boxes))
+                       boxes=tuple(box_in_frame(b, to_chunk, 0.0) for b in frames.boxes))
     if timings is not None:
         timings.update({"stereo_s": t1 - t0, "fusion_s": time.perf_counter() - t1})
     return ev
 
 
-def _in_frame(box: Box, pose: np.ndarray, margin_m: float) -> Box:
+def box_in_frame(box: Box, pose: np.ndarray, margin_m: float) -> Box:
     """`box` moved by `pose` (4, 4) into another frame, `margin_m` larger on every side (its label,
     instance and ids kept)."""
     return dataclasses.replace(box, center=pose[:3, :3] @ box.center + pose[:3, 3], size=box.size + 2 * margin_m,
@@ -162,7 +162,7 @@ def fuse_evidence(observations: list[DepthObservation], corner: np.ndarray, to_c
     boxes: the boxed objects at T (chunk frame), kept in the `Evidence` (`fill_boxes`)."""
     cfg = cfg or EvidenceConfig()
     # the depth maps hold one measurement per 1 / scale pixels (`FusionConfig.pixel_stride`)
-    fusion = fusion_config(cfg)
+    fusion = cfg.fusion_at_stereo_scale()
     grid = fuse_depth(observations, fusion, origin=corner)
     lo, hi = chunk_bounds(cfg.fusion.voxel_size)
     inside = np.all((grid.ijk >= lo) & (grid.ijk < hi), 1)
@@ -186,12 +186,6 @@ def fuse_evidence(observations: list[DepthObservation], corner: np.ndarray, to_c
         labels = np.full(len(grid.points), OTHER_LABEL, np.int64)
     return Evidence(grid, labels, field, measured, observations, corner, np.asarray(to_chunk, np.float64),
                     tuple(boxes))
-
-
-def fusion_config(cfg: EvidenceConfig) -> FusionConfig:
-    """The fusion settings the route uses: `cfg.fusion` with the depth maps' pixel stride (a depth
-    map at stereo scale s holds one measurement per 1 / s pixels)."""
-    return cfg.fusion.model_copy(update={"pixel_stride": max(1, round(1.0 / cfg.stereo.scale))})
 
 
 def _select(grid, keep: np.ndarray):

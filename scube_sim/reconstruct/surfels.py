@@ -20,7 +20,7 @@ from ..labels import LABEL_IDS
 from ..splat_params import SCALE
 from ..voxsplat import VoxSplat, voxel_keys
 from .config import GROUND_LABEL, OTHER_LABEL, EvidenceConfig, FusionConfig
-from .evidence import Evidence, chunk_bounds, fusion_config
+from .evidence import Evidence, chunk_bounds
 from .fusion import DepthObservation, FusedGrid, carve_band, voxel_of
 from .ground import HeightField
 
@@ -238,7 +238,7 @@ def scene_from_evidence(ev: Evidence, cfg: EvidenceConfig | None = None) -> VoxS
                else None)
     boxed = 0
     if cfg.fill_boxes and ev.boxes:
-        extra = box_samples(ev.boxes, grid, ev.observations, fusion_config(cfg), cfg.ground_confidence)
+        extra = box_samples(ev.boxes, grid, ev.observations, cfg.fusion_at_stereo_scale(), cfg.ground_confidence)
         boxed = len(extra.points)
         samples = extra if samples is None else _joined(samples, extra)
     scene = evidence_voxsplat(grid, gaussians_per_voxel=cfg.gaussians_per_voxel, labels=labels, unobserved=samples,

@@ -263,7 +263,7 @@ class ConvertJob(Job):
         frames = open_frames(task.params["path"], s.dataset, task.params["sample"], context=context)
         loaded = not is_loaded(s.profile)
         options = {} if load_profile(s.profile).route != "scube" else {
-            "steps": s.steps, "confidence": s.confidence > 1, "k": s.confidence or None, "sky": s.sky}
+            "steps": s.steps, "confidence": s.confidence > 1, "confidence_samples": s.confidence or None, "sky": s.sky}
         vs = convert(frames, profile=s.profile, seed=s.seed, max_range=s.max_range, **options)
         vs.save(folder / SCENE_FILE)
         return {"model_loaded": loaded, "voxels": vs.num_voxels, "gaussians": vs.num_gaussians}

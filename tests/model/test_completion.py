@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from scube_sim.boxes import Box
-from scube_sim.converter.merge import CompletionConfig, in_ego_box, merge_completion
+from scube_sim.converter.merge import CompletionConfig, CompletionGrid, in_ego_box, merge_completion
 from scube_sim.errors import InputError
 from scube_sim.labels import LABEL_IDS
 from scube_sim.model.checkpoint import CheckpointError
@@ -147,10 +147,15 @@ def _grids(p: float):
 CORNER = np.asarray(CHUNK_CORNER, float)
 
 
+def _grid(occ, lab, feats) -> CompletionGrid:
+    """The network's coarse grid on the 0.8 m cells from the chunk's corner."""
+    return CompletionGrid(occ, lab, feats, CORNER, 0.8)
+
+
 def test_the_network_cannot_remove_a_confident_wall():
     scene = _wall_scene(0.9)
     feats, occ, lab = _grids(0.0)  # the network says: nothing anywhere
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == 0 and out.num_voxels == scene.num_voxels
     assert np.array_equal(out.params, scene.params) and np.array_equal(out.ijk, scene.ijk)
 
@@ -158,16 +163,16 @@ def test_the_network_cannot_remove_a_confident_wall():
 def test_an_unsure_observation_the_network_finds_empty_is_removed():
     scene = _wall_scene(0.55)
     feats, occ, lab = _grids(0.0)
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == scene.num_voxels and out.num_voxels == 0
     # the same voxels at the keep threshold stay
     scene = _wall_scene(0.65)
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == 0
     # and unsure ground voxels stay whatever the network says (the height field's business)
     scene = _wall_scene(0.55)
     scene.labels[:] = LABEL_IDS["road"]
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     assert counts["removed_voxels"] == 0 and out.num_voxels == scene.num_voxels
 
 
@@ -189,7 +194,7 @@ def test_a_completed_box_traces_at_its_face_and_seen_free_space_stays_empty():
     _block(occ, [20.0, 10.0, 0.1], [23.0, 12.0, 1.5])
     a, b = _cell([20.0, 10.0, 0.1]), _cell([23.0, 12.0, 1.5])
     feats[CH["free_rays"], a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = 1.0
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     assert counts["added_cells"] > 0 and counts["removed_voxels"] == 0
     centres = out.origin + out.voxel_centers()
     added = ~out.channel("observed").astype(bool)
@@ -220,10 +225,10 @@ def test_only_cells_the_network_holds_at_0_9_or_more_are_added():
     feats, occ, lab = _grids(0.0)
     _block(occ, [20.0, -2.0, 0.1], [23.0, 2.0, 1.5], p=0.8)
     _block(occ, [20.0, 10.0, 0.1], [23.0, 12.0, 1.5], p=0.95)
-    out, _ = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"))
+    out, _ = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"))
     y = (out.origin + out.gaussians().means)[:, 1]
     assert len(y) and np.all(y > 9.0)
-    out, _ = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x", add_threshold=0.5))
+    out, _ = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x", add_threshold=0.5))
     y = (out.origin + out.gaussians().means)[:, 1]
     assert np.any(y < 3.0) and np.any(y > 9.0)
 
@@ -239,7 +244,7 @@ def test_a_ground_cell_is_added_only_under_a_body():
     _block(occ, [20.0, 8.0, 0.1], [24.0, 10.0, 2.0])  # a car: k = 4..6
     ground_k = _cell([0, 0, 0.1])[2]
     cfg = CompletionConfig(checkpoint="x", footprint_height_m=0.4)
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), cfg)
     centres = out.origin + out.gaussians().means
     assert np.all(centres[:, 1] > 7.0), "a cell of the floor was added"
     assert counts["footprint_cells"] > 0 and counts["added_cells"] > 0
@@ -259,7 +264,7 @@ def test_a_ground_cell_is_added_only_under_a_body():
     wall = wall.select_voxels(wall.origin[2] + wall.voxel_centers()[:, 2] > 0.8)
     feats, occ, lab = _grids(0.0)
     _block(occ, [10.1, -1.9, 0.1], [10.1, 1.9, 0.1])
-    out, counts = merge_completion(wall, feats, occ, lab, CORNER, 0.8, cfg)
+    out, counts = merge_completion(wall, _grid(occ, lab, feats), cfg)
     assert counts["footprint_cells"] == 0 and counts["added_cells"] == len(range(*_span(-1.9, 1.9, 1)))
     assert counts["added_cells"] > 0
 
@@ -277,7 +282,7 @@ def test_nothing_is_added_into_the_ego_car_at_any_instant():
     poses = np.stack([np.eye(4), np.eye(4)])
     poses[1, 0, 3] = 5.0
     cfg = CompletionConfig(checkpoint="x")
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg, ego_poses=poses)
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), cfg, ego_poses=poses)
     centres = out.origin + out.gaussians().means
     assert counts["added_cells"] > 0 and counts["ego_box_cells"] > 0
     assert not in_ego_box(centres, poses, cfg, grow=cfg.blob_radius * 0.8).any()
@@ -285,7 +290,7 @@ def test_nothing_is_added_into_the_ego_car_at_any_instant():
     ray = (np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
     hits = Tracer(out, mode="entry").trace_world(*ray)
     assert hits.hit[0] and near12 - 0.3 <= hits.t[0] <= near12 + 0.8
-    out1, counts1 = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    out1, counts1 = merge_completion(scene, _grid(occ, lab, feats), cfg)
     assert counts1["added_cells"] > counts["added_cells"]
     hits = Tracer(out1, mode="entry").trace_world(*ray)
     assert hits.hit[0] and 4.6 <= hits.t[0] <= 6.8
@@ -309,14 +314,14 @@ def test_with_boxes_a_car_is_added_only_inside_one_and_a_building_anywhere():
     rays = (np.array([[0.0, 0.0, 1.0], [0.0, 4.0, 1.0]]), np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]]))
     near = [CHUNK_CORNER[0] + _cell([x, 0, 0])[0] * 0.8 for x in (20.0, 30.0, 40.0)]  # the blocks' near cells
     cfg = CompletionConfig(checkpoint="x", objects_in_boxes=True)
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg, boxes=(box,))
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), cfg, boxes=(box,))
     assert counts["unboxed_cells"] > 0
     hits = Tracer(out, mode="entry").trace_world(*rays)
     assert hits.hit.all()
     assert near[0] - 0.3 <= hits.t[0] <= near[0] + 0.8
     assert near[2] - 0.3 <= hits.t[1] <= near[2] + 0.8
     for kwargs, boxes in (({"objects_in_boxes": True}, ()), ({}, (box,))):
-        out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x", **kwargs),
+        out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x", **kwargs),
                                        boxes=boxes)
         assert counts["unboxed_cells"] == 0
         hits = Tracer(out, mode="entry").trace_world(*rays)
@@ -333,7 +338,7 @@ def test_a_car_the_network_puts_around_the_ego_goes_whole_and_its_neighbour_stay
     _block(occ, [-3.0, -2.5, 0.1], [5.0, 2.5, 1.5])
     _block(occ, [-3.0, 6.5, 0.1], [5.0, 8.5, 1.5])  # two cells apart from the first
     cfg = CompletionConfig(checkpoint="x")
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, cfg)
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), cfg)
     centres = out.origin + out.gaussians().means
     assert counts["ego_box_cells"] > 0 and counts["added_cells"] > 0
     assert np.all(centres[:, 1] > 6.0), "a cell of the car around the ego was added"
@@ -511,7 +516,7 @@ def test_an_added_cell_puts_its_gaussians_on_the_subcells_the_network_holds():
     sub = np.zeros(tuple(2 * d for d in occ.shape))
     sub[2 * i, 2 * j:2 * j + 2, 2 * k:2 * k + 2] = 0.8
     sub[2 * i + 1, 2 * j, 2 * k] = 0.3
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"), subcells=sub)
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"), subcells=sub)
     assert counts["added_cells"] == 1 and counts["added_gaussians"] == 4
     g = out.gaussians()
     face = CORNER + np.array([i, j, k]) * 0.8
@@ -523,7 +528,7 @@ def test_an_added_cell_puts_its_gaussians_on_the_subcells_the_network_holds():
                                                  np.array([[1.0, 0.0, 0.0]]))
     assert hits.hit[0] and 15.0 + hits.t[0] == pytest.approx(face[0] + 0.2 - 0.3, abs=0.01)
     # "centroid": the cell's one sphere (0.6 m round) on the sub-cells' centres weighted by their p
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8,
+    out, counts = merge_completion(scene, _grid(occ, lab, feats),
                                    CompletionConfig(checkpoint="x", subcell_mode="centroid"), subcells=sub)
     w = 0.8 * 4 * np.array([0.2, 0.4, 0.4]) + 0.3 * np.array([0.6, 0.2, 0.2])  # sum of p times centre offsets
     assert counts["added_gaussians"] == 1
@@ -531,11 +536,11 @@ def test_an_added_cell_puts_its_gaussians_on_the_subcells_the_network_holds():
     assert np.allclose(out.gaussians().scales, 0.75 * 0.8 / 3, rtol=1e-4)
     sub[:] = 0.3
     sub[2 * i + 1, 2 * j + 1, 2 * k] = 0.4
-    out, counts = merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"), subcells=sub)
+    out, counts = merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"), subcells=sub)
     assert counts["added_gaussians"] == 1
     assert np.allclose(out.origin + out.gaussians().means, face + [0.6, 0.6, 0.2], atol=1e-5)
     with pytest.raises(ValueError, match="not a whole multiple of the cells"):
-        merge_completion(scene, feats, occ, lab, CORNER, 0.8, CompletionConfig(checkpoint="x"), subcells=sub[:-1])
+        merge_completion(scene, _grid(occ, lab, feats), CompletionConfig(checkpoint="x"), subcells=sub[:-1])
 
 
 def test_training_items_draw_new_windows_each_epoch(tmp_path):
@@ -699,7 +704,6 @@ def test_worlds_evidence_caches_the_same_features_in_one_process_or_two(tmp_path
 
 
 def test_the_completion_grid_is_scored_against_the_coarsened_truth():
-    from scube_sim.converter.conversion import CompletionGrid
     from scube_sim.converter.eval.sensor_to_sensor import completion_grid_metrics
 
     dims = coarse_dims(0.8)

@@ -369,7 +369,7 @@ def test_the_command_line_defaults_are_the_converters():
     import inspect
 
     from scube_sim.cli.convert import convert_cmd
-    from scube_sim.cli.model import eval_sensor_to_sensor_cmd
+    from scube_sim.cli.eval import eval_sensor_to_sensor_cmd
     from scube_sim.cli.runs import demo_cmd
     from scube_sim.converter.profile import DEFAULT_PROFILE
     from scube_sim.runs.demo import run_demo

@@ -57,8 +57,7 @@ from ...worlds.generator import WorldConfig, generate_world
 from ...worlds.groundtruth import CHUNK_CORNER, CHUNK_SIZE, gt_voxsplat
 from ...worlds.textures import world_albedo
 from ..frames import open_frames
-from ..merge import CompletionConfig
-from ..conversion import CompletionGrid
+from ..merge import CompletionConfig, CompletionGrid
 from ..pipeline import Converter
 from ..profile import DEFAULT_PROFILE
 

@@ -37,7 +37,7 @@ from ...datasets.base import frames_with_context
 from ...errors import InputError
 from ...parallel.runner import run_batch
 from ...parallel.tasks import Job, Task
-from ...reconstruct.evidence import fusion_config, measure_evidence
+from ...reconstruct.evidence import measure_evidence
 from ...transforms import invert_pose
 from ...worlds.groundtruth import CHUNK_CORNER
 from ..data.worlds import item_generator
@@ -99,7 +99,7 @@ class EvidenceJob(Job):
         frames = frames_with_context(ds, i, self.prof.context) if self.prof.context else ds[i].frames
         ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg)
         feats = completion_input(ev, self.voxel_size, min_confidence=cfg.fusion.min_confidence,
-                                 pixel_stride=fusion_config(cfg).pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
+                                 pixel_stride=cfg.fusion_at_stereo_scale().pixel_stride, max_depth_m=cfg.fusion.max_depth_m)
         seconds = time.perf_counter() - t0
         path = cache_path(Path(self.data_dir), self.split, task.key)
         with atomic_path(path) as tmp:
