@@ -23,7 +23,7 @@ def convert_cmd(
     dataset: Optional[str] = typer.Option(None, "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | waymo | folder | worlds (DIR/<split>)"),
     sample: int = typer.Option(0, "--sample", help="sample index in the dataset"),
     profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="a shipped converter profile's name or a profile "
-                                "YAML's path (evidence-complete: stereo depth fused, what no camera saw completed, "
+                                "YAML's path (the default: stereo depth fused, what no camera saw completed, "
                                 "for LiDAR; evidence: without the completion; cpu: the paper's route, with camera views)"),
     steps: Optional[int] = typer.Option(None, "--steps", help="the paper's route: DDIM steps of the geometry stage "
                                         "(default: the profile's)"),

@@ -22,7 +22,7 @@ def demo_cmd(
     voxel_size: float = typer.Option(0.2, "--voxel-size", help="VoxSplat voxel size [m]"),
     seed: int = typer.Option(0, "--seed"),
     profile: str = typer.Option(DEFAULT_PROFILE, "--profile", help="converter profile for the camera-to-LiDAR part "
-                                "(evidence-complete: stereo depth over the cameras at T and 4 instants either side, fused, "
+                                "(the default: stereo depth over the cameras at T and 4 instants either side, fused, "
                                 "what no camera saw completed; evidence: without the completion; "
                                 "cpu-lidar: the paper's route, one Gaussian per voxel, no context instants)"),
     convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),

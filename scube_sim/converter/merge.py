@@ -84,7 +84,7 @@ class CompletionConfig(StrictModel):
     # as a class such boxes hold (`BOXED_IDS`: vehicles, riders, pedestrians) is added only where its
     # centre lies in one of them: the boxes say where those objects stand, and the evidence route
     # already fills the boxed ones no camera saw (`EvidenceConfig.fill_boxes`). Turn on where the
-    # boxes are complete (as in `evidence-complete`): it drops blobs of objects drawn where none
+    # boxes are complete (as the default profile does): it drops blobs of objects drawn where none
     # stand; off by default, since a log whose boxes miss objects loses their blobs
     objects_in_boxes: bool = False
     # an added cell whose centre lies under this height over the ground height field needs an

@@ -84,7 +84,7 @@ class SparseSiLU(nn.Module):
 class TimeResBlock(nn.Module):
     """Sparse pre-norm residual block (group norm, SiLU, 3^3 submanifold convolutions), adding a
     per-sample embedding (B, E) after the first convolution when `emb` > 0 (the sparse
-    `geometry_nets.ResBlock3d`, with the same modules and parameters). scale_shift: the
+    `model.nn.dense.ResBlock3d`, with the same modules and parameters). scale_shift: the
     embedding gives a scale and a shift of the second normalisation instead (FiLM). resample
     ``down`` / ``up``: the block moves both branches, after the first normalisation, to the
     2x2x2-pooled grid (`avg_pool2`) / onto `target`'s sites (`upsample_nearest2`)."""
