@@ -18,7 +18,7 @@ Randomness comes from one seeded generator: the same seed gives the same sweep, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -171,6 +171,45 @@ def class_reflectivity_table(config: LidarConfig) -> np.ndarray:
     return refl
 
 
+@dataclass
+class SubRayHits:
+    """What each sub-ray of a sweep met, (P*S,) per field for P pulses of S sub-rays: `hit` bool,
+    `range` float64 metres, `label` int16, `instance`, `cos_incidence` |cos| of the incidence
+    angle, `color` (P*S, 3), `measured` reflectance (NaN: none), and the scene's provenance
+    `observed` and `confidence` (a converted scene's; the tracer fills defaults otherwise)."""
+
+    hit: np.ndarray
+    range: np.ndarray
+    label: np.ndarray
+    instance: np.ndarray
+    cos_incidence: np.ndarray
+    color: np.ndarray
+    measured: np.ndarray
+    observed: np.ndarray
+    confidence: np.ndarray
+
+
+@dataclass
+class Echoes:
+    """A sweep's echoes, (E,) per field: the `pulse` each belongs to, its `range` (metres), return
+    `strength`, `rep` the sub-ray whose label and normal it takes, and `return_id` (0 the first or
+    strongest, 1 a dual return's second)."""
+
+    pulse: np.ndarray
+    range: np.ndarray
+    strength: np.ndarray
+    rep: np.ndarray
+    return_id: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.return_id is None:
+            self.return_id = np.zeros(self.pulse.shape[0], np.uint8)
+
+    def select(self, keep: np.ndarray) -> "Echoes":
+        """The echoes where `keep` (E,) bool is set."""
+        return Echoes(self.pulse[keep], self.range[keep], self.strength[keep], self.rep[keep], self.return_id[keep])
+
+
 class Lidar:
     """A configured LiDAR. `scan` traces one sweep; the pattern is computed once."""
 
@@ -229,22 +268,17 @@ class Lidar:
         d_sub, o_sub, t_sub = self._sub_rays()
         static = pose_fn is None and np.array_equal(pose_start, pose_end)
         o_w, d_w, poses = self._world_rays(d_sub, o_sub, static, pose_start, pose_end, pose_fn, t_start)
-        hit, rng_sub, label, instance, cos_inc, color, measured, prov = self._trace(tracer, o_w, d_w, o_sub,
-                                                                                    d_sub, t_start + t_sub)
-        refl, inten = self._intensity(hit, rng_sub, label, cos_inc, color, measured)
-        n_pulse, s = len(pat), self._sub_w.shape[0]
-        pulse, echo_range, strength, rep = self._echoes(hit, rng_sub, inten, n_pulse, s)
-        rid = np.zeros(pulse.shape[0], np.uint8)
+        sub = self._trace(tracer, o_w, d_w, o_sub, d_sub, t_start + t_sub)
+        refl, inten = self._intensity(sub)
+        echoes = self._echoes(sub, inten, len(pat), self._sub_w.shape[0])
         if cfg.beam.return_mode == "dual":
-            pulse, echo_range, strength, rep, rid = self._dual(pulse, echo_range, strength, rep)
-        pulse, echo_range, strength, rep, rid = self._drop(rng, pulse, echo_range, strength, rep, rid,
-                                                           cos_inc[rep], refl[rep], label[rep])
-        echo_range = self._range_noise(rng, echo_range)
+            echoes = self._dual(echoes)
+        echoes = self._drop(rng, echoes, sub.cos_incidence[echoes.rep], refl[echoes.rep], sub.label[echoes.rep])
+        echoes = replace(echoes, range=self._range_noise(rng, echoes.range))
         ref = pose_start if cfg.motion.reference == "start" else pose_end
-        out = self._points(pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses,
-                           prov if scene_has_provenance(tracer) else None)
+        out = self._points(echoes, sub, static, ref, poses, with_provenance=scene_has_provenance(tracer))
         return Sweep(out, float(t_start), float(t_end), pose_start, pose_end, ref, cfg.motion.output,
-                     cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, n_pulse)
+                     cfg.name, cfg.channels, pat.columns, pat.ring_elevation_deg, len(pat))
 
     # --- the stages of a sweep, in order (the random draws happen in `_drop`, then `_range_noise`) ---
 
@@ -318,9 +352,8 @@ class Lidar:
             o_w = np.einsum("nij,nj->ni", per_ray[:, :, :3], o_sub) + per_ray[:, :, 3]
         return o_w, d_w, (poses, of_pulse)
 
-    def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times):
-        """The ego body and the scene: per sub-ray hit, range (m), label, instance, |cos| of the
-        incidence angle, colour, measured reflectance (NaN: none) and (observed, confidence)."""
+    def _trace(self, tracer, o_w, d_w, o_sub, d_sub, times) -> SubRayHits:
+        """The ego body and the scene: what each sub-ray met (`SubRayHits`)."""
         cfg = self.config
         t_far = np.full(o_w.shape[0], cfg.range.max_m, np.float64)
         t_body = np.full(o_w.shape[0], np.inf)
@@ -336,27 +369,30 @@ class Lidar:
             hits = tracer.trace_world(o_w, d_w, 0.0, t_far, times=times)
         else:
             hits = tracer.trace_world(o_w, d_w, 0.0, t_far)
-        rng_sub = hits.t.copy()
+        sub_range = hits.t.copy()
         hit = hits.hit.copy()
         label = hits.label.astype(np.int16)
         instance = hits.instance.copy()
         cos_inc = np.abs(np.einsum("ij,ij->i", hits.normals.astype(np.float64), d_w))
         measured = hits.reflectance.astype(np.float64)
         if cfg.ego_body is not None and cfg.ego_body.returns:
-            body = np.isfinite(t_body) & (~hit | (t_body < rng_sub))
+            body = np.isfinite(t_body) & (~hit | (t_body < sub_range))
             hit |= body
-            rng_sub = np.where(body, t_body, rng_sub)
+            sub_range = np.where(body, t_body, sub_range)
             label = np.where(body, 0, label).astype(np.int16)
             instance = np.where(body, 0, instance)
             cos_inc = np.where(body, 1.0, cos_inc)
             measured = np.where(body, np.nan, measured)
             hits.observed[body], hits.confidence[body] = 1, 1.0
-        return hit, rng_sub, label, instance, cos_inc, hits.color, measured, (hits.observed, hits.confidence)
+        return SubRayHits(hit, sub_range, label, instance, cos_inc, hits.color, measured, hits.observed,
+                          hits.confidence)
 
-    def _intensity(self, hit, rng_sub, label, cos_inc, color, measured):
+    def _intensity(self, sub: SubRayHits):
         """Per sub-ray reflectivity and return strength: the sensor's response to the measured
         reflectance where the surface has one, else reflectivity x cos incidence x fall-off."""
         ic = self.config.intensity
+        hit, sub_range, label, cos_inc, color, measured = (sub.hit, sub.range, sub.label, sub.cos_incidence, sub.color,
+                                                         sub.measured)
         if ic.source == "class":
             refl = self._class_reflectivity[label]
         elif ic.source == "color":
@@ -364,19 +400,20 @@ class Lidar:
         else:
             refl = np.full(label.shape, ic.constant)
         with np.errstate(divide="ignore", invalid="ignore"):
-            fall = np.minimum(1.0, (ic.reference_range_m / np.maximum(rng_sub, 1e-6)) ** ic.falloff_exponent)
+            fall = np.minimum(1.0, (ic.reference_range_m / np.maximum(sub_range, 1e-6)) ** ic.falloff_exponent)
         strength = np.where(hit, refl * cos_inc * fall, 0.0)
         m = hit & np.isfinite(measured)
         if m.any():
             channel = np.repeat(self.pattern.ring.astype(np.int64), self._sub_w.shape[0])
             refl = np.where(m, measured, refl)
-            strength[m] = self._response.forward(measured[m], cos_inc[m], rng_sub[m], channel[m])
+            strength[m] = self._response.forward(measured[m], cos_inc[m], sub_range[m], channel[m])
         return refl, strength
 
-    def _drop(self, rng, pulse, echo_range, strength, rep, rid, cos_rep, refl_rep, label_rep):
+    def _drop(self, rng, echoes: Echoes, cos_rep, refl_rep, label_rep) -> Echoes:
         """Keep the echoes inside the range limits that no drop rule removes (one random draw
         per echo when the random rate is set, then one when a drop model is)."""
         cfg = self.config
+        pulse, echo_range, strength = echoes.pulse, echoes.range, echoes.strength
         keep = echo_range >= cfg.range.min_m
         keep &= echo_range <= cfg.range.max_m
         if cfg.drop.random_rate > 0:
@@ -391,7 +428,7 @@ class Lidar:
         if self._drop_model is not None:
             p = self._drop_model.probability(cos_rep, echo_range, refl_rep, label_rep, self.pattern.ring[pulse])
             keep &= rng.random(pulse.shape[0]) >= p
-        return tuple(a[keep] for a in (pulse, echo_range, strength, rep, rid))
+        return echoes.select(keep)
 
     def _range_noise(self, rng, echo_range):
         """Gaussian range noise (one draw per echo when a sigma is set), quantisation, floor at 0."""
@@ -403,10 +440,13 @@ class Lidar:
             echo_range = np.round(echo_range / nz.quantization_m) * nz.quantization_m
         return np.maximum(echo_range, 0.0)
 
-    def _points(self, pulse, echo_range, strength, rep, rid, label, instance, static, ref, poses, prov=None):
-        """The sweep's records, in the output frame of `motion`: POINT_DTYPE, or with `prov`
-        (per sub-ray observed, confidence) CONVERTED_POINT_DTYPE."""
+    def _points(self, echoes: Echoes, sub: SubRayHits, static, ref, poses, with_provenance: bool = False):
+        """The sweep's records, in the output frame of `motion`: POINT_DTYPE, or with the scene's
+        provenance (per sub-ray observed, confidence) CONVERTED_POINT_DTYPE."""
         cfg, pat = self.config, self.pattern
+        pulse, echo_range, strength = echoes.pulse, echoes.range, echoes.strength
+        rep, rid = echoes.rep, echoes.return_id
+        label, instance = sub.label, sub.instance
         self._distinct_fire_times()  # knows whether the pattern has beam offsets
         # offsets + range * direction, in place; np.take: a row gather at a fraction of `[pulse]`'s
         # time. Adding 0.0 where there are no offsets keeps the bytes of the sum (-0.0 + 0.0 = 0.0).
@@ -419,7 +459,7 @@ class Lidar:
             p_out = transform_points(rel[of_pulse[pulse]], p_sensor)
         else:
             p_out = p_sensor
-        out = np.empty(pulse.shape[0], point_dtype(prov is not None))  # every field is written below (no padding)
+        out = np.empty(pulse.shape[0], point_dtype(with_provenance))  # every field is written below (no padding)
         out["x"], out["y"], out["z"] = p_out[:, 0], p_out[:, 1], p_out[:, 2]
         out["intensity"] = strength * cfg.intensity.output_scale
         out["ring"] = pat.ring[pulse]
@@ -430,25 +470,25 @@ class Lidar:
         out["instance"] = instance[rep]
         out["column"] = pat.column[pulse]
         out["return_id"] = rid
-        if prov is not None:
-            out["observed"] = prov[0][rep]
-            out["confidence"] = prov[1][rep]
+        if with_provenance:
+            out["observed"] = sub.observed[rep]
+            out["confidence"] = sub.confidence[rep]
         return out
 
-    def _echoes(self, hit, rng_sub, inten, n_pulse, s):
-        """Group sub-ray hits into echoes and apply the single-return modes.
-
-        Returns per kept echo: pulse index, range, strength, representative sub-ray index."""
+    def _echoes(self, sub: SubRayHits, inten, n_pulse, s) -> Echoes:
+        """Group sub-ray hits into echoes (`n_pulse` pulses of `s` sub-rays) and apply the
+        single-return modes (dual: every echo, `_dual` picks two)."""
         mode = self.config.beam.return_mode
+        hit, sub_range = sub.hit, sub.range
         if s == 1:
             idx = np.nonzero(hit)[0]
-            return idx, rng_sub[idx], inten[idx], idx
+            return Echoes(idx, sub_range[idx], inten[idx], idx)
         w = np.tile(self._sub_w, n_pulse)
-        r = np.where(hit, rng_sub, np.inf).reshape(n_pulse, s)
+        r = np.where(hit, sub_range, np.inf).reshape(n_pulse, s)
         order = np.argsort(r, axis=1, kind="stable")
         sub = (order + (np.arange(n_pulse) * s)[:, None]).ravel()  # flat sub-ray ids, by range
         h_sorted = hit[sub].reshape(n_pulse, s)
-        r_sorted = np.where(h_sorted, rng_sub[sub].reshape(n_pulse, s), 1e30)
+        r_sorted = np.where(h_sorted, sub_range[sub].reshape(n_pulse, s), 1e30)
         gap = np.diff(r_sorted, axis=1) > self.config.beam.echo_separation_m
         cluster = np.concatenate([np.zeros((n_pulse, 1), np.int64), np.cumsum(gap, axis=1)], axis=1)
         hs = h_sorted.ravel()
@@ -460,7 +500,7 @@ class Lidar:
         uk, inv = np.unique(key, return_inverse=True)
         inv = inv.reshape(-1)
         wsum = np.bincount(inv, weights=w[sub])
-        echo_r = np.bincount(inv, weights=w[sub] * rng_sub[sub]) / wsum
+        echo_r = np.bincount(inv, weights=w[sub] * sub_range[sub]) / wsum
         strength = np.bincount(inv, weights=w[sub] * inten[sub])
         # Representative sub-ray of each echo: the largest weighted intensity (its label/normal).
         score = w[sub] * (inten[sub] + 1e-12)
@@ -475,22 +515,23 @@ class Lidar:
             pick = np.r_[e_pulse[1:] != e_pulse[:-1], True]
         elif mode in ("strongest", "dual"):
             if mode == "dual":
-                return e_pulse, echo_r, strength, rep
+                return Echoes(e_pulse, echo_r, strength, rep)
             o3 = np.lexsort((-strength, e_pulse))
             f3 = np.r_[True, e_pulse[o3][1:] != e_pulse[o3][:-1]]
             pick = np.zeros(uk.shape[0], bool)
             pick[o3[f3]] = True
         else:  # pragma: no cover - validated by the config
             raise InputError(mode)
-        return e_pulse[pick], echo_r[pick], strength[pick], rep[pick]
+        return Echoes(e_pulse[pick], echo_r[pick], strength[pick], rep[pick])
 
     @staticmethod
-    def _dual(e_pulse, echo_r, strength, rep):
+    def _dual(echoes: Echoes) -> Echoes:
         """Dual return: the strongest and the last echo of each pulse; when they coincide, the
-        strongest and the second strongest. Echo arrays arrive sorted by (pulse, range)."""
+        strongest and the second strongest. Echoes arrive sorted by (pulse, range)."""
+        e_pulse, echo_r, strength, rep = echoes.pulse, echoes.range, echoes.strength, echoes.rep
         n = e_pulse.shape[0]
         if n == 0:
-            return e_pulse, echo_r, strength, rep, np.zeros(0, np.uint8)
+            return echoes
         o3 = np.lexsort((-strength, e_pulse))
         starts = np.r_[True, e_pulse[o3][1:] != e_pulse[o3][:-1]]
         strongest = o3[starts]
@@ -506,4 +547,4 @@ class Lidar:
         rid = np.concatenate([np.zeros(a.shape[0], np.uint8), np.ones(b.shape[0], np.uint8)])
         order = np.lexsort((rid, e_pulse[sel]))
         sel, rid = sel[order], rid[order]
-        return e_pulse[sel], echo_r[sel], strength[sel], rep[sel], rid
+        return Echoes(e_pulse[sel], echo_r[sel], strength[sel], rep[sel], rid)
