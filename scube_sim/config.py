@@ -7,6 +7,7 @@ configs) uses these, so an unknown key or a bad value reads the same everywhere:
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 from dataclasses import dataclass
@@ -359,6 +360,15 @@ def unique_names(items, key=None):
         if msg:
             raise ValueError(msg)
     return items
+
+
+def laid_over(base: dict, over: dict) -> dict:
+    """`over`'s keys over `base`'s, a new mapping: a mapping merged key by key, any other value
+    replaced (a profile's keys over its base's, a scenario's overrides over a preset)."""
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        out[k] = laid_over(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
 
 
 def load_yaml(path: str | Path, error: type[Exception] = ConfigError) -> object:

@@ -15,7 +15,7 @@ from ..voxsplat import VoxSplat
 from .frames import context_record
 from .merge import CompletionGrid
 
-__all__ = ["CompletionGrid", "Conversion", "checkpoint_hashes", "context_metadata", "one_torch_thread"]
+__all__ = ["Conversion", "checkpoint_hashes", "context_metadata", "one_torch_thread"]
 
 
 @dataclass

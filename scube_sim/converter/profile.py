@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import Field, ValidationError, model_validator
 
-from ..config import CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, StrictModel, format_validation_error, load_yaml
+from ..config import CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, StrictModel, format_validation_error, laid_over, load_yaml
 from ..errors import InputError
 from ..memory import check_fits
 from ..reconstruct.config import EvidenceConfig
@@ -175,12 +175,4 @@ def _profile_data(path: Path, seen: tuple[Path, ...]) -> dict:
     inherited = _profile_data(_profile_path(base, path.parent), (*seen, path.resolve()))
     inherited.pop("name", None)  # a profile's name and description are its own
     inherited.pop("description", None)
-    return _laid_over(inherited, data)
-
-
-def _laid_over(base: dict, own: dict) -> dict:
-    """`own`'s keys over `base`'s: a mapping merged key by key, any other value replaced."""
-    out = dict(base)
-    for k, v in own.items():
-        out[k] = _laid_over(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
+    return laid_over(inherited, data)

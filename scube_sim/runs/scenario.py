@@ -33,7 +33,6 @@ it (`route_stops`), and loaded as a `ChunkSet` within the sensors' reach.
 
 from __future__ import annotations
 
-import copy
 import hashlib
 import json
 import os
@@ -56,6 +55,7 @@ from ..config import (
     ConfigError,
     Mount,
     StrictModel,
+    laid_over,
     listed_twice,
     load_yaml,
     unique_names,
@@ -297,18 +297,11 @@ def load_scenario(path: str | Path) -> tuple[Scenario, Path]:
     return sc, path.resolve().parent
 
 
-def _merge(base: dict, over: dict) -> dict:
-    out = copy.deepcopy(base)
-    for k, v in over.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str) -> LidarConfig:
     """A sensor's LiDAR config: the preset, the scenario's overrides, then the effects switches."""
     preset = str(resolve_path(spec.preset, base)) if spec.preset.endswith((".yaml", ".yml")) else spec.preset
     cfg = load_lidar_config(preset)
-    data = _merge(cfg.model_dump(mode="json"), spec.overrides)
+    data = laid_over(cfg.model_dump(mode="json"), spec.overrides)
     if not effects.noise:
         data["noise"] = {"range_sigma_m": 0.0, "range_sigma_rel": 0.0, "quantization_m": 0.0}
     if not effects.drops:
