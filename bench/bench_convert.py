@@ -45,7 +45,7 @@ def reliability(conv: Converter, data: Path, split: str, n: int, k: int | None) 
     conf, hit, seen = [], [], []
     for i in range(min(n, len(ds))):
         sample = ds[i]
-        ijk, _, c, observed, vs = conv.pipeline.predict_voxels(sample.frames, k=k or 1)
+        ijk, _, c, observed, vs = conv.pipeline.predict_voxels(sample.frames, samples=k or 1)
         gt = sample.ground_truth.coarse
         if abs(float(gt.voxel_size) - vs) > 1e-9:
             raise SystemExit(f"{sample.name}: ground truth at {gt.voxel_size} m, the converter's grid at {vs} m")
@@ -118,7 +118,7 @@ def main(argv=None) -> None:
                 "LiDAR only (no sky)": {"sky": False},
                 "LiDAR only, within 60 m": {"sky": False, "max_range": 60.0}}
     if conv.pipeline.geometry.cfg.mode == "diffusion":  # a single-step predictor draws no samples to count
-        variants[f"confidence over K = {args.k}"] = {"confidence": True, "k": args.k}
+        variants[f"confidence over K = {args.k}"] = {"confidence": True, "confidence_samples": args.k}
     per: dict[str, list[dict]] = {name: [] for name in variants}
     folders = folders[: args.samples]
     _run(conv, open_frames(folders[0]))  # warm-up: first-call allocations

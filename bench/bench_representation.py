@@ -66,10 +66,9 @@ def run(quick: bool = False) -> list[dict]:
                     t = time.perf_counter()
                     vs = gt_voxsplat(mesh, c2w, vsz, gaussians_per_voxel=m, region=REGION)
                     fit_s = time.perf_counter() - t
-                    proxy = "octahedron" if vs.num_gaussians <= 2_000_000 else "voxel_box"
                     for mode in ("entry", "max_response"):
                         t = time.perf_counter()
-                        tracer = Tracer(vs, mode=mode, proxy=proxy)
+                        tracer = Tracer(vs, mode)
                         build_s = time.perf_counter() - t
                         img = lidar.scan(tracer, pose_c).range_image()
                         a, b = img_ref[keep_img], img[keep_img]
@@ -77,7 +76,7 @@ def run(quick: bool = False) -> list[dict]:
                         err = np.abs(a - b)[both]
                         rows.append({
                             "scene": name, "voxel_m": vsz, "M": m, "mode": mode, "gaussians": vs.num_gaussians,
-                            "proxy": proxy, "fit_s": fit_s, "build_s": build_s, "rays": int(keep_img.sum()),
+                            "core": tracer.core_name, "fit_s": fit_s, "build_s": build_s, "rays": int(keep_img.sum()),
                             "median_err_cm": float(np.median(err) * 100), "p90_err_cm": float(np.percentile(err, 90) * 100),
                             "hit_agreement": float(np.mean(np.isfinite(a) == np.isfinite(b))),
                             "missed": int(np.sum(np.isfinite(a) & ~np.isfinite(b))),
@@ -127,7 +126,7 @@ def main():
     ap.add_argument("--quick", action="store_true", help="0.4 and 0.2 m only")
     args = ap.parse_args()
     rows = run(args.quick)
-    header = ["scene", "voxel_m", "M", "mode", "gaussians", "proxy", "fit_s", "build_s", "rays", "median_err_cm",
+    header = ["scene", "voxel_m", "M", "mode", "gaussians", "core", "fit_s", "build_s", "rays", "median_err_cm",
               "p90_err_cm", "hit_agreement", "missed", "extra"]
     md = write_results("representation", rows, header,
                        "Waymo-TOP-like preset without noise, quantisation or drops; the mesh sweep is the reference. "

@@ -28,6 +28,7 @@ import numpy as np
 from scube_sim.converter.eval.sensor_to_sensor import evaluate_sample, geometric_lidar, summarise_rows
 from scube_sim.converter.pipeline import Converter
 from scube_sim.converter.profile import FineProfile, load_profile
+from scube_sim.raytrace import SoftMode
 
 from .common import BENCH_DIR, write_results
 
@@ -39,9 +40,9 @@ REPO = BENCH_DIR.parent
 FINE_04 = FineProfile(checkpoint="geometry-fine-cpu", focal_px=342.5, output_voxel_size=0.4)
 
 
-def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | None]]:
+def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str | SoftMode | None]]:
     """(name, profile, convert options, trace) per variant; trace: None (the scene's own mode), a
-    trace mode, or `Tracer` settings."""
+    trace mode's name or a `SoftMode`."""
     g, a = base.geometry, base.appearance
     out = [
         ("shipped cpu profile", base, {}, None),
@@ -71,12 +72,12 @@ def variants(base, diffusion: str | None) -> list[tuple[str, object, dict, str |
         ("traced at hard opacity (max_response)", base, {}, "max_response"),
         # soft mode's alpha floor: each Gaussian's box ends where its response reaches it
         ("M = 1, traced with soft alpha_min 0.05", base.model_copy(update={"appearance": a.model_copy(
-            update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.05}),
+            update={"gaussians_per_voxel": 1})}), {}, SoftMode(alpha_min=0.05)),
         ("M = 1, traced with soft alpha_min 0.1", base.model_copy(update={"appearance": a.model_copy(
-            update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.1}),
+            update={"gaussians_per_voxel": 1})}), {}, SoftMode(alpha_min=0.1)),
         ("coarse + fine level, 0.2 m voxels, M = 1, traced with soft alpha_min 0.1", base.model_copy(update={
             "fine": FINE_04.model_copy(update={"output_voxel_size": 0.2}),
-            "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, {"soft_alpha_min": 0.1}),
+            "appearance": a.model_copy(update={"gaussians_per_voxel": 1})}), {}, SoftMode(alpha_min=0.1)),
     ]
     if diffusion:
         for steps in (1, 10):
@@ -144,8 +145,7 @@ def main(argv=None) -> None:
             continue
         conv = Converter(prof)
         samples = [evaluate_sample(conv, d, lidar, ahead=(0.0,), convert_options=opts, with_psnr=False,
-                                   gt_cache=cache, trace_mode=trace if isinstance(trace, str) else None,
-                                   trace_options=trace if isinstance(trace, dict) else None) for d in dirs]
+                                   gt_cache=cache, trace_mode=trace) for d in dirs]
         summ = {(r["scene"], r["split"]): r for r in summarise_rows(samples)}
         conv_all = summ[("converted", "all")]
         sec = float(np.mean([s["stages"]["seconds"] + s["stages"]["trace_s_per_sweep"] for s in samples]))

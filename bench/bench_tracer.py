@@ -34,10 +34,9 @@ from rich.progress import Progress
 
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import Lidar
-from scube_sim.raytrace import compiled, reference
+from scube_sim.raytrace import CompiledCore, HardMode, MeshEngine, ReferenceCore, Tracer, compiled, reference
 from scube_sim.raytrace import gaussian_math as gm
 from scube_sim.raytrace.backends import BACKENDS
-from scube_sim.raytrace.tracer import Tracer
 from scube_sim.worlds.street import street_scene
 
 from .common import CACHE, RESULTS, peak_mb, reset_peak, rss_mb, street_voxsplat, timed, write_results
@@ -81,7 +80,7 @@ def listed_nearest(tr: Tracer, o, d, rmax) -> np.ndarray:
     for r, _, prim in pg.backend.all_hits(start[act].astype(np.float32), d[act].astype(np.float32), (t_hi - t0)[act]):
         ri, g = reference.expand(pg, act[r], prim // pg.faces_per_proxy)
         ts, d2, half = reference.exact(pg, ri, g, ol, d, tr.stats)
-        ok = d2 <= tr.k**2
+        ok = d2 <= tr.scene_gaussians.k**2
         np.minimum.at(best, ri[ok], np.maximum(ts - half, 0.0)[ok])
     return np.where(best <= rmax, best, np.inf)
 
@@ -140,7 +139,7 @@ def run(quick: bool = False) -> list[dict]:
     demo_rays = {"HDL-64E": sensor_rays("HDL-64E", demo_pose)}
     for label, m, m_rays in (("street", mesh, rays), ("demo world", demo_mesh, demo_rays)):
         for backend in BACKENDS:
-            mtr = Tracer(m, backend=backend)
+            mtr = Tracer(m, core=MeshEngine(backend))
             for s, (o, d, rmax) in m_rays.items():
                 o32, d32, far = o.astype(np.float32), d.astype(np.float32), np.full(len(o), rmax, np.float32)
                 sec, _ = timed(lambda: mtr._backend.first_hit(o32, d32, far))
@@ -160,12 +159,12 @@ def run(quick: bool = False) -> list[dict]:
             label = "street" if street else "demo world"
             scan_pose = pose if street else demo_pose
             scene_rays = rays if street else demo_rays
-            tr, build_s, peak = build(vs, core="compiled")
+            tr, build_s, peak = build(vs, core=CompiledCore())
             base = {"scene": name, "gaussians": n, "core": "compiled", "build_s": build_s,
                     "build_s_per_M": build_s / (n / 1e6), "peak_MB_per_M": peak / (n / 1e6)}
             sweeps = {}
             for threads in THREADS:
-                tr.threads = threads
+                tr.core.threads = threads
                 for mode in MODES:
                     tr.mode = mode
                     for s, (o, d, rmax) in scene_rays.items():
@@ -184,7 +183,7 @@ def run(quick: bool = False) -> list[dict]:
             tr = None  # free the BVH before the next build
             if vsz in (0.4, 0.2) or not street:
                 # The reference walk (open3d, octahedra): the old path, and the exhaustive listing.
-                ref, rbuild, rpeak = build(vs, core="reference", backend="open3d")
+                ref, rbuild, rpeak = build(vs, core=ReferenceCore("open3d"))
                 o, d, rmax = scene_rays["HDL-64E"]
                 want = listed_nearest(ref, o, d, rmax)
                 for mode in MODES:
@@ -230,14 +229,14 @@ def soft_rows() -> list[dict]:
             d = pat.directions
             hits = {}
             for kb in (16, 64):  # the k-buffer's trade (the default, 256, is the "compiled" row)
-                tr = Tracer(g, mode="soft", core="compiled", soft_k_buffer=kb)
+                tr = Tracer(g, "soft", core=CompiledCore(k_buffer=kb))
                 sec, _ = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent))
                 rows.append({"scene": fname, "gaussians": len(g), "core": f"compiled, k-buffer {kb}", "mode": "soft",
                              "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec,
                              "Mrays_s": len(d) / sec / 1e6})
             # Without the soft boxes (each Gaussian bounded where its response reaches
             # soft_alpha_min): a tracer built for a hard mode answers soft on k-sigma boxes.
-            tr = Tracer(g, mode="entry", opacity_floor=1.0 / 255.0, core="compiled")
+            tr = Tracer(g, HardMode("entry", opacity_floor=1.0 / 255.0), core="compiled")
             tr.mode = "soft"
             sec, _ = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent))
             rows.append({"scene": fname, "gaussians": len(g), "core": "compiled, k-sigma boxes", "mode": "soft",
@@ -251,7 +250,7 @@ def soft_rows() -> list[dict]:
                          "threads": 2, "sensor": sensor, "rays": len(d), "sweep_s": sec, "Mrays_s": len(d) / sec / 1e6})
             for core in ("compiled", "reference"):
                 t = time.perf_counter()
-                tr = Tracer(g, mode="soft", core=core, backend="open3d")
+                tr = Tracer(g, "soft", core=CompiledCore() if core == "compiled" else ReferenceCore("open3d"))
                 build_s = time.perf_counter() - t
                 sec, h = timed(lambda: tr.trace_world(o, d, 0.0, 10 * extent), repeat=1 if core == "reference" else 3)
                 hits[core] = h

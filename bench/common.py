@@ -19,7 +19,7 @@ RESULTS = BENCH_DIR / "results"
 
 def street_voxsplat(voxel_size: float, m: int = 4):
     """The street scene fitted at `voxel_size` (cached on disk: fitting 1e6 Gaussians takes ~10 s)."""
-    from scube_sim.fit import fit_voxsplat
+    from scube_sim.fit import FitOptions, fit_voxsplat
     from scube_sim.voxsplat import VoxSplat
     from scube_sim.worlds.street import street_scene
 
@@ -29,8 +29,8 @@ def street_voxsplat(voxel_size: float, m: int = 4):
         return VoxSplat.load(path)
     mesh = street_scene()
     s = mesh.sample_surface_grid(min(voxel_size / 2, 0.1))
-    vs = fit_voxsplat(s["points"], voxel_size, gaussians_per_voxel=m, colors=s["colors"], labels=s["labels"],
-                      weights=s["weights"])
+    vs = fit_voxsplat(s["points"], voxel_size, colors=s["colors"], labels=s["labels"], weights=s["weights"],
+                      fit=FitOptions(gaussians_per_voxel=m))
     vs.save(path)
     return vs
 

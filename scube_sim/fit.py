@@ -11,6 +11,8 @@ Deterministic: no random initialisation.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .errors import InputError
@@ -44,50 +46,63 @@ def _group_moments(key: np.ndarray, p: np.ndarray, nkeys: int, w: np.ndarray, ex
     return cnt, mean, cov
 
 
+@dataclass(frozen=True)
+class FitOptions:
+    """How `fit_voxsplat` fits. gaussians_per_voxel: M, a power of two. min_scale: floor on every
+    standard deviation (metres; default 1 % of the voxel); max_normal_scale: optional cap on the
+    smallest one (metres; flattens noisy LiDAR surfaces). opacity: every fitted Gaussian's, in
+    (0, 1). Voxels with fewer than `min_points` points are dropped."""
+
+    gaussians_per_voxel: int = 4
+    min_scale: float | None = None
+    max_normal_scale: float | None = None
+    opacity: float = 0.99
+    min_points: int = 1
+
+    def __post_init__(self):
+        m = int(self.gaussians_per_voxel)
+        if m < 1 or m & (m - 1):
+            raise InputError(f"gaussians_per_voxel: expected a power of two (1, 2, 4, 8, ...), got {m}")
+
+
 def fit_voxsplat(
     points: np.ndarray,
     voxel_size: float,
     *,
-    gaussians_per_voxel: int = 4,
     colors: np.ndarray | None = None,
     labels: np.ndarray | None = None,
     weights: np.ndarray | None = None,
     patch_cov: tuple[np.ndarray, np.ndarray] | None = None,
-    origin: np.ndarray | None = None,
-    min_scale: float | None = None,
-    max_normal_scale: float | None = None,
-    opacity: float = 0.99,
-    min_points: int = 1,
     values: dict[str, np.ndarray] | None = None,
+    origin: np.ndarray | None = None,
+    fit: FitOptions = FitOptions(),
 ) -> VoxSplat:
     """Fit Gaussians to surface points.
 
     points (N, 3) float64 metres in the frame of `origin` (world = points + origin; default
-    origin zero); colors (N, 3) in [0, 1]; labels (N,) label ids (voxel label = majority).
-    gaussians_per_voxel: M, a power of two. min_scale: floor on every standard deviation
-    (default 1 % of the voxel); max_normal_scale: optional cap on the smallest one (flattens
-    noisy LiDAR surfaces). Voxels with fewer than `min_points` points are dropped; clusters left
-    empty become invalid slots. values: per-point scalars (N,) by channel name (e.g.
+    origin zero); what each point carries: colors (N, 3) in [0, 1]; labels (N,) label ids (voxel
+    label = majority); weights (N,) (the surface each stands for; default 1); patch_cov: (cov6
+    (F, 6), index (N,)), the covariance (xx, xy, xz, yy, yz, zz) of the patch each point stands
+    for, added to the points' spread; values: per-point scalars (N,) by channel name (e.g.
     'reflectance'), averaged per Gaussian with the points' weights, NaN values left out, and
-    stored as per-Gaussian channels (NaN where a Gaussian has none). Returns a VoxSplat whose
-    local frame is that of `points`.
+    stored as per-Gaussian channels (NaN where a Gaussian has none). fit: M, the scale limits,
+    opacity and the voxels' minimum point count (`FitOptions`). Clusters left empty become invalid
+    slots. Returns a VoxSplat whose local frame is that of `points`.
     """
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    m = int(gaussians_per_voxel)
-    if m < 1 or m & (m - 1):
-        raise InputError(f"gaussians_per_voxel: expected a power of two (1, 2, 4, 8, ...), got {m}")
+    m = int(fit.gaussians_per_voxel)
     if not voxel_size > 0:
         raise InputError(f"voxel_size: expected > 0 metres, got {voxel_size}")
     if not np.all(np.isfinite(p)):
         raise InputError("fit_voxsplat: points contain NaN or Inf")
     vs = float(voxel_size)
-    min_scale = 0.01 * vs if min_scale is None else float(min_scale)
+    min_scale = 0.01 * vs if fit.min_scale is None else float(fit.min_scale)
     origin = np.zeros(3) if origin is None else np.asarray(origin, np.float64)
 
     w = np.ones(p.shape[0]) if weights is None else np.asarray(weights, np.float64).reshape(-1)
     uniq, inv, counts = unique_voxels(np.floor(p / vs))
-    if min_points > 1:
-        keep_v = counts >= min_points
+    if fit.min_points > 1:
+        keep_v = counts >= fit.min_points
         keep_p = keep_v[inv]
         p, w, inv = p[keep_p], w[keep_p], np.cumsum(keep_v)[inv[keep_p]] - 1
         if patch_cov is not None:
@@ -114,8 +129,8 @@ def fit_voxsplat(
     cnt, mean, cov = _group_moments(key, p, nv * m, w, patch_cov)
     evals, evecs = np.linalg.eigh(cov)  # ascending: column 0 is the surface normal
     sig = np.sqrt(np.maximum(evals, 0.0))
-    if max_normal_scale is not None:
-        sig[:, 0] = np.minimum(sig[:, 0], max_normal_scale)
+    if fit.max_normal_scale is not None:
+        sig[:, 0] = np.minimum(sig[:, 0], fit.max_normal_scale)
     sig = np.maximum(sig, min_scale)
     evecs[np.linalg.det(evecs) < 0, :, 0] *= -1.0  # proper rotations only
     quats = rotmat_to_quat(evecs)
@@ -125,7 +140,7 @@ def fit_voxsplat(
     r = 3.0 * vs
     off = (mean - np.repeat(centers, m, axis=0)) / r
     params[:, OFFSET] = np.arctanh(np.clip(off, -1 + 1e-6, 1 - 1e-6))
-    params[:, 3] = np.log(opacity) - np.log1p(-opacity)
+    params[:, 3] = np.log(fit.opacity) - np.log1p(-fit.opacity)
     params[:, SCALE] = np.log(sig)
     params[:, QUAT] = quats
     if colors is not None:

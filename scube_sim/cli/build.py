@@ -91,15 +91,16 @@ def fidelity_cmd(
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
     from ..datasets import open_dataset
-    from ..realdata.fidelity import run_fidelity, write_report
+    from ..realdata.fidelity import FidelityOptions, run_fidelity, write_report
     from ..voxsplat import VoxSplat
 
     ds = open_dataset(dataset, path)
     vs = VoxSplat.load(scene)
     mode = mode or (vs.metadata.get("trace_mode") if isinstance(vs.metadata, dict) else None) or "max_response"
-    res = run_fidelity(ds, vs, sample=sample, sensor=sensor, mode=mode, baselines=baselines, noise=noise,
-                       static_from=int_list(static_from, "--static-from"), raw=raw, progress=lambda m: typer.echo(m + " ..."),
-                       assume_single_origin=assume_single_origin, ground_plane=ground_plane, regions=regions)
+    opts = FidelityOptions(sensor=sensor, mode=mode, baselines=baselines, noise=noise,
+                           static_from=int_list(static_from, "--static-from"), raw=raw,
+                           assume_single_origin=assume_single_origin, ground_plane=ground_plane, regions=regions)
+    res = run_fidelity(ds, vs, sample, opts, progress=lambda m: typer.echo(m + " ..."))
     paths = write_report(res, output)
     typer.echo(res.markdown())
     typer.echo(f"-> {paths['markdown']}, {paths['png']}")

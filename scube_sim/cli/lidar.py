@@ -23,7 +23,7 @@ def lidar_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="point cloud to write: .pcd, .ply, .bin (KITTI) or .npz"),
     pose: str = typer.Option("0,0,0,0,0,0", "--pose", help="sensor pose in the scene frame: x,y,z,roll,pitch,yaw (m, deg)"),
     mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (a VoxSplat's own trace_mode, else entry; soft for 3DGS .ply)"),
-    backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex | compiled: the Embree engine for meshes and the reference core's proxies (default: meshes on the compiled core, proxies on open3d)"),
+    backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex | compiled: the Embree engine of the reference core's proxies (default open3d)"),
     core: Optional[str] = typer.Option(None, "--core", help="compiled | reference (default: compiled where built; env SCUBE_SIM_CORE)"),
     threads: int = typer.Option(0, "--threads", help="the compiled core's threads (0: all cores)"),
     k: float = typer.Option(3.0, "--k", help="hard surface: the k-sigma ellipsoid"),
@@ -35,7 +35,8 @@ def lidar_cmd(
     from ..io.pointcloud import write_points
     from ..lidar.config import load_lidar_config
     from ..lidar.model import Lidar
-    from ..raytrace.tracer import Tracer
+    from ..raytrace import DEFAULT_BACKEND, MODES, CompiledCore, HardMode, ReferenceCore, SoftMode, Tracer
+    from ..raytrace.compiled import default_core_name
     from ..scene_file import load_scene
     from ..voxsplat import VoxSplat
 
@@ -48,7 +49,14 @@ def lidar_cmd(
     m = mode if mode != "auto" else (sc.metadata.get("trace_mode", "entry") if isinstance(sc, VoxSplat) else "soft")
     if core not in (None, "compiled", "reference"):
         raise CliError(f"--core: expected compiled or reference, got {core!r}")
-    tracer = Tracer(sc, backend=backend, mode=m, k=k, core=core, threads=threads, soft_alpha_min=soft_alpha_min)
+    if m not in MODES:
+        raise CliError(f"--mode: expected one of {', '.join(MODES)} or auto, got {m!r}")
+    trace = SoftMode(k=k, alpha_min=soft_alpha_min) if m == "soft" else HardMode(m, k=k)
+    if (core or default_core_name()) == "compiled":
+        engine = CompiledCore(threads)
+    else:
+        engine = ReferenceCore(backend or DEFAULT_BACKEND)
+    tracer = Tracer(sc, trace, core=engine)
     t1 = time.perf_counter()
     sweep = Lidar(cfg).scan(tracer, sensor_pose, seed=seed)
     t2 = time.perf_counter()

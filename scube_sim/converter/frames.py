@@ -1,5 +1,5 @@
 """Camera frames for the converter: a sample's frames from a dataset (`open_frames`), the item a
-stage's network reads from them (`frames_item`), and the record of the instants used
+stage's network reads from them (`network_inputs`), and the record of the instants used
 (`context_record`). Frames: the chunk frame is the frames' ego frame at their reference instant
 (x forward, y left, z up, metres).
 """
@@ -62,8 +62,8 @@ def context_record(frames: Frames) -> list[dict]:
             for f in frames.instants()]
 
 
-def frames_item(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
-    """The item a stage's network reads, from `frames` (module docstring): ``images`` (N, 3, H, W)
+def network_inputs(frames: Frames, stage: StageProfile, *, with_sky: bool = False) -> dict:
+    """What a stage's network reads, from `frames` (module docstring), by name: ``images`` (N, 3, H, W)
     float32 in [0, 1], zero-padded to the largest; ``intrinsics`` (N, 3, 3) of the resized
     images; ``distortion`` (N, 5) OpenCV; ``image_size`` (N, 2) (rows, columns); ``valid`` (N, H, W)
     bool; ``cam_to_chunk`` (N, 4, 4) float32; ``chunk_to_world`` (4, 4) float64;

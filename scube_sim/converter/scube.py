@@ -39,7 +39,7 @@ from ..model.geometry.net import GeometryNet, flat_keys, observed_voxels
 from ..voxsplat import SCALE, VoxSplat
 from ..worlds.groundtruth import CHUNK_CORNER
 from .conversion import Conversion, checkpoint_hashes, context_metadata, one_torch_thread
-from .frames import frames_item
+from .frames import network_inputs
 from .profile import ConverterProfile
 
 __all__ = ["TRACE_MODE", "PaperPipeline"]
@@ -90,16 +90,16 @@ class PaperPipeline:
         return float(size)
 
     @torch.no_grad()
-    def predict_voxels(self, frames: Frames, *, steps: int | None = None, seed: int = 0, k: int = 1):
+    def predict_voxels(self, frames: Frames, *, steps: int | None = None, seed: int = 0, samples: int = 1):
         """The geometry stage: -> (ijk (V, 3) int64 chunk voxels from CHUNK_CORNER, labels (V,),
-        confidence (V,) float32 (the share of k samples holding the voxel; 1 when k = 1),
+        confidence (V,) float32 (the share of `samples` draws holding the voxel; 1 for one draw),
         observed (V,) bool, voxel_size metres)."""
-        item = frames_item(frames, self.profile.geometry)
+        item = network_inputs(frames, self.profile.geometry)
         cfg = self.data
         item["lift_grid"], item["gt_grid"], item["level"] = cfg.grid(), cfg.grid(cfg.voxel_size), "coarse"
         steps = steps or self.profile.geometry.sample_steps
         # a fine level traces `observed` through its own grid: the coarse trace would be discarded
-        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, k, steps, seed,
+        ijk, labels, conf, observed = self.geometry.predict_with_confidence(item, samples, steps, seed,
                                                                             observed=self.fine is None)
         size = float(cfg.voxel_size)
         if self.fine is not None:
@@ -114,7 +114,7 @@ class PaperPipeline:
         confidence is its coarse parent's (the fine predictor draws no samples); observed is
         traced through the output grid itself (`observed_voxels`)."""
         fcfg = self.fine_data
-        item = frames_item(frames, self.profile.fine)
+        item = network_inputs(frames, self.profile.fine)
         item["lift_grid"], item["gt_grid"], item["level"] = fcfg.grid(), fcfg.grid(fcfg.voxel_size), "fine"
         fijk, flabels = self.fine.predict(item, seed=seed, coarse=(ijk, labels))
         # every fine voxel lies in a coarse site (the decoder only subdivides): its parent's confidence
@@ -148,7 +148,7 @@ class PaperPipeline:
         has one, otherwise the pixels whose ray enters no voxel. fit_steps: test-time
         fit (default: the profile's); progress(step, total) is called after each."""
         steps = self.profile.appearance.fit_steps if fit_steps is None else fit_steps
-        item = frames_item(frames, self.profile.appearance, with_sky=True)
+        item = network_inputs(frames, self.profile.appearance, with_sky=True)
         item.update(ijk=ijk, labels=labels, voxel_size=voxel_size)
         item["hits"] = first_hit_voxels(item, ijk, voxel_size)
         if "sky" not in item:
@@ -199,10 +199,10 @@ class PaperPipeline:
         fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
         if confidence_samples is not None and confidence_samples < 1:
             raise InputError(f"confidence_samples: expected at least one geometry sample, got {confidence_samples}")
-        k = (confidence_samples or self.profile.confidence_samples) if confidence else 1
+        samples = (confidence_samples or self.profile.confidence_samples) if confidence else 1
         reset_peak()
         t0 = time.perf_counter()
-        ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), k=k)
+        ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), samples=samples)
         if max_range is not None:
             centres = torch.as_tensor(CHUNK_CORNER[:2]) + (ijk[:, :2].double() + 0.5) * vs
             keep = centres.norm(dim=1) <= max_range
@@ -225,11 +225,11 @@ class PaperPipeline:
             "max_range_m": None if max_range is None else float(max_range),
             "fit_steps": fit_steps,
             "seed": int(seed),
-            "confidence_samples": int(k),
+            "confidence_samples": int(samples),
             "geometry_mode": self.geometry.cfg.mode,
             "trace_mode": TRACE_MODE,
             "confidence_kind": ("decoder occupancy probability" if self.geometry.cfg.mode == "predictor"
-                                else f"share of {k} geometry samples"),
+                                else f"share of {samples} geometry samples"),
             "cameras": list(frames.names),
             "timestamp": float(frames.timestamp),
             "frames": {str(key): str(v) for key, v in frames.metadata.items()},

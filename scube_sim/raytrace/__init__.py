@@ -5,11 +5,14 @@
 `TraceableScene` (contracts.py).
 """
 
-from .backends import DEFAULT_BACKEND
+from .backends import DEFAULT_BACKEND, MeshEngine
+from .compiled import CompiledCore
 from .compose import nearest_hits
-from .contracts import BoundedScene, TraceableScene, TraceCore, TracerBackend
+from .contracts import MODES, BoundedScene, HardMode, SoftMode, TraceableScene, TraceCore, TracerBackend, trace_mode
 from .hits import Hits, TraceStats
-from .tracer import MODES, Tracer
+from .reference import ReferenceCore
+from .tracer import Tracer
 
-__all__ = ["DEFAULT_BACKEND", "MODES", "BoundedScene", "Hits", "TraceCore", "TraceStats", "TraceableScene", "Tracer",
-           "TracerBackend", "nearest_hits"]
+__all__ = ["DEFAULT_BACKEND", "MODES", "BoundedScene", "CompiledCore", "HardMode", "Hits", "MeshEngine",
+           "ReferenceCore", "SoftMode", "TraceCore", "TraceStats", "TraceableScene", "Tracer", "TracerBackend",
+           "nearest_hits", "trace_mode"]

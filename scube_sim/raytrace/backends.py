@@ -28,6 +28,22 @@ def default_mesh_backend() -> str:
     return "compiled" if compiled.default_core_name() == "compiled" else DEFAULT_BACKEND
 
 
+class MeshEngine:
+    """How a `Tracer` traces a triangle mesh: Embree's own triangles on `backend` ('open3d' |
+    'embreex' | 'compiled'; default `default_mesh_backend()`), with `threads` (0: all cores;
+    embreex runs one whatever it says)."""
+
+    name = "mesh"
+
+    def __init__(self, backend: str | None = None, threads: int = 0):
+        if backend is not None and backend not in BACKENDS:
+            raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
+        if int(threads) < 0:
+            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
+        self.backend = backend or default_mesh_backend()
+        self.threads = int(threads)
+
+
 class BackendUnavailable(ScubeSimError, RuntimeError):
     pass
 

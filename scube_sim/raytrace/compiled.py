@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError, ScubeSimError
-from .contracts import SceneGaussians, TraceOptions
+from .contracts import SceneGaussians, SoftMode, TraceMode
 from .hits import Hits, TraceStats
 
 try:
@@ -112,11 +112,11 @@ class CompiledScene:
     handle: object = None
     soft_handle: object = None
 
-    def handle_for(self, opts: TraceOptions):
-        """The BVH that answers `opts` exactly (soft boxes only for soft mode at an alpha floor
+    def handle_for(self, mode: TraceMode):
+        """The BVH that answers `mode` exactly (soft boxes only for soft mode at an alpha floor
         at or above theirs), built on first use."""
         soft = self.soft_handle
-        if soft is not None and opts.mode == "soft" and opts.soft_alpha_min >= soft.alpha_min:
+        if soft is not None and isinstance(mode, SoftMode) and mode.alpha_min >= soft.alpha_min:
             return soft
         if self.handle is None:
             self.handle = _build(self.scene, 0.0)
@@ -131,11 +131,22 @@ def _build(scene: SceneGaussians, alpha_min: float, morton: bool = True):
 
 
 class CompiledCore:
-    """The compiled `TraceCore`."""
+    """The compiled `TraceCore`: one Embree traversal per ray with the exact test inside.
+
+    threads: the extension's threads (0: all cores); k_buffer: soft contributions gathered per
+    traversal (3DGRT's k-buffer: a small one re-traverses more, and re-tests every Gaussian it
+    straddles); max_iterations: soft re-traversals per ray at most."""
 
     name = "compiled"
 
-    def __init__(self):
+    def __init__(self, threads: int = 0, k_buffer: int = 256, max_iterations: int = 1000):
+        if int(threads) < 0:
+            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
+        if int(k_buffer) < 1:
+            raise InputError(f"k_buffer: expected at least 1, got {k_buffer}")
+        if int(max_iterations) < 1:
+            raise InputError(f"max_iterations: expected at least 1, got {max_iterations}")
+        self.threads, self.k_buffer, self.max_iterations = int(threads), int(k_buffer), int(max_iterations)
         if _core is None:
             raise CoreUnavailable(f"the compiled tracer core is not built ({_LOAD_ERROR}); install libembree-dev "
                                   "and a C++ compiler, then reinstall scube-sim, or use core='reference'")
@@ -153,7 +164,7 @@ class CompiledCore:
         return CompiledScene(scene, lo - 2.0 * scene.pad, hi + 2.0 * scene.pad,
                              handle=None if soft else handle, soft_handle=handle if soft else None)
 
-    def trace(self, prepared: CompiledScene, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits:
+    def trace(self, prepared: CompiledScene, mode: TraceMode, o, d, tmin, tmax, stats: TraceStats) -> Hits:
         n = o.shape[0]
         # Every element is written by the extension, misses included (as `Hits.empty`).
         out = Hits(hit=np.empty(n, bool), t=np.empty(n), points=np.empty((n, 3)), normals=np.empty((n, 3), np.float32),
@@ -162,12 +173,13 @@ class CompiledCore:
                    alpha=np.empty(n, np.float32), reflectance=np.full(n, np.nan, np.float32),
                    observed=np.ones(n, np.uint8), confidence=np.ones(n, np.float32))
         s = prepared.scene
+        soft = mode if isinstance(mode, SoftMode) else SoftMode()  # a hard mode reads none of these
         f64 = [np.ascontiguousarray(x, np.float64) for x in (o, d, tmin, tmax, prepared.lo, prepared.hi)]
         casts, tests, unfinished = _core.trace(
-            prepared.handle_for(opts), _MODE_CODES[opts.mode], *f64, s.voxel, s.labels, s.colors,
+            prepared.handle_for(mode), _MODE_CODES[mode.name], *f64, s.voxel, s.labels, s.colors,
             out.hit, out.t, out.points, out.normals, out.gaussian, out.voxel, out.label, out.color, out.alpha,
-            float(opts.soft_min_transmittance), float(opts.soft_alpha_min), float(opts.soft_hit_alpha),
-            int(opts.k_buffer), int(opts.max_iterations), int(opts.threads))
+            float(soft.min_transmittance), float(soft.alpha_min), float(soft.hit_alpha),
+            self.k_buffer, self.max_iterations, self.threads)
         stats.casts += 1
         stats.rays_cast += int(casts)
         stats.exact_tests += int(tests)

@@ -4,19 +4,20 @@
   `compose.nearest_hits`, the simulator's scene with moving actors).
 - `TracerBackend`: an Embree engine over triangles (first hit; optionally every crossing in one
   traversal, declared by `lists_all_hits`).
-- `TraceCore`: the traversal of Gaussians, given as `SceneGaussians` with `TraceOptions`
+- `TraceCore`: the traversal of Gaussians, given as `SceneGaussians`, in a `HardMode` or `SoftMode`
   (`compiled.py`: Embree user geometry with the exact test inside, the default; `reference.py`:
   the NumPy face walk over triangle proxies, the reference the compiled core is tested against).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
+from ..errors import InputError
 from ..voxsplat import Gaussians, VoxSplat
 from . import gaussian_math as gm
 from .hits import Hits, TraceStats
@@ -63,24 +64,72 @@ class TracerBackend(Protocol):
         ...
 
 
-@dataclass(frozen=True)
-class TraceOptions:
-    """How one trace call runs (read from the `Tracer` at each call, so its settings may change
-    between calls): mode 'entry' | 'max_response' | 'soft'; exact_order False stops a reference
-    hard ray at its first exact hit (the compiled core is exact at no cost and ignores it);
-    max_iterations caps the casts (reference) or soft re-traversals (compiled) per ray;
-    soft_min_transmittance ends a soft ray; soft_alpha_min drops fainter soft contributions;
-    soft_hit_alpha: the accumulated alpha a soft ray needs to return; k_buffer: the compiled soft
-    mode's contributions per traversal; threads: the compiled core's threads (0: all cores)."""
+MODES = ("entry", "max_response", "soft")
 
-    mode: str = "entry"
-    exact_order: bool = True
-    max_iterations: int = 1000
-    soft_min_transmittance: float = 1e-3
-    soft_alpha_min: float = 1.0 / 255.0
-    soft_hit_alpha: float = 0.5
-    k_buffer: int = 256
-    threads: int = 0
+
+def _check_k(k: float) -> None:
+    if not (np.isfinite(k) and k > 0):
+        raise InputError(f"k: expected a positive number of standard deviations, got {k}")
+
+
+@dataclass(frozen=True)
+class HardMode:
+    """A hard-opacity trace: each Gaussian at or above `opacity_floor` is a solid k-sigma
+    ellipsoid (alpha 1), the rest are dropped when the scene is built.
+
+    name: 'entry' (where the ray enters the ellipsoid: a solid surface) | 'max_response' (the
+    point of maximum response along the ray, 3DGRT's depth: the chord midpoint); k: the
+    ellipsoid's size in standard deviations."""
+
+    name: str = "entry"
+    k: float = 3.0
+    opacity_floor: float = 0.05
+
+    def __post_init__(self):
+        if self.name not in ("entry", "max_response"):
+            raise InputError(f"mode: expected one of {MODES}, got {self.name!r}")
+        _check_k(self.k)
+
+
+@dataclass(frozen=True)
+class SoftMode:
+    """A soft-opacity trace: front-to-back compositing of every Gaussian the ray meets, each with
+    alpha = opacity * exp(-d2 / 2) at its peak along the ray, until the transmittance falls below
+    `min_transmittance`; contributions fainter than `alpha_min` are dropped (and the scene keeps
+    no Gaussian below it). The range is the alpha-weighted depth; the ray returns where the
+    accumulated alpha reaches `hit_alpha`. For splat files trained without a scaffold."""
+
+    k: float = 3.0
+    min_transmittance: float = 1e-3
+    alpha_min: float = 1.0 / 255.0
+    hit_alpha: float = 0.5
+    name: str = field(default="soft", init=False)
+
+    def __post_init__(self):
+        _check_k(self.k)
+        if not 0.0 <= float(self.alpha_min) < 1.0:
+            raise InputError(f"soft_alpha_min: expected a value in [0, 1), got {self.alpha_min}")
+        if not 0.0 < float(self.min_transmittance) <= 1.0:
+            raise InputError(f"soft_min_transmittance: expected a value in (0, 1], got {self.min_transmittance}")
+
+    @property
+    def opacity_floor(self) -> float:
+        """The opacity below which a Gaussian is left out of the scene: `alpha_min`."""
+        return self.alpha_min
+
+
+TraceMode = HardMode | SoftMode
+
+
+def trace_mode(mode: str | HardMode | SoftMode) -> HardMode | SoftMode:
+    """A mode's options: a name ('entry' | 'max_response' | 'soft') gives its defaults."""
+    if isinstance(mode, (HardMode, SoftMode)):
+        return mode
+    if mode == "soft":
+        return SoftMode()
+    if isinstance(mode, str) and mode in MODES:
+        return HardMode(mode)
+    raise InputError(f"mode: expected one of {MODES} or a HardMode / SoftMode, got {mode!r}")
 
 
 @dataclass
@@ -166,4 +215,4 @@ class TraceCore(Protocol):
 
     def prepare(self, scene: SceneGaussians) -> PreparedScene: ...
 
-    def trace(self, prepared: PreparedScene, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits: ...
+    def trace(self, prepared: PreparedScene, mode: TraceMode, o, d, tmin, tmax, stats: TraceStats) -> Hits: ...

@@ -25,7 +25,7 @@ from ..errors import InputError
 from ..voxsplat import Gaussians
 from . import gaussian_math as gm
 from .backends import BACKENDS, DEFAULT_BACKEND, make_backend
-from .contracts import SceneGaussians, TraceOptions, TracerBackend
+from .contracts import HardMode, SceneGaussians, SoftMode, TraceMode, TracerBackend
 from .hits import Hits, TraceStats
 
 STEP_ULPS = 1.0  # first re-cast step past a face, in float32 ulps of the face position (grows on a re-hit)
@@ -66,16 +66,24 @@ class PreparedGaussians:
 class ReferenceCore:
     """The NumPy face walk as a `TraceCore`: proxies (`proxy`: 'octahedron' | 'icosahedron' per
     Gaussian, or 'voxel_box' per voxel) in an Embree triangle BVH (`backend`: 'open3d' |
-    'embreex'), walked face by face with exact float64 tests."""
+    'embreex' | 'compiled'), walked face by face with exact float64 tests.
+
+    exact_order: True returns each ray's nearest exact hit; False stops a hard ray at the first
+    exact hit found in proxy order (faster; `make bench` measures its range error on overlapping
+    Gaussians). max_iterations: Embree casts per ray at most."""
 
     name = "reference"
 
-    def __init__(self, backend: str = DEFAULT_BACKEND, proxy: str = "octahedron"):
+    def __init__(self, backend: str = DEFAULT_BACKEND, proxy: str = "octahedron", exact_order: bool = True,
+                 max_iterations: int = 1000):
         if backend not in BACKENDS:
             raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
         if proxy not in gm.PROXY_KINDS:
             raise InputError(f"proxy: expected one of {gm.PROXY_KINDS}, got {proxy!r}")
+        if int(max_iterations) < 1:
+            raise InputError(f"max_iterations: expected at least 1, got {max_iterations}")
         self.backend, self.proxy = backend, proxy
+        self.exact_order, self.max_iterations = bool(exact_order), int(max_iterations)
 
     def prepare(self, scene: SceneGaussians) -> PreparedGaussians:
         g, pad = scene.gaussians, scene.pad
@@ -127,16 +135,16 @@ class ReferenceCore:
             attributes=scene, frame_scale=frame_scale, box_center=box_center, box_half=box_half,
             box_members=box_members)
 
-    def trace(self, prepared: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, stats: TraceStats) -> Hits:
+    def trace(self, prepared: PreparedGaussians, mode: TraceMode, o, d, tmin, tmax, stats: TraceStats) -> Hits:
         # Candidates are searched only inside the bounds; exact tests use the full ray.
         t_lo, t_hi = gm.clip_to_box(o, d, tmin, tmax, prepared.lo, prepared.hi)
-        if opts.mode == "soft":
-            depth, g, acc = trace_soft(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
-            hit = acc >= opts.soft_hit_alpha
+        if isinstance(mode, SoftMode):
+            depth, g, acc = trace_soft(prepared, mode, self.max_iterations, o, d, tmin, tmax, t_lo, t_hi, stats)
+            hit = acc >= mode.hit_alpha
             return gaussian_hits(prepared.attributes, "soft", o, d, np.where(hit, depth, np.inf),
                                  np.where(hit, g, -1), alpha=acc.astype(np.float32))
-        best_t, best_g = trace_hard(prepared, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
-        return gaussian_hits(prepared.attributes, opts.mode, o, d, best_t, best_g)
+        best_t, best_g = trace_hard(prepared, mode, self, o, d, tmin, tmax, t_lo, t_hi, stats)
+        return gaussian_hits(prepared.attributes, mode.name, o, d, best_t, best_g)
 
 
 def gaussian_hits(scene: SceneGaussians, mode: str, o, d, best_t, best_g, alpha=None) -> Hits:
@@ -265,15 +273,18 @@ class FaceWalk:
 
 # --- hard opacity --------------------------------------------------------------------------
 
-def trace_hard(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
-    """Nearest exact hit per ray: (t (N,) float64, inf on a miss; gaussian (N,) int64, -1)."""
+def trace_hard(scene: PreparedGaussians, mode: HardMode, walk_limits: ReferenceCore, o, d, tmin, tmax, t_lo, t_hi,
+               stats: TraceStats):
+    """Nearest exact hit per ray: (t (N,) float64, inf on a miss; gaussian (N,) int64, -1).
+    walk_limits: the core whose `max_iterations` and `exact_order` end each ray's walk."""
     n = o.shape[0]
     best_t = np.full(n, np.inf)
     best_g = np.full(n, -1, np.int64)
     walk = FaceWalk(scene, stats, o, d, t_lo, t_hi)
-    entry_mode = opts.mode == "entry"
+    entry_mode = mode.name == "entry"
+    max_iterations, exact_order = walk_limits.max_iterations, walk_limits.exact_order
     kk = scene.k * scene.k
-    while walk.active.size and walk.iterations < opts.max_iterations and len(scene.gaussians):
+    while walk.active.size and walk.iterations < max_iterations and len(scene.gaussians):
         active, prim, _ = walk.cast(np.minimum(best_t, t_hi))
         if not active.size:
             break
@@ -298,49 +309,51 @@ def trace_hard(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t
         best_t[ri[better]] = th[better]
         best_g[ri[better]] = gi[better]
         go_on = walk.t_cur[active] < np.minimum(best_t[active], t_hi[active])
-        if not opts.exact_order:
+        if not exact_order:
             go_on &= best_g[active] < 0  # stop at the first exact hit found (see Tracer's doc)
         walk.active = active[go_on]
-    stats.unfinished += int(walk.active.size) if walk.iterations >= opts.max_iterations else 0
+    stats.unfinished += int(walk.active.size) if walk.iterations >= max_iterations else 0
     return best_t, best_g
 
 
 # --- soft opacity --------------------------------------------------------------------------
 
-def _soft_contributions(scene: PreparedGaussians, opts: TraceOptions, ray_idx, g, o, d, tmin, tmax, stats):
+def _soft_contributions(scene: PreparedGaussians, mode: SoftMode, ray_idx, g, o, d, tmin, tmax, stats):
     """(ray, gaussian) pairs -> the ones that contribute: (ray, gaussian, t*, alpha)."""
     t_star, d2, _ = exact(scene, ray_idx, g, o, d, stats)
     alpha = scene.opacity[g] * np.exp(-0.5 * d2)
     ok = ((d2 <= scene.k * scene.k) & (t_star >= tmin[ray_idx]) & (t_star <= tmax[ray_idx])
-          & (alpha >= opts.soft_alpha_min))
+          & (alpha >= mode.alpha_min))
     return ray_idx[ok], g[ok], t_star[ok], np.minimum(alpha[ok], 0.999)
 
 
-def _soft_result(opts: TraceOptions, n, parts):
+def _soft_result(mode: SoftMode, n, parts):
     cr, cg, ct, ca = (np.concatenate([x[i] for x in parts]) for i in range(4))
     if not cr.size:
         return np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros(n)
-    return composite_front_to_back(cr, ct, ca, cg, n, opts.soft_min_transmittance)
+    return composite_front_to_back(cr, ct, ca, cg, n, mode.min_transmittance)
 
 
-def trace_soft(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats: TraceStats):
+def trace_soft(scene: PreparedGaussians, mode: SoftMode, max_iterations: int, o, d, tmin, tmax, t_lo, t_hi,
+               stats: TraceStats):
     """Front-to-back compositing per ray: (depth (N,) float64, inf where nothing; gaussian of
-    the largest weight (N,) int64, -1; accumulated alpha (N,) float64)."""
+    the largest weight (N,) int64, -1; accumulated alpha (N,) float64). max_iterations: Embree
+    casts per ray at most."""
     if scene.backend.lists_all_hits:
-        return _trace_soft_listed(scene, opts, o, d, tmin, tmax, t_lo, t_hi, stats)
+        return _trace_soft_listed(scene, mode, o, d, tmin, tmax, t_lo, t_hi, stats)
     n = o.shape[0]
     walk = FaceWalk(scene, stats, o, d, t_lo, t_hi)
-    log_t_min = np.log(opts.soft_min_transmittance)
+    log_t_min = np.log(mode.min_transmittance)
     log_tr = np.zeros(n)  # log transmittance of the contributions known to be final
     done = []  # finalised contributions (ray, gaussian, t*, alpha) per round
     pend = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0))
-    while walk.active.size and walk.iterations < opts.max_iterations and len(scene.gaussians):
+    while walk.active.size and walk.iterations < max_iterations and len(scene.gaussians):
         active, prim, again = walk.cast(t_hi)
         if not active.size:
             break
         ray_idx, g = candidates(scene, True, prim[~again], active[~again], d, walk.start_pt)
         pend = tuple(np.concatenate([a, b]) for a, b in
-                     zip(pend, _soft_contributions(scene, opts, ray_idx, g, o, d, tmin, tmax, stats)))
+                     zip(pend, _soft_contributions(scene, mode, ray_idx, g, o, d, tmin, tmax, stats)))
         # Any Gaussian not found yet has its proxy entry, hence its t*, beyond this ray's last
         # face: contributions in front of it are final, and once their transmittance is below
         # the threshold the ray is done.
@@ -350,12 +363,12 @@ def trace_soft(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t
             np.add.at(log_tr, pend[0][final], np.log1p(-pend[3][final]))
             pend = tuple(a[~final] for a in pend)
         walk.active = active[(log_tr[active] > log_t_min) & (walk.t_cur[active] < t_hi[active])]
-    stats.unfinished += int(walk.active.size) if walk.iterations >= opts.max_iterations else 0
+    stats.unfinished += int(walk.active.size) if walk.iterations >= max_iterations else 0
     done.append(pend)
-    return _soft_result(opts, n, done)
+    return _soft_result(mode, n, done)
 
 
-def _trace_soft_listed(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin, tmax, t_lo, t_hi, stats):
+def _trace_soft_listed(scene: PreparedGaussians, mode: SoftMode, o, d, tmin, tmax, t_lo, t_hi, stats):
     """Soft mode with a backend that lists all crossings in one traversal (open3d): every proxy
     along the ray at once, then the exact compositing."""
     n = o.shape[0]
@@ -373,8 +386,8 @@ def _trace_soft_listed(scene: PreparedGaussians, opts: TraceOptions, o, d, tmin,
             # A ray through a shared edge or vertex crosses several faces of one proxy at once.
             key = np.unique(ray_idx * num + g)
             ray_idx, g = key // num, key % num
-            parts.append(_soft_contributions(scene, opts, ray_idx, g, o, d, tmin, tmax, stats))
-    return _soft_result(opts, n, parts)
+            parts.append(_soft_contributions(scene, mode, ray_idx, g, o, d, tmin, tmax, stats))
+    return _soft_result(mode, n, parts)
 
 
 def composite_front_to_back(ray, t, alpha, gid, n, min_transmittance):

@@ -6,15 +6,15 @@ traversal per ray, the default wherever it is built) or the NumPy reference walk
 proxies (`reference.py`). This class validates rays and hands them to the core (which searches
 only inside its padded bounds); meshes are traced here with Embree's own triangles.
 
-Depth definitions (hard opacity: alpha := 1 for Gaussians at or above `opacity_floor`):
+Depth definitions (`HardMode`, alpha := 1 for Gaussians at or above `opacity_floor`; `SoftMode`):
 - ``entry``: where the ray enters the k-sigma ellipsoid (a solid surface).
 - ``max_response``: the point of maximum Gaussian response along the ray (3DGRT), the chord
   midpoint of the same ellipsoid.
 - ``soft``: front-to-back compositing of every Gaussian the ray meets, each with its own
   opacity times its peak response along the ray (``alpha_i = o_i exp(-d2_i / 2)``), ordered by
-  their max-response points, until the transmittance falls below `soft_min_transmittance`.
+  their max-response points, until the transmittance falls below `min_transmittance`.
   The range is the composited (alpha-weighted, normalised) depth; the ray returns if the
-  accumulated alpha reaches `soft_hit_alpha`. For splat files trained without a scaffold.
+  accumulated alpha reaches `hit_alpha`. For splat files trained without a scaffold.
 
 Frames: rays and hit points are in the scene's local frame (world = local + `origin`); use
 `trace_world` to pass float64 world coordinates. Ranges are metres for unit directions.
@@ -28,13 +28,13 @@ from ..errors import InputError
 from ..mesh import TriangleMesh
 from ..voxsplat import Gaussians, VoxSplat
 from . import compiled
-from . import gaussian_math as gm
-from .backends import BACKENDS, DEFAULT_BACKEND, default_mesh_backend, make_backend
-from .contracts import SceneGaussians, TraceCore, TraceOptions
+from .backends import MeshEngine, make_backend
+from .contracts import MODES, HardMode, SceneGaussians, SoftMode, TraceCore, trace_mode
 from .hits import Hits, TraceStats
 from .reference import ReferenceCore
 
-MODES = ("entry", "max_response", "soft")
+__all__ = ["MODES", "HardMode", "MeshEngine", "SoftMode", "Tracer"]
+
 MIN_SCALE = 1e-9  # metres
 
 
@@ -44,24 +44,30 @@ def _row_max(a: np.ndarray) -> np.ndarray:
     return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
 
 
+def _make_core(core: str | TraceCore | None) -> TraceCore:
+    if core is None:
+        core = compiled.default_core_name()
+    if core == "compiled":
+        return compiled.CompiledCore()
+    if core == "reference":
+        return ReferenceCore()
+    if isinstance(core, str):
+        raise InputError(f"core: expected 'compiled', 'reference' or a TraceCore, got {core!r}")
+    return core
+
+
 class Tracer:
     """Build once per static scene, then `trace` any number of ray batches (a `TraceableScene`).
 
     scene: a VoxSplat, a `Gaussians` set (e.g. from a 3DGS PLY) or a TriangleMesh.
-    mode: 'entry' | 'max_response' | 'soft' (ignored for meshes).
-    k: ellipsoid size in standard deviations. opacity_floor: hard modes drop Gaussians below it.
-    core: 'compiled' | 'reference' | a `TraceCore`; default: `compiled.default_core_name()` (the
-    compiled core where it is built; the environment variable SCUBE_SIM_CORE overrides).
-    threads: the compiled core's threads (0: all cores); soft_k_buffer: its soft contributions
-    gathered per traversal (3DGRT's k-buffer; the default 256 is the fastest on the shipped splats
-    in `make bench`: a small buffer re-traverses more, and re-tests every Gaussian it straddles).
-    backend: 'open3d', 'embreex' or 'compiled', the Embree engine for meshes and for the reference
-    core's proxies; default: meshes on the compiled core where it is built (the `threads` knob
-    applies), the reference core's proxies on open3d. proxy: the reference core's 'octahedron' |
-    'icosahedron' (per Gaussian) or 'voxel_box' (one box per voxel). exact_order: the reference
-    core's True (default) returns the nearest exact hit; False stops each ray at the first exact
-    hit found in proxy order (faster; its range error on overlapping Gaussians is measured by
-    `make bench`).
+    mode: what a Gaussian trace computes, a `HardMode` or `SoftMode` (or a mode's name for its
+    defaults; ignored for meshes). The scene keeps the Gaussians at or above the mode's
+    `opacity_floor`, built for its `k`; `mode` may later be set to another mode (or name), read
+    at each call: the kept Gaussians and their k stay those of the build.
+    core: the engine. For Gaussians a `TraceCore`: `compiled.CompiledCore(threads, k_buffer)`,
+    `ReferenceCore(backend, proxy, exact_order)`, or the name 'compiled' | 'reference' for its
+    defaults; default `compiled.default_core_name()` (the compiled core where it is built; the
+    environment variable SCUBE_SIM_CORE overrides). For a mesh a `MeshEngine(backend, threads)`.
     labels: (N,) per-Gaussian labels for a bare `Gaussians` scene.
     A VoxSplat's `reflectance` channel (measured reflectance per Gaussian) is copied into each
     hit's `reflectance` (NaN where the scene has none); the attribute `reflectance` holds it per
@@ -76,72 +82,29 @@ class Tracer:
     def __init__(
         self,
         scene: VoxSplat | Gaussians | TriangleMesh,
+        mode: str | HardMode | SoftMode = "entry",
         *,
-        backend: str | None = None,
-        mode: str = "entry",
-        k: float = 3.0,
-        opacity_floor: float = 0.05,
-        proxy: str = "octahedron",
-        soft_min_transmittance: float = 1e-3,
-        soft_alpha_min: float = 1.0 / 255.0,
-        soft_hit_alpha: float = 0.5,
-        max_iterations: int = 1000,
-        exact_order: bool = True,
+        core: str | TraceCore | MeshEngine | None = None,
         labels: np.ndarray | None = None,
-        core: str | TraceCore | None = None,
-        threads: int = 0,
-        soft_k_buffer: int = 256,
     ):
-        if backend is not None and backend not in BACKENDS:
-            raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
-        if backend is None:
-            backend = default_mesh_backend() if isinstance(scene, TriangleMesh) else DEFAULT_BACKEND
-        if mode not in MODES:
-            raise InputError(f"mode: expected one of {MODES}, got {mode!r}")
-        if not (np.isfinite(k) and k > 0):
-            raise InputError(f"k: expected a positive number of standard deviations, got {k}")
-        if proxy not in gm.PROXY_KINDS:
-            raise InputError(f"proxy: expected one of {gm.PROXY_KINDS}, got {proxy!r}")
-        if proxy == "voxel_box" and not isinstance(scene, VoxSplat):
-            raise InputError("proxy 'voxel_box' needs a VoxSplat scene (Gaussians on a voxel grid)")
-        if int(threads) < 0:
-            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
-        if int(soft_k_buffer) < 1:
-            raise InputError(f"soft_k_buffer: expected at least 1, got {soft_k_buffer}")
-        if not 0.0 <= float(soft_alpha_min) < 1.0:
-            raise InputError(f"soft_alpha_min: expected a value in [0, 1), got {soft_alpha_min}")
-        self.backend_name, self.mode, self.k, self.proxy = backend, mode, float(k), proxy
-        self.opacity_floor = float(opacity_floor)
-        self.soft_min_transmittance = float(soft_min_transmittance)
-        self.soft_alpha_min = float(soft_alpha_min)
-        self.soft_hit_alpha = float(soft_hit_alpha)
-        self.max_iterations = int(max_iterations)
-        self.exact_order = bool(exact_order)
-        self.threads = int(threads)
-        self.soft_k_buffer = int(soft_k_buffer)
+        self.mode = trace_mode(mode)
         self.stats = TraceStats()
         self.is_mesh = isinstance(scene, TriangleMesh)
         if self.is_mesh:
-            self.core = None
+            if core is not None and not isinstance(core, MeshEngine):
+                raise InputError(f"core: a mesh is traced by a MeshEngine(backend, threads), got {core!r}")
+            self.core = core or MeshEngine()
             self._build_mesh(scene)
         else:
-            self.core = self._make_core(core)
+            if isinstance(core, MeshEngine):
+                raise InputError("core: a MeshEngine traces meshes; Gaussians need 'compiled', 'reference' "
+                                 "or a TraceCore")
+            self.core = _make_core(core)
             self._build_gaussians(scene, labels)
-
-    def _make_core(self, core) -> TraceCore:
-        if core is None:
-            core = compiled.default_core_name()
-        if core == "compiled":
-            return compiled.CompiledCore()
-        if core == "reference":
-            return ReferenceCore(self.backend_name, self.proxy)
-        if isinstance(core, str):
-            raise InputError(f"core: expected 'compiled', 'reference' or a TraceCore, got {core!r}")
-        return core
 
     @property
     def core_name(self) -> str:
-        return "mesh" if self.core is None else self.core.name
+        return self.core.name
 
     # --- build -------------------------------------------------------------------------------
     def _build_mesh(self, mesh: TriangleMesh) -> None:
@@ -155,12 +118,13 @@ class Tracer:
         self._set_tolerances(np.abs(v).max() if v.size else 0.0)
         self._set_bounds(v.min(0) if v.size else np.zeros(3), v.max(0) if v.size else np.zeros(3))
         self.num_primitives = mesh.num_faces
-        self._backend = make_backend(self.backend_name, mesh.vertices.astype(np.float32), mesh.faces)
+        self._backend = make_backend(self.core.backend, mesh.vertices.astype(np.float32), mesh.faces)
 
     def _build_gaussians(self, scene, labels) -> None:
         refl = None
         self.provenance = None
-        floor = self.soft_alpha_min if self.mode == "soft" else self.opacity_floor
+        mode = self.mode
+        floor = mode.opacity_floor
         if isinstance(scene, VoxSplat):
             scene.check_finite()
             # The Gaussians at or above the floor, gathered once from the raw slots: fresh arrays
@@ -197,13 +161,13 @@ class Tracer:
         n = len(g)
         # The float32 tolerance follows the scene's extent, bounded per Gaussian by |mean| + k
         # times its largest scale (no rotation needed; a larger bound only widens the margins).
-        extent = float(np.max(_row_max(np.abs(g.means)) + self.k * _row_max(g.scales))) if n else 0.0
+        extent = float(np.max(_row_max(np.abs(g.means)) + mode.k * _row_max(g.scales))) if n else 0.0
         self._set_tolerances(extent)
         self.scene_gaussians = SceneGaussians(
-            gaussians=g, k=self.k, labels=self.labels, colors=g.colors,
+            gaussians=g, k=mode.k, labels=self.labels, colors=g.colors,
             voxel=g.voxel if g.voxel is not None else np.full(n, -1, np.int64), pad=self._pad,
             voxsplat=scene if isinstance(scene, VoxSplat) else None,
-            soft_alpha_min=self.soft_alpha_min if self.mode == "soft" else None)
+            soft_alpha_min=mode.alpha_min if isinstance(mode, SoftMode) else None)
         self.prepared = self.core.prepare(self.scene_gaussians)
         self._lo, self._hi = self.prepared.lo, self.prepared.hi
         self.num_primitives = int(getattr(self.prepared, "num_faces", n))
@@ -253,10 +217,8 @@ class Tracer:
             raise InputError("trace: t_min / t_max contain NaN")
         if self.is_mesh:
             return self._trace_mesh(o, d, tmin, tmax)
-        # The settings are read now: a tracer's mode or exact_order may change between calls.
-        opts = TraceOptions(self.mode, self.exact_order, self.max_iterations, self.soft_min_transmittance,
-                            self.soft_alpha_min, self.soft_hit_alpha, self.soft_k_buffer, self.threads)
-        out = self.core.trace(self.prepared, opts, o, d, tmin, tmax, self.stats)
+        # The mode is read now: it may change between calls.
+        out = self.core.trace(self.prepared, trace_mode(self.mode), o, d, tmin, tmax, self.stats)
         if self.reflectance is not None:
             on = out.hit & (out.gaussian >= 0)
             out.reflectance[on] = self.reflectance[out.gaussian[on]]
@@ -277,7 +239,7 @@ class Tracer:
         out = Hits.empty(n)
         start = o + tmin[:, None] * d
         t32, prim = self._backend.first_hit(start.astype(np.float32), d.astype(np.float32),
-                                            (tmax - tmin).astype(np.float32), threads=self.threads)
+                                            (tmax - tmin).astype(np.float32), threads=self.core.threads)
         self.stats.casts += 1
         self.stats.rays_cast += n
         idx = np.nonzero(prim >= 0)[0]

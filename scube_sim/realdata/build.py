@@ -28,7 +28,7 @@ from ..config import listed_twice
 from ..datasets.base import LidarSweep, Sample
 from ..datasets.origins import require_single_origin
 from ..errors import InputError
-from ..fit import fit_voxsplat
+from ..fit import FitOptions, fit_voxsplat
 from ..lidar.config import LidarConfig, SpinningPattern
 from ..lidar.pattern import channels_by_elevation
 from ..lidar.response import Response
@@ -88,38 +88,44 @@ class Accumulated:
                            new[faces] if len(faces) else faces, self.ring[keep], list(self.responses))
 
 
-def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_range: float = 1.0,
-               max_range: float | None = None, remove: str = "none", speed_threshold: float = 0.5,
-               box_margin: float = 0.1, origin: np.ndarray | None = None, mesh: bool = True,
-               max_edge: float = 0.5, max_edge_rel: float = 0.2, max_angle_deg: float = 1.5,
-               max_incidence_deg: float = 88.0, assume_single_origin: bool = False) -> Accumulated:
+DYNAMIC_SPEED = 0.5  # m/s: remove='dynamic' drops the points in boxes moving faster than this
+BOX_MARGIN = 0.1  # metres: a box holds the points within this of its faces (`points_in_boxes`)
+
+
+def accumulate(samples: list[Sample], opts: BuildOptions | None = None, *,
+               origin: np.ndarray | None = None) -> Accumulated:
     """Gather the sweeps of `samples` in the world frame.
 
-    sensors: which sweeps (default all). Returns closer than `min_range` metres are dropped (the
-    ego body and the no-return placeholders some sets store); `max_range` optionally drops far
-    ones. remove: 'none' | 'dynamic' (points in boxes moving faster than `speed_threshold` m/s,
-    or of unknown speed in multi-sample builds) | 'all' (every box). Points inside remaining boxes
-    take the box's label. origin: the local frame (default: the first sweep's sensor position).
-    mesh: also connect each sweep's neighbouring returns into triangles (`range_image_mesh`; the
-    angle limit widened to a sensor's own ring gap where that is wider: `mesh_angle_deg`).
+    opts: the cloud's settings (default: `BuildOptions`' defaults); read here are sensors,
+    min_range, max_range, remove, mesh, the mesh_* limits and assume_single_origin, not
+    `opts.samples` (the samples are given). sensors: which sweeps (default all). Returns closer
+    than `min_range` metres are dropped (the ego body and the no-return placeholders some sets
+    store); `max_range` optionally drops far ones. remove: 'none' | 'dynamic' (points in boxes
+    moving faster than DYNAMIC_SPEED m/s, or of unknown speed in multi-sample builds) | 'all'
+    (every box). Points inside remaining boxes (BOX_MARGIN metres around) take the box's label.
+    origin: the local frame (float64 world; default: the first sweep's sensor position). mesh:
+    also connect each sweep's neighbouring returns into triangles (`range_image_mesh` with the
+    mesh_* limits; the angle limit widened to a sensor's own ring gap where that is wider:
+    `mesh_angle_deg`).
 
     A cloud merged from several LiDARs (`LidarSweep.merged`) is split by origin first: each part
     is meshed in its own sensor's range image, seen from its own position, with its own sensor
     model (`Sample.lidars` under its origin's name, else the merged sweep's). A sweep without
     origins whose geometry shows several (`datasets.origins.check_origin`) is refused with
-    MergedCloudError, unless `assume_single_origin`.
+    MergedCloudError, unless `opts.assume_single_origin`.
     """
-    if remove not in ("none", "dynamic", "all"):
-        raise InputError(f"remove: expected 'none', 'dynamic' or 'all', got {remove!r}")
+    opts = BuildOptions(samples=[]) if opts is None else opts
+    if opts.remove not in ("none", "dynamic", "all"):
+        raise InputError(f"remove: expected 'none', 'dynamic' or 'all', got {opts.remove!r}")
     sweeps: list[tuple[LidarSweep, list[Box]]] = []
     configs = []  # each sweep's sensor model, where the sample has one
     notes = []
     for s in samples:
         for sw in s.sweeps:
-            if sensors is not None and sw.sensor not in sensors:
+            if opts.sensors is not None and sw.sensor not in opts.sensors:
                 continue
-            if not sw.merged and not assume_single_origin:
-                require_single_origin(sw, f"sample {s.name!r}", min_range=min_range,
+            if not sw.merged and not opts.assume_single_origin:
+                require_single_origin(sw, f"sample {s.name!r}", min_range=opts.min_range,
                                       allow_flag="assume_single_origin=True (scube-sim build --assume-single-origin)")
             parts = sw.by_origin()
             if sw.merged:
@@ -132,29 +138,29 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
     responses = [None if c is None or sw.intensity is None else Response(c.intensity)
                  for c, (sw, _) in zip(configs, sweeps)]
     if not sweeps:
-        raise InputError(f"accumulate: no LiDAR sweeps{'' if sensors is None else ' of ' + ', '.join(sensors)} "
-                         f"in {len(samples)} sample(s)")
+        which = "" if opts.sensors is None else " of " + ", ".join(opts.sensors)
+        raise InputError(f"accumulate: no LiDAR sweeps{which} in {len(samples)} sample(s)")
     origin = sweeps[0][0].sensor_to_world[:3, 3].copy() if origin is None else np.asarray(origin, np.float64)
     parts = {k: [] for k in ("points", "sensor", "intensity", "labels", "sweep", "ring", "faces")}
     removed = 0
     base = 0
     for k, (sw, boxes) in enumerate(sweeps):
         r = np.linalg.norm(sw.points, axis=1)
-        keep = r >= min_range
-        if max_range is not None:
-            keep &= r <= max_range
+        keep = r >= opts.min_range
+        if opts.max_range is not None:
+            keep &= r <= opts.max_range
         sw = sw.subset(keep)
         poses = sw.point_poses()
         world = sw.world_points()
         labels = np.zeros(len(sw), np.int16)
         if boxes:
-            inside = points_in_boxes(world, boxes, margin=box_margin)
+            inside = points_in_boxes(world, boxes, margin=BOX_MARGIN)
             drop = np.zeros(len(boxes), bool)
-            if remove == "all":
+            if opts.remove == "all":
                 drop[:] = True
-            elif remove == "dynamic":
+            elif opts.remove == "dynamic":
                 speeds = np.array([b.speed for b in boxes])
-                drop = speeds > speed_threshold
+                drop = speeds > DYNAMIC_SPEED
                 if len(samples) > 1:
                     drop |= ~np.isfinite(speeds)
             gone = (inside >= 0) & drop[np.maximum(inside, 0)]
@@ -163,10 +169,11 @@ def accumulate(samples: list[Sample], *, sensors: list[str] | None = None, min_r
             labels = np.where(inside >= 0, ids[np.maximum(inside, 0)], 0).astype(np.int16)
             keep2 = ~gone
             world, labels, poses, sw = world[keep2], labels[keep2], poses[keep2], sw.subset(keep2)
-        if mesh and len(sw) >= 3:
-            parts["faces"].append(range_image_mesh(sw.points, max_edge=max_edge, max_edge_rel=max_edge_rel,
-                                                   max_angle_deg=mesh_angle_deg(configs[k], max_angle_deg),
-                                                   max_incidence_deg=max_incidence_deg) + base)
+        if opts.mesh and len(sw) >= 3:
+            parts["faces"].append(range_image_mesh(sw.points, max_edge=opts.mesh_max_edge,
+                                                   max_edge_rel=opts.mesh_max_edge_rel,
+                                                   max_angle_deg=mesh_angle_deg(configs[k], opts.mesh_max_angle_deg),
+                                                   max_incidence_deg=opts.mesh_max_incidence_deg) + base)
         base += len(sw)
         inten = (np.zeros(len(sw), np.float32) if sw.intensity is None
                  else np.clip(sw.intensity / sw.intensity_max, 0, 1).astype(np.float32))
@@ -421,11 +428,12 @@ def build_voxsplat(acc: Accumulated, *, voxel_size: float = 0.1, gaussians_per_v
     table.append(cov_pts[lonely]), index.append(nf + np.arange(lonely.size))
     if measure:
         refl.append(return_reflectance(acc, lonely, pca_normals[lonely]))
-    vs = fit_voxsplat(np.concatenate(pts), voxel_size, gaussians_per_voxel=gaussians_per_voxel,
+    fit = FitOptions(gaussians_per_voxel=gaussians_per_voxel, min_scale=min_scale, max_normal_scale=max_normal_scale,
+                     opacity=opacity)
+    vs = fit_voxsplat(np.concatenate(pts), voxel_size,
                       colors=None if colors is None else np.concatenate(cols), labels=np.concatenate(labs),
                       weights=np.concatenate(wts), patch_cov=(np.concatenate(table), np.concatenate(index)),
-                      origin=acc.origin, min_scale=min_scale, max_normal_scale=max_normal_scale, opacity=opacity,
-                      values={"reflectance": np.concatenate(refl)} if measure else None)
+                      values={"reflectance": np.concatenate(refl)} if measure else None, origin=acc.origin, fit=fit)
     with_model = np.array([r is not None for r in acc.responses] + [False], bool)
     measured = int(with_model[acc.sweep].sum()) if measure else 0
     report = BuildReport(n, acc.removed, colored, vs.num_voxels, int(vs.valid.sum()), float(voxel_size),
@@ -495,10 +503,7 @@ def accumulate_from_dataset(ds, opts: BuildOptions) -> tuple[Accumulated, list[S
     """Load the samples, accumulate their sweeps and carve away what other sweeps saw through."""
     check_build_lists(opts)
     samples = [ds[i] for i in opts.samples]
-    acc = accumulate(samples, sensors=opts.sensors, min_range=opts.min_range, max_range=opts.max_range,
-                     remove=opts.remove, mesh=opts.mesh, max_edge=opts.mesh_max_edge,
-                     max_edge_rel=opts.mesh_max_edge_rel, max_angle_deg=opts.mesh_max_angle_deg,
-                     max_incidence_deg=opts.mesh_max_incidence_deg, assume_single_origin=opts.assume_single_origin)
+    acc = accumulate(samples, opts)
     carved = 0
     for j in opts.carve_with:
         for whole in ds[j].sweeps:

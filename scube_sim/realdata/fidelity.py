@@ -531,36 +531,60 @@ def ground_plane_mesh(ego_pose: np.ndarray, ego_height: float = 0.0, half_size: 
                         origin=pose[:3, 3].copy())
 
 
-def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str = "max_response",
-                 baselines: bool = True, noise: bool = False, min_range: float = 1.0, seed: int = 0,
-                 static_from: list[int] | None = None, raw: bool = False, progress=None,
-                 assume_single_origin: bool = False, ground_plane: bool = False,
-                 regions: bool = False) -> FidelityResult:
-    """Compare a VoxSplat `scene` with the real sweep of `sensor` in `ds[sample]`, next to the
-    two baselines (0.1 m voxel cubes and an open3d Poisson surface of the points the scene was
-    built from: rebuilt here from the build options stored in the scene), all traced on the
-    same rays in the same run. Raw sweeps are also replayed without the motion model.
-    static_from: sample indices whose sweeps find the real returns on moving objects (see
-    `moving_rays`); every row is then also given on the static rays only. raw: compare with the
-    sweep as measured (motion compensation undone with the set's per-point times and poses), so
-    the simulator's motion model is tested; compensated sets are otherwise replayed as stored.
+@dataclass(frozen=True)
+class FidelityOptions:
+    """What `run_fidelity` compares, and how.
+
+    sensor: which sweep of the sample (default its first). mode: the tracer depth of the VoxSplat
+    ('max_response' | 'entry'). baselines: also trace the two baselines (0.1 m voxel cubes and an
+    open3d Poisson surface of the points the scene was built from, rebuilt from the build options
+    stored in the scene). noise: add the sensor model's range noise (off by default: the real
+    points already carry the sensor's noise), drawn with `seed`. min_range: real returns closer
+    than this (metres) are no-returns. static_from: sample indices whose sweeps find the real
+    returns on moving objects (see `moving_rays`); every row is then also given on the static
+    rays only. raw: compare with the sweep as measured (motion compensation undone with the set's
+    per-point times and poses), so the simulator's motion model is tested; compensated sets are
+    otherwise replayed as stored. assume_single_origin: trace a sweep without origins whose
+    geometry shows several LiDARs from its stated origin anyway (`datasets.origins`).
+    ground_plane: add the row of a flat road plane under the ego (`ground_plane_mesh`, the
+    frames' ``ego_height_m`` below it). regions: every row also on the real returns within
+    REGION_MAX_M inside the sample's cameras, ground and above ground apart (`region_masks`),
+    beside a plane fitted to the sweep (its own row), and the surface distances both ways
+    (`surface_distances`) in `FidelityResult.surface`.
+    """
+
+    sensor: str | None = None
+    mode: str = "max_response"
+    baselines: bool = True
+    noise: bool = False
+    min_range: float = 1.0
+    seed: int = 0
+    static_from: list[int] | None = None
+    raw: bool = False
+    assume_single_origin: bool = False
+    ground_plane: bool = False
+    regions: bool = False
+
+
+def run_fidelity(ds, scene, sample: int, opts: FidelityOptions = FidelityOptions(), *,
+                 progress=None) -> FidelityResult:
+    """Compare a VoxSplat `scene` with the real sweep of `opts.sensor` in `ds[sample]`, next to the
+    two baselines (`FidelityOptions.baselines`), all traced on the same rays in the same run. Raw
+    sweeps are also replayed without the motion model. progress: called with a short message
+    before each long step.
 
     A cloud merged from several LiDARs (`LidarSweep.merged`) is traced ray by ray from each
     point's own sensor, with that sensor's model (`Sample.lidars` under its origin's name, else
     the merged sweep's). A sweep without origins whose geometry shows several is refused
-    (`datasets.origins`), unless `assume_single_origin`. ground_plane: add the row of a flat
-    road plane under the ego (`ground_plane_mesh`, the frames' ``ego_height_m`` below it). A scene in a chunk frame (the
-    converter's: metadata ``frame: chunk`` and ``chunk_to_world``) is placed in the world by it.
-    regions: every row also on the real returns within REGION_MAX_M inside the sample's cameras,
-    ground and above ground apart (`region_masks`), beside a plane fitted to the sweep (its own
-    row), and the surface distances both ways (`surface_distances`) in `FidelityResult.surface`."""
+    (`datasets.origins`), unless `opts.assume_single_origin`. A scene in a chunk frame (the
+    converter's: metadata ``frame: chunk`` and ``chunk_to_world``) is placed in the world by it."""
     step = progress or (lambda msg: None)
     smp = ds[sample]
-    sweep = smp.sweep(sensor)
-    if raw:
+    sweep = smp.sweep(opts.sensor)
+    if opts.raw:
         sweep = sweep.raw()
-    if not sweep.merged and not assume_single_origin:
-        require_single_origin(sweep, f"{ds.name}: sample {sample}", min_range=min_range,
+    if not sweep.merged and not opts.assume_single_origin:
+        require_single_origin(sweep, f"{ds.name}: sample {sample}", min_range=opts.min_range,
                               allow_flag="assume_single_origin=True (scube-sim fidelity --assume-single-origin)")
     parts = sweep.by_origin()
     specs = [smp.lidars.get(p.sensor) or smp.lidars.get(sweep.sensor) for p in parts]
@@ -568,7 +592,7 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         if spec is None:
             raise InputError(f"{ds.name}: sample {sample} has no LiDAR model for sensor {p.sensor!r}")
     configs = [spec.config for spec in specs]
-    part_rays = [real_rays(p, min_range=min_range) for p in parts]
+    part_rays = [real_rays(p, min_range=opts.min_range) for p in parts]
     rays = concat_rays(part_rays, [invert_pose(sweep.sensor_to_world) @ p.sensor_to_world for p in parts])
     notes = list(rays.notes)
     if sweep.merged:
@@ -576,12 +600,12 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
                      f"traced from its own sensor with its own model; range-image rows stacked in that order")
 
     def simulate(sc, **kw) -> SimRays:
-        return concat_sims([simulate_rays(sc, c, r, p, noise=noise, seed=seed, **kw)
+        return concat_sims([simulate_rays(sc, c, r, p, noise=opts.noise, seed=opts.seed, **kw)
                             for c, r, p in zip(configs, part_rays, parts)])
 
     rows, images = {}, {"real": range_image(rays, rays.range)}
     step("tracing the VoxSplat")
-    tracer = Tracer(scene, mode=mode)
+    tracer = Tracer(scene, mode=opts.mode)
     placed = place_scene(tracer, scene)  # a converted scene lives in its chunk frame
     sim = simulate(placed)
     sims = {"voxsplat": sim}
@@ -606,25 +630,25 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         sims["voxsplat, no motion model"] = simulate(placed, distortion=False)
         notes.append("raw sweep: 'voxsplat' fires each ray from the sensor pose at its own time (per-point "
                      "offsets, real pose stream); 'no motion model' fires all from the sweep-time pose")
-    if ground_plane:
+    if opts.ground_plane:
         step("tracing the flat ground plane")
         height = float((smp.frames.metadata if smp.frames is not None else {}).get("ego_height_m", 0.0))
         sims[GROUND_ROW] = simulate(Tracer(ground_plane_mesh(smp.ego_pose, height)))
     build = scene.metadata.get("build") if isinstance(scene.metadata, dict) else None
-    if baselines and build is not None and scene.metadata.get("dataset") == ds.name:
+    if opts.baselines and build is not None and scene.metadata.get("dataset") == ds.name:
         step("building the baselines")
-        opts = BuildOptions(**build)
-        acc, _ = accumulate_from_dataset(ds, opts)
-        cubes = Tracer(voxel_cube_mesh(acc.points, opts.voxel_size, acc.origin))
-        sims[f"baseline: {opts.voxel_size:g} m voxel cubes"] = simulate(cubes)
+        built = BuildOptions(**build)  # the points the scene was built from
+        acc, _ = accumulate_from_dataset(ds, built)
+        cubes = Tracer(voxel_cube_mesh(acc.points, built.voxel_size, acc.origin))
+        sims[f"baseline: {built.voxel_size:g} m voxel cubes"] = simulate(cubes)
         normals, _ = surface_patches(acc.points, acc.sensor)
         pm = poisson_mesh(acc.points, normals, origin=acc.origin)
         sims["baseline: Poisson surface (open3d, depth 10)"] = simulate(Tracer(pm))
-        notes.append(f"baselines rebuilt from the scene's input: {len(acc)} points of sample(s) {opts.samples}")
-    elif baselines:
+        notes.append(f"baselines rebuilt from the scene's input: {len(acc)} points of sample(s) {built.samples}")
+    elif opts.baselines:
         notes.append("baselines skipped: the scene was not built from this dataset by `scube-sim build`")
     masks, plane, world = ({}, None, None)
-    if regions:
+    if opts.regions:
         if smp.frames is None or not smp.frames.images:
             raise InputError(f"{ds.name}: sample {sample} has no camera images: --regions scores the cameras' view")
         masks, plane, world = region_masks(rays, sweep, smp.frames)
@@ -640,19 +664,19 @@ def run_fidelity(ds, scene, *, sample: int, sensor: str | None = None, mode: str
         rows[name] = compare(rays, sr)
         for region, m in masks.items():
             rows[f"{name} [camera view, {region}]"] = compare(rays, sr, mask=m)
-    if static_from:
+    if opts.static_from:
         step("finding returns on moving objects")
-        moving = np.concatenate([moving_rays(ds, p, r, static_from, [sweep.sensor])
+        moving = np.concatenate([moving_rays(ds, p, r, opts.static_from, [sweep.sensor])
                                  for p, r in zip(parts, part_rays)])
         for name, sr in list(sims.items()):
             rows[f"{name} [static rays]"] = compare(rays, sr, mask=~moving)
         notes.append(f"[static rays]: {int(moving.sum())} of {int(rays.hit.sum())} real returns lie on objects "
-                     f"that moved (seen through by the sweeps of sample(s) {static_from}, grown to whole "
+                     f"that moved (seen through by the sweeps of sample(s) {opts.static_from}, grown to whole "
                      f"objects above the ground plane) and are left out")
-    if not noise:
+    if not opts.noise:
         notes.append("range noise off in the simulated sensor (the real points carry the real noise)")
     models = "; ".join(f"{c.name} (range {c.range.min_m}-{c.range.max_m} m)" for c in configs)
-    notes.append(f"tracer depth: {mode}; sensor model{'s' if len(configs) > 1 else ''}: {models}, incidence drop "
+    notes.append(f"tracer depth: {opts.mode}; sensor model{'s' if len(configs) > 1 else ''}: {models}, incidence drop "
                  f"off: real sensors return at grazing angles")
     images["error (voxsplat - real)"] = images["voxsplat"] - images["real"]
     mismatch = range_image(rays, np.where(rays.hit != sim.hit, 1.0, np.nan)) > 0

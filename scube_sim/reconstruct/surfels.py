@@ -15,7 +15,7 @@ import numpy as np
 from ..boxes import Box, points_in_boxes
 from ..camera.depth import project_to_pixels
 from ..errors import InputError
-from ..fit import fit_voxsplat
+from ..fit import FitOptions, fit_voxsplat
 from ..labels import LABEL_IDS
 from ..splat_params import SCALE
 from ..voxsplat import VoxSplat, voxel_keys
@@ -63,9 +63,9 @@ def evidence_voxsplat(grid: FusedGrid, *, gaussians_per_voxel: int = 4, max_norm
         w = np.concatenate([w, np.ones(n)])
         lab = None if labels is None else np.concatenate([labels, unobserved.labels])
         seen = np.concatenate([seen, np.zeros(n, bool)])
-    out = fit_voxsplat(pts - grid.origin, grid.voxel_size, gaussians_per_voxel=gaussians_per_voxel, colors=cols,
-                       labels=lab, weights=w, origin=grid.origin, max_normal_scale=max_normal_scale,
-                       patch_cov=(patch, np.arange(len(pts))))
+    out = fit_voxsplat(pts - grid.origin, grid.voxel_size, colors=cols, labels=lab, weights=w,
+                       patch_cov=(patch, np.arange(len(pts))), origin=grid.origin,
+                       fit=FitOptions(gaussians_per_voxel=gaussians_per_voxel, max_normal_scale=max_normal_scale))
     keys = voxel_keys(out.ijk)
     observed = np.zeros(out.num_voxels, bool)
     conf = np.full(out.num_voxels, np.nan if unobserved is None else unobserved.confidence, np.float32)

@@ -17,21 +17,25 @@ from ..boxes import Box, points_in_boxes
 from ..camera.frames import Frames
 from ..labels import GROUND_LABEL_NAMES, LABEL_IDS
 from ..raytrace.posed import scene_to_world
-from ..raytrace.tracer import Tracer
+from ..raytrace.tracer import HardMode, SoftMode, Tracer
 from ..transforms import transform_points
 from ..voxsplat import VoxSplat
 from .scene import Part, SimScene
 
 DEFAULT_MODE = "max_response"  # scenes that name no trace mode (ground-truth and measured VoxSplats)
 
-__all__ = ["remove_boxes", "scene_part", "simulated_scene"]
+__all__ = ["remove_boxes", "scene_mode", "scene_part", "simulated_scene"]
 
 
-def scene_part(scene: VoxSplat, *, name: str = "scene", mode: str | None = None, tracer_kw: dict | None = None) -> Part:
+def scene_part(scene: VoxSplat, *, name: str = "scene", mode: str | HardMode | SoftMode | None = None) -> Part:
     """A static `Part` of a VoxSplat: placed by `scene_to_world`, traced in `mode` (default: the
     scene's metadata ``trace_mode``, else DEFAULT_MODE)."""
-    mode = mode or scene.metadata.get("trace_mode", DEFAULT_MODE)
-    return Part(Tracer(scene, mode=mode, **(tracer_kw or {})), pose=scene_to_world(scene), name=name)
+    return Part(Tracer(scene, mode or scene_mode(scene)), pose=scene_to_world(scene), name=name)
+
+
+def scene_mode(scene: VoxSplat) -> str:
+    """The trace mode a VoxSplat names (metadata ``trace_mode``), else DEFAULT_MODE."""
+    return scene.metadata.get("trace_mode", DEFAULT_MODE)
 
 
 def remove_boxes(scene: VoxSplat, boxes: list[Box], *, margin: float | None = None) -> tuple[VoxSplat, int]:

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..boxes import Box
 from ..raytrace.compose import nearest_hits
-from ..raytrace.contracts import TraceableScene
+from ..raytrace.contracts import HardMode, SoftMode, TraceableScene, trace_mode
 from ..raytrace.hits import Hits
 from ..raytrace.tracer import Tracer
 from ..transforms import PoseFn, check_pose, check_poses
@@ -317,10 +317,10 @@ class ChunkSet:
     ego are loaded and traced; farther ones are released, so memory follows what the sensors can
     see, not the length of the drive."""
 
-    def __init__(self, chunks: list[ChunkSpec], reach: float, tracer_kw: dict | None = None):
+    def __init__(self, chunks: list[ChunkSpec], reach: float, mode: str | HardMode | SoftMode = "entry"):
         self.chunks = list(chunks)
         self.reach = float(reach)
-        self.tracer_kw = dict(tracer_kw or {})
+        self.mode = trace_mode(mode)  # how every chunk is traced
         self._loaded: dict[int, Part] = {}
         self.loads = 0  # how many times a chunk was built (for tests and reports)
 
@@ -345,7 +345,7 @@ class ChunkSet:
                 del self._loaded[i]
         for i in sorted(want - set(self._loaded)):
             spec = self.chunks[i]
-            self._loaded[i] = Part(Tracer(VoxSplat.load(spec.path), **self.tracer_kw), pose=spec.chunk_to_world,
+            self._loaded[i] = Part(Tracer(VoxSplat.load(spec.path), self.mode), pose=spec.chunk_to_world,
                                    name=spec.path.stem)
             self.loads += 1
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fit import fit_voxsplat
+from ..fit import FitOptions, fit_voxsplat
 from ..mesh import TriangleMesh
 from ..transforms import invert_pose, transform_points
 from ..voxsplat import VoxSplat, voxel_keys
@@ -335,9 +335,9 @@ def gt_voxsplat(mesh: TriangleMesh, chunk_to_world: np.ndarray, voxel_size: floa
         # each Gaussian averages the colour over its samples' spacing: detail finer than that is
         # filtered out as a pixel of that size would (the render's footprint)
         colors = albedo_fn(world_p, world_n, s["labels"][keep], s["colors"][keep], inst, footprint=spacing)
-        parts.append(fit_voxsplat(p[keep], voxel_size, gaussians_per_voxel=gaussians_per_voxel, colors=colors,
-                                  labels=s["labels"][keep], weights=s["weights"][keep],
-                                  patch_cov=(s["patch_cov"], face), origin=CHUNK_CORNER))
+        parts.append(fit_voxsplat(p[keep], voxel_size, colors=colors, labels=s["labels"][keep],
+                                  weights=s["weights"][keep], patch_cov=(s["patch_cov"], face), origin=CHUNK_CORNER,
+                                  fit=FitOptions(gaussians_per_voxel=gaussians_per_voxel)))
     vs = VoxSplat(np.concatenate([q.ijk for q in parts]), np.concatenate([q.params for q in parts]), voxel_size,
                   CHUNK_CORNER, np.concatenate([q.valid for q in parts]), np.concatenate([q.labels for q in parts]))
     vs.metadata.update({"frame": "chunk", "chunk_corner": CHUNK_CORNER.tolist(),

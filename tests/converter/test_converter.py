@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from scube_sim.camera.frames import CameraImage, Frames
 from scube_sim.camera.model import Intrinsics
 from scube_sim.cli import app
-from scube_sim.converter.frames import frames_item, open_frames
+from scube_sim.converter.frames import network_inputs, open_frames
 from scube_sim.converter.pipeline import Converter
 from scube_sim.converter.profile import FineProfile, load_profile
 from scube_sim.datasets import open_dataset
@@ -178,7 +178,7 @@ def test_any_image_size_meets_the_network_at_its_focal_length(tiny_converter):
     fov = 2 * np.arctan(base.intrinsics.width / 2 / base.intrinsics.K[0, 0])
     cams = [_camera(f"c{w}", w, h, w / 2 / np.tan(fov / 2), base.cam_to_world) for w, h in ((64, 48), (4000, 3000))]
     frames = Frames(cams, _frames(tiny_converter).ego_pose, 0.0, {"sample": "sizes"})
-    item = frames_item(frames, conv.profile.geometry)
+    item = network_inputs(frames, conv.profile.geometry)
     small, large = item["image_size"].tolist()
     assert abs(small[1] - large[1]) <= 1 and abs(small[0] - large[0]) <= 1
     # the profile's focal length is the dataset camera's: the same field of view, the same width
@@ -244,7 +244,7 @@ def test_real_frames_convert_and_a_lidar_only_log_is_refused(tiny_converter, sha
     frames = open_frames(root, "nuscenes", 0)
     assert len(frames) == 6 and frames.metadata["dataset"] == "nuscenes"
     conv = Converter(tiny_converter["profile"])
-    item = frames_item(frames, conv.profile.geometry)
+    item = network_inputs(frames, conv.profile.geometry)
     np.testing.assert_allclose(item["intrinsics"][:, 0, 0].numpy(), conv.profile.geometry.focal_px, rtol=0.01)
     vs = conv.convert(frames, seed=0, sky=False).scene
     assert np.isfinite(vs.params).all() and vs.metadata["cameras"] == frames.names

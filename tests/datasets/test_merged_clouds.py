@@ -23,7 +23,7 @@ from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.realdata.build import BuildOptions, accumulate, build_from_dataset
-from scube_sim.realdata.fidelity import run_fidelity
+from scube_sim.realdata.fidelity import FidelityOptions, run_fidelity
 from scube_sim.transforms import pose_from_xyz_rpy, transform_points
 from scube_sim.worlds import primitives as pr
 from tests.conftest import require
@@ -130,9 +130,10 @@ def test_build_and_fidelity_trace_each_return_from_its_own_sensor(two_sweeps):
     used, ground = in_triangles(acc), (acc.points + acc.origin)[:, 2] < 0.01
     assert used[acc.sweep == 0].mean() > 0.9 and used[acc.sweep == 1].mean() > 0.6 and used[ground].mean() > 0.7
     # ... where one range image from the stated origin (ground level) sees the ground edge-on.
-    bare_acc = accumulate([Sample("s0", 0.0, EGO, sweeps=[without_origins(merged)])], assume_single_origin=True)
+    bare_acc = accumulate([Sample("s0", 0.0, EGO, sweeps=[without_origins(merged)])],
+                          BuildOptions(samples=[0], assume_single_origin=True))
     assert in_triangles(bare_acc)[(bare_acc.points + bare_acc.origin)[:, 2] < 0.01].mean() < 0.05
-    res = run_fidelity(ds, vs, sample=0, baselines=False)
+    res = run_fidelity(ds, vs, 0, FidelityOptions(baselines=False))
     m = res.rows["voxsplat"]
     assert m["hit_agreement"] > 0.99 and m["median_abs_m"] < 0.01 and m["p90_abs_m"] < 0.05
     assert m["chamfer_m"] < 0.02
@@ -143,9 +144,9 @@ def test_build_and_fidelity_trace_each_return_from_its_own_sensor(two_sweeps):
                                                r"assume-single-origin"):
         build_from_dataset(bare, BuildOptions(samples=[0], color=False, reflectance=False))
     with pytest.raises(MergedCloudError, match=r"synthetic: sample 0: sweep 'merged' .*above the ground"):
-        run_fidelity(bare, vs, sample=0, baselines=False)
+        run_fidelity(bare, vs, 0, FidelityOptions(baselines=False))
     # ... and forcing it through shows why: traced from ground level the ranges are metres off.
-    forced = run_fidelity(bare, vs, sample=0, baselines=False, assume_single_origin=True)
+    forced = run_fidelity(bare, vs, 0, FidelityOptions(baselines=False, assume_single_origin=True))
     assert forced.rows["voxsplat"]["median_abs_m"] > 0.3
 
 
@@ -240,7 +241,7 @@ def test_argoverse2_table_in_its_ego_frame_is_refused_and_split_by_laser_number(
     c = check_origin(table)
     assert not c.single_origin and c.seen_through > 0.15 and c.origin_height_m < 0.3
     with pytest.raises(MergedCloudError, match=r"sweep 'lidar' \(.*\.feather\) looks merged"):
-        accumulate([Sample("t", s.timestamp, s.ego_pose, sweeps=[table])], mesh=False)
+        accumulate([Sample("t", s.timestamp, s.ego_pose, sweeps=[table])], BuildOptions(samples=[0], mesh=False))
     merged = dataclasses.replace(table, origin_id=(cols["laser_number"] // 32).astype(np.int16),
                                  origins=np.stack([s.lidars[n].sensor_to_ego for n in ("up_lidar", "down_lidar")]),
                                  origin_names=("up_lidar", "down_lidar"))

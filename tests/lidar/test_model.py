@@ -9,13 +9,12 @@ from scube_sim.labels import LABEL_REFLECTIVITY, label_id
 from scube_sim.lidar.config import config_from_dict, load_lidar_config
 from scube_sim.lidar.model import POINT_DTYPE, Lidar
 from scube_sim.mesh import TriangleMesh
-from scube_sim.raytrace.backends import BACKENDS
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.transforms import make_pose, pose_from_xyz_rpy
 from scube_sim.voxsplat import Gaussians, VoxSplat
 from scube_sim.worlds import primitives as pr
 
-from ..raytrace.engines import backend_kw
+from ..raytrace.engines import ENGINES, core_of
 
 WALL = label_id("building")
 
@@ -58,13 +57,13 @@ def plane_of_gaussians(x=10.0, half_y=14.0, half_z=6.0, spacing=0.1, sigma_n=1e-
 # --- geometry --------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
-def test_plane_of_gaussians_at_10m_matches_the_plane_within_noise(backend):
+@pytest.mark.parametrize("name", ENGINES)
+def test_plane_of_gaussians_at_10m_matches_the_plane_within_noise(name):
     g = plane_of_gaussians()
     sigma = 0.02
     cfg = spinning(np.linspace(-15, 15, 16), columns=720, noise={"range_sigma_m": sigma},
                    intensity={"source": "constant"})
-    sweep = Lidar(cfg).scan(Tracer(g, **backend_kw(backend), mode="max_response"), np.eye(4), seed=3)
+    sweep = Lidar(cfg).scan(Tracer(g, "max_response", core=core_of(name)), np.eye(4), seed=3)
     p = sweep.points
     front = np.abs(p["azimuth"]) < np.deg2rad(40)
     assert front.sum() > 1000

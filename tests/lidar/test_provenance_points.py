@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scube_sim.fit import fit_voxsplat
+from scube_sim.fit import FitOptions, fit_voxsplat
 from scube_sim.io.pointcloud import write_npz, write_pcd
 from scube_sim.lidar.config import load_lidar_config
 from scube_sim.lidar.model import CONVERTED_POINT_DTYPE, POINT_DTYPE, Lidar
@@ -26,7 +26,7 @@ def _wall(x: float, spacing: float = 0.05) -> np.ndarray:
 def converted():
     """Two walls, 10 m in front of and behind the sensor; the front one 'seen' (observed 1,
     confidence 0.8 per voxel), the back one inferred (observed 0, confidence 0.3)."""
-    vs = fit_voxsplat(np.concatenate([_wall(10.0), _wall(-10.0)]), 0.5, gaussians_per_voxel=1)
+    vs = fit_voxsplat(np.concatenate([_wall(10.0), _wall(-10.0)]), 0.5, fit=FitOptions(gaussians_per_voxel=1))
     front = vs.voxel_centers()[:, 0] > 0
     vs.set_channel("observed", front)
     vs.set_channel("confidence", np.where(front, 0.8, 0.3).astype(np.float32))
@@ -57,7 +57,7 @@ def test_returns_carry_their_voxels_channels_and_one_on_surfaces_not_inferred(co
 
 
 def test_a_scene_without_the_channels_gives_the_plain_point_records(converted):
-    plain = fit_voxsplat(_wall(10.0), 0.5, gaussians_per_voxel=1)
+    plain = fit_voxsplat(_wall(10.0), 0.5, fit=FitOptions(gaussians_per_voxel=1))
     assert _lidar().scan(Tracer(plain, mode="entry"), np.eye(4)).points.dtype == POINT_DTYPE
     mesh = TriangleMesh(np.array([[5, -5, -2.0], [5, 5, -2], [5, 5, 4], [5, -5, 4]]), np.array([[0, 1, 2], [0, 2, 3]]))
     assert _lidar().scan(Tracer(mesh), np.eye(4)).points.dtype == POINT_DTYPE

@@ -10,25 +10,29 @@ import os
 
 import pytest
 
-from scube_sim.raytrace import compiled
+from scube_sim.raytrace import CompiledCore, MeshEngine, ReferenceCore, compiled
 
-ENGINES = {
-    "compiled": {"core": "compiled"},
-    "reference-open3d": {"core": "reference", "backend": "open3d"},
-    "reference-embreex": {"core": "reference", "backend": "embreex"},
-}
+ENGINES = ("compiled", "reference-open3d", "reference-embreex")
 ALLOW_NO_CORE = os.environ.get("SCUBE_SIM_ALLOW_NO_CORE", "") == "1"
 
 
-def engine_kw(name: str) -> dict:
-    """Tracer keyword arguments of an engine (skips the compiled one where allowed to be absent)."""
-    if name == "compiled" and not compiled.available() and ALLOW_NO_CORE:
+def require_compiled() -> None:
+    """Skip where SCUBE_SIM_ALLOW_NO_CORE=1 and the compiled core is not built; else nothing."""
+    if not compiled.available() and ALLOW_NO_CORE:
         pytest.skip(f"SCUBE_SIM_ALLOW_NO_CORE=1 and the compiled core is not built: {compiled.load_error()}")
-    return dict(ENGINES[name])
 
 
-def backend_kw(name: str) -> dict:
-    """Tracer keyword arguments of a mesh engine (skips the compiled one where allowed to be absent)."""
+def core_of(name: str, proxy: str = "octahedron", **compiled_settings):
+    """The `TraceCore` of an engine of ENGINES: the reference walk with `proxy` on its backend,
+    or the compiled core with `compiled_settings` (it has no proxies)."""
     if name == "compiled":
-        engine_kw("compiled")
-    return {"backend": name}
+        require_compiled()
+        return CompiledCore(**compiled_settings)
+    return ReferenceCore(name.removeprefix("reference-"), proxy)
+
+
+def mesh_engine(name: str, threads: int = 0) -> MeshEngine:
+    """A mesh engine on the backend `name` (skips the compiled one where allowed to be absent)."""
+    if name == "compiled":
+        require_compiled()
+    return MeshEngine(name, threads)

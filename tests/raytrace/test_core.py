@@ -9,11 +9,11 @@ import functools
 import numpy as np
 import pytest
 
-from scube_sim.raytrace import Tracer, compiled
-from scube_sim.raytrace.contracts import SceneGaussians, TraceOptions
+from scube_sim.raytrace import HardMode, MeshEngine, SoftMode, Tracer, compiled
+from scube_sim.raytrace.contracts import SceneGaussians
 from scube_sim.raytrace.reference import PreparedGaussians, ReferenceCore
 
-from .engines import ALLOW_NO_CORE, engine_kw
+from .engines import ALLOW_NO_CORE, core_of, mesh_engine, require_compiled
 from .oracles import brute_force_hard, sampled_soft_composite
 from .test_tracer import K, random_rays, random_scene
 
@@ -21,8 +21,9 @@ from .test_tracer import K, random_rays, random_scene
 CORES = ("compiled", "reference")
 
 
-def core_kw(core: str) -> dict:
-    return engine_kw("compiled") if core == "compiled" else {"core": "reference"}
+def core_by_name(core: str, **compiled_settings):
+    """The core of CORES named `core` (the reference on its default backend)."""
+    return core_of("compiled", **compiled_settings) if core == "compiled" else ReferenceCore()
 
 
 class RecordingCore:
@@ -37,9 +38,9 @@ class RecordingCore:
         self.calls.append(("prepare", scene))
         return self.inner.prepare(scene)
 
-    def trace(self, prepared, opts, o, d, tmin, tmax, stats):
-        self.calls.append(("trace", prepared, opts, o.shape[0]))
-        return self.inner.trace(prepared, opts, o, d, tmin, tmax, stats)
+    def trace(self, prepared, mode, o, d, tmin, tmax, stats):
+        self.calls.append(("trace", prepared, mode, o.shape[0]))
+        return self.inner.trace(prepared, mode, o, d, tmin, tmax, stats)
 
 
 def test_the_compiled_core_is_built():
@@ -58,7 +59,7 @@ def test_core_nearest_hit_equals_brute_force(core, mode, rng):
     g, rots = random_scene(rng, n=150)
     o, d = random_rays(rng, 1500)
     want = brute_force_hard(o, d, g.means, rots, g.scales, K, mode)
-    h = Tracer(g, mode=mode, opacity_floor=0.0, **core_kw(core)).trace(o, d)
+    h = Tracer(g, HardMode(mode, opacity_floor=0.0), core=core_by_name(core)).trace(o, d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)
 
@@ -69,7 +70,8 @@ def test_core_soft_compositing_equals_sampled_integration(core, rng):
     g.opacities = rng.uniform(0.02, 0.5, len(g))
     o, d = random_rays(rng, 30, radius=6.0)
     # embreex has no all-hits listing, so the reference runs its walk, not open3d's listing.
-    tr = Tracer(g, backend="embreex", mode="soft", soft_hit_alpha=0.0, **core_kw(core))
+    engine = core_by_name(core) if core == "compiled" else ReferenceCore("embreex")
+    tr = Tracer(g, SoftMode(hit_alpha=0.0), core=engine)
     h = tr.trace(o, d, 0.0, 12.0)
     depth, acc = sampled_soft_composite(o, d, g.means, rots, g.scales, g.opacities, K, t_max=12.0)
     has = acc > 0
@@ -87,8 +89,9 @@ def test_compiled_agrees_with_the_reference_ray_for_ray(mode, seed):
     # Soft rays may start inside Gaussians; a reference hard ray starting inside a proxy can miss
     # it (see reference.py), so hard rays start outside them all (the exhaustive test has both).
     tmin = rng.uniform(0.0, 4.0, len(o)) if mode == "soft" else np.zeros(len(o))
-    ref = Tracer(g, mode=mode, opacity_floor=0.0, core="reference").trace(o, d, tmin, 30.0)
-    got = Tracer(g, mode=mode, opacity_floor=0.0, **engine_kw("compiled")).trace(o, d, tmin, 30.0)
+    trace_as = SoftMode() if mode == "soft" else HardMode(mode, opacity_floor=0.0)
+    ref = Tracer(g, trace_as, core="reference").trace(o, d, tmin, 30.0)
+    got = Tracer(g, trace_as, core=core_of("compiled")).trace(o, d, tmin, 30.0)
     assert got.hit.any() and not got.hit.all()
     assert np.array_equal(got.hit, ref.hit) and np.array_equal(got.gaussian, ref.gaussian)
     # Soft depths are weighted means summed in another order (the reference's global cumsum).
@@ -110,7 +113,7 @@ def test_compiled_equals_an_exhaustive_listing_on_a_voxsplat(start_inside, rng):
 
     g, _ = random_scene(rng, n=400, spread=3.0, smin=0.02, smax=0.3)
     vs = VoxSplat.from_gaussians(g, voxel_size=0.5)
-    tr = Tracer(vs, opacity_floor=0.0, **engine_kw("compiled"))
+    tr = Tracer(vs, HardMode(opacity_floor=0.0), core=core_of("compiled"))
     o, d = random_rays(rng, 800, radius=7.0)
     o = o - tr.origin
     tmin = rng.uniform(4.0, 10.0, len(o)) if start_inside else np.zeros(len(o))
@@ -135,7 +138,7 @@ def test_compiled_gives_the_same_bytes_for_any_thread_count(mode, rng):
     g, _ = random_scene(rng, n=500, smin=0.05, smax=0.9)
     g.opacities = rng.uniform(0.02, 0.9, len(g))
     o, d = random_rays(rng, 20_000)
-    outs = [Tracer(g, mode=mode, threads=t, **engine_kw("compiled")).trace(o, d) for t in (1, 2, 3, 8)]
+    outs = [Tracer(g, mode, core=core_of("compiled", threads=t)).trace(o, d) for t in (1, 2, 3, 8)]
     for h in outs[1:]:
         for name in h.__dataclass_fields__:
             assert getattr(h, name).tobytes() == getattr(outs[0], name).tobytes(), name
@@ -153,7 +156,7 @@ def test_the_storage_order_and_the_input_order_change_no_answer(mode, rng, monke
     def trace(gs, morton):
         with monkeypatch.context() as m:
             m.setattr(compiled, "_build", functools.partial(compiled._build, morton=morton))
-            tr = Tracer(gs, mode=mode, soft_hit_alpha=0.1, **engine_kw("compiled"))
+            tr = Tracer(gs, SoftMode(hit_alpha=0.1) if mode == "soft" else mode, core=core_of("compiled"))
             return tr.trace(o, d), tr.gaussians.means
 
     (a, means), (b, _) = trace(g, True), trace(g, False)
@@ -176,7 +179,7 @@ def test_soft_k_buffer_size_changes_the_work_not_the_answer(rng):
     o, d = random_rays(rng, 2000, radius=6.0)
     res = {}
     for kb in (1, 3, 16, 64):
-        tr = Tracer(g, mode="soft", soft_hit_alpha=0.0, soft_k_buffer=kb, **engine_kw("compiled"))
+        tr = Tracer(g, SoftMode(hit_alpha=0.0), core=core_of("compiled", k_buffer=kb))
         res[kb] = (tr.trace(o, d), tr.stats.rays_cast)
     ref = res[64][0]
     for kb in (1, 3, 16):
@@ -194,10 +197,9 @@ def test_soft_boxes_end_where_the_response_reaches_alpha_min(rng):
     g, rots = random_scene(rng, n=400, spread=3.0, smin=0.05, smax=0.7)
     g.opacities = np.exp(rng.uniform(np.log(0.001), 0.0, len(g)))  # many faint Gaussians
     o, d = random_rays(rng, 3000, radius=7.0)
-    kw = dict(soft_hit_alpha=0.0, opacity_floor=1.0 / 255.0, **engine_kw("compiled"))
-    soft = Tracer(g, mode="soft", **kw)
-    ksigma = Tracer(g, mode="entry", **kw)
-    ksigma.mode = "soft"
+    soft = Tracer(g, SoftMode(hit_alpha=0.0), core=core_of("compiled"))
+    ksigma = Tracer(g, HardMode("entry", opacity_floor=1.0 / 255.0), core=core_of("compiled"))
+    ksigma.mode = SoftMode(hit_alpha=0.0)
     a, b = soft.trace(o, d), ksigma.trace(o, d)
     assert a.hit.sum() > 100
     for name in a.__dataclass_fields__:
@@ -213,7 +215,7 @@ def test_soft_boxes_end_where_the_response_reaches_alpha_min(rng):
     assert np.array_equal(got.hit, np.isfinite(want_kept))
     np.testing.assert_allclose(got.t[got.hit], want_kept[got.hit], rtol=1e-9, atol=1e-9)
     # A lower alpha floor than the boxes were built for: the k-sigma boxes answer it.
-    soft.mode, ksigma.soft_alpha_min, soft.soft_alpha_min = "soft", 1e-3, 1e-3
+    soft.mode = ksigma.mode = SoftMode(hit_alpha=0.0, alpha_min=1e-3)
     a, b = soft.trace(o, d), ksigma.trace(o, d)
     assert a.t.tobytes() == b.t.tobytes() and a.alpha.tobytes() == b.alpha.tobytes()
 
@@ -225,11 +227,11 @@ def test_the_core_refuses_a_hard_mode_on_soft_boxes(rng):
     c = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
     scene = compiled._core.GaussianScene(*c, 3.0, 1e-6, 1.0 / 255.0)
     assert scene.alpha_min == pytest.approx(1.0 / 255.0)
-    tr = Tracer(g, mode="soft", **engine_kw("compiled"))
+    tr = Tracer(g, mode="soft", core=core_of("compiled"))
     o, d = random_rays(rng, 10)
     with pytest.raises(ValueError, match="soft mode with soft_alpha_min"):
         tr.core.trace(compiled.CompiledScene(tr.scene_gaussians, tr.prepared.lo, tr.prepared.hi, handle=scene),
-                      TraceOptions("entry"), o, d, np.zeros(10), np.full(10, 30.0), tr.stats)
+                      HardMode("entry"), o, d, np.zeros(10), np.full(10, 30.0), tr.stats)
 
 
 def test_meshes_go_to_the_compiled_core_the_same_bytes_for_any_thread_count(rng):
@@ -239,17 +241,17 @@ def test_meshes_go_to_the_compiled_core_the_same_bytes_for_any_thread_count(rng)
     from scube_sim.raytrace.backends import make_backend
     from scube_sim.worlds.street import street_scene
 
-    engine_kw("compiled")
+    mesh_engine("compiled")
     mesh = street_scene()
-    assert Tracer(mesh).backend_name == "compiled"
+    assert Tracer(mesh).core.backend == "compiled"
     o = np.tile([0.0, -2.0, 1.8], (20_000, 1)) + rng.normal(scale=0.2, size=(20_000, 3))
     d = rng.normal(size=(20_000, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    got = [Tracer(mesh, threads=t).trace(o, d, 0.0, 80.0) for t in (1, 2, 5)]
+    got = [Tracer(mesh, core=MeshEngine(threads=t)).trace(o, d, 0.0, 80.0) for t in (1, 2, 5)]
     for h in got[1:]:
         for name in h.__dataclass_fields__:
             assert getattr(h, name).tobytes() == getattr(got[0], name).tobytes(), name
-    ref = Tracer(mesh, backend="open3d").trace(o, d, 0.0, 80.0)
+    ref = Tracer(mesh, core=MeshEngine("open3d")).trace(o, d, 0.0, 80.0)
     assert got[0].hit.sum() > 10_000 and np.mean(got[0].hit == ref.hit) > 0.999
     both = got[0].hit & ref.hit
     assert np.median(np.abs(got[0].t[both] - ref.t[both])) < 1e-9
@@ -269,8 +271,8 @@ def test_compiled_core_and_embreex_in_one_process(rng):
     g, rots = random_scene(rng, n=50)
     o, d = random_rays(rng, 500)
     mesh = TriangleMesh(np.array([[-20.0, -20, -5], [20, -20, -5], [0, 30, -5]]), np.array([[0, 1, 2]], np.int32))
-    m = Tracer(mesh, backend="embreex").trace(o, d)
-    h = Tracer(g, opacity_floor=0.0, **engine_kw("compiled")).trace(o, d)
+    m = Tracer(mesh, core=MeshEngine("embreex")).trace(o, d)
+    h = Tracer(g, HardMode(opacity_floor=0.0), core=core_of("compiled")).trace(o, d)
     want = brute_force_hard(o, d, g.means, rots, g.scales, K, "entry")
     assert np.array_equal(h.hit, np.isfinite(want)) and m.hit.any()
 
@@ -283,11 +285,11 @@ def test_tracer_hands_the_core_its_prepared_scene(mode, rng):
     tr = Tracer(g, mode=mode, core=rec)
     o, d = random_rays(rng, 50)
     h = tr.trace(o, d)
-    (kind0, scene), (kind, prepared, opts, n) = rec.calls
+    (kind0, scene), (kind, prepared, traced_as, n) = rec.calls
     assert (kind0, kind, n) == ("prepare", "trace", 50)
     assert isinstance(scene, SceneGaussians) and len(scene.gaussians) == 30 and scene.k == K
     assert isinstance(prepared, PreparedGaussians) and prepared is tr.prepared
-    assert isinstance(opts, TraceOptions) and opts.mode == mode
+    assert isinstance(traced_as, SoftMode if mode == "soft" else HardMode) and traced_as.name == mode
     assert np.array_equal(h.t, Tracer(g, mode=mode, core="reference").trace(o, d).t)  # the wrapper changes nothing
 
 
@@ -320,21 +322,22 @@ def test_a_missing_core_falls_back_once_with_a_warning(monkeypatch, rng):
 
 
 def test_settings_changed_after_the_build_take_effect(rng):
-    """`mode` and `exact_order` are read at each trace (the tracer benchmark sweeps them on one
-    build): the result equals a tracer built with those settings, and the brute-force oracle."""
+    """`mode` and the reference core's `exact_order` are read at each trace (the tracer benchmark
+    sweeps them on one build): the result equals a tracer built with those settings, and the
+    brute-force oracle."""
     g, rots = random_scene(rng, n=150)
     o, d = random_rays(rng, 1500)
     for core in CORES:
-        tr = Tracer(g, mode="entry", opacity_floor=0.0, **core_kw(core))
-        tr.mode = "max_response"
+        tr = Tracer(g, HardMode("entry", opacity_floor=0.0), core=core_by_name(core))
+        tr.mode = HardMode("max_response")
         got = tr.trace(o, d)
         want = brute_force_hard(o, d, g.means, rots, g.scales, K, "max_response")
         assert np.array_equal(got.hit, np.isfinite(want))
         np.testing.assert_allclose(got.t[got.hit], want[got.hit], rtol=1e-9, atol=1e-9)
-    tr = Tracer(g, mode="max_response", opacity_floor=0.0, core="reference")
-    tr.exact_order = False
+    tr = Tracer(g, HardMode("max_response", opacity_floor=0.0), core="reference")
+    tr.core.exact_order = False
     fast = tr.trace(o, d)
-    ref = Tracer(g, mode="max_response", opacity_floor=0.0, exact_order=False, core="reference").trace(o, d)
+    ref = Tracer(g, HardMode("max_response", opacity_floor=0.0), core=ReferenceCore(exact_order=False)).trace(o, d)
     assert np.array_equal(fast.t, ref.t) and np.array_equal(fast.gaussian, ref.gaussian)
 
 
@@ -342,7 +345,7 @@ def _forked_trace(seed: int) -> bytes:
     rng = np.random.default_rng(seed)
     g, _ = random_scene(rng, n=5000)
     o, d = random_rays(rng, 3000)
-    return Tracer(g, opacity_floor=0.0, core="compiled").trace(o, d).t.tobytes()
+    return Tracer(g, HardMode(opacity_floor=0.0), core="compiled").trace(o, d).t.tobytes()
 
 
 def test_forked_workers_build_and_trace_after_the_parent_did(rng):
@@ -351,7 +354,7 @@ def test_forked_workers_build_and_trace_after_the_parent_did(rng):
     what the parent gets."""
     import multiprocessing as mp
 
-    engine_kw("compiled")
+    require_compiled()
     want = [_forked_trace(s) for s in (1, 2)]
     with mp.get_context("fork").Pool(2) as pool:
         got = pool.map(_forked_trace, [1, 2])

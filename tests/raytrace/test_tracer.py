@@ -9,11 +9,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from scube_sim.mesh import TriangleMesh
+from scube_sim.raytrace import HardMode, ReferenceCore, SoftMode, Tracer
 from scube_sim.raytrace.backends import BACKENDS
-from scube_sim.raytrace.tracer import Tracer
 from scube_sim.voxsplat import Gaussians, VoxSplat
 
-from .engines import ENGINES, backend_kw, engine_kw
+from .engines import ENGINES, core_of, mesh_engine
 from .oracles import brute_force_hard, ellipsoid_quadratic, quat_from_axis_angle, rodrigues, sampled_soft_composite
 
 K = 3.0
@@ -53,7 +53,7 @@ def test_single_gaussian_matches_closed_form(engine, mode, axis, angle, logs, mu
     d /= np.linalg.norm(d, axis=1, keepdims=True)
 
     disc, t_near, _, t_peak = ellipsoid_quadratic(o, d, mu, rot, scales, K)
-    h = Tracer(g, **engine_kw(engine), mode=mode, k=K, opacity_floor=0.0).trace(o, d)
+    h = Tracer(g, HardMode(mode, k=K, opacity_floor=0.0), core=core_of(engine)).trace(o, d)
 
     # Rays within 1e-6 (relative) of tangency are ambiguous in any finite precision: skip them.
     clear = np.abs(disc) > 1e-6 * K * K
@@ -91,7 +91,7 @@ def test_overlapping_gaussians_nearest_hit_equals_brute_force(engine, mode, prox
     g, rots = random_scene(rng)
     o, d = random_rays(rng, 3000)
     want = brute_force_hard(o, d, g.means, rots, g.scales, K, mode)
-    h = Tracer(g, **engine_kw(engine), mode=mode, proxy=proxy, opacity_floor=0.0).trace(o, d)
+    h = Tracer(g, HardMode(mode, opacity_floor=0.0), core=core_of(engine, proxy)).trace(o, d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)
 
@@ -105,7 +105,7 @@ def test_voxel_box_proxies_give_the_same_hits(engine, rng):
     o, d = random_rays(rng, 3000, radius=6.0)
     want = brute_force_hard(o, d, gg.means, rots2, gg.scales, K, "entry")
     for proxy in ("voxel_box", "octahedron"):
-        h = Tracer(vs, **engine_kw(engine), proxy=proxy, opacity_floor=0.0).trace(o, d)
+        h = Tracer(vs, HardMode(opacity_floor=0.0), core=core_of(engine, proxy)).trace(o, d)
         assert np.array_equal(h.hit, np.isfinite(want)), proxy
         np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-6, atol=1e-6)
         # labels and voxels follow the Gaussian that was hit
@@ -118,7 +118,7 @@ def test_soft_mode_matches_sampled_compositing(engine, rng):
     g, rots = random_scene(rng, n=25, spread=2.0, smin=0.2, smax=0.8)
     g.opacities = rng.uniform(0.02, 0.5, len(g))
     o, d = random_rays(rng, 40, radius=6.0)
-    tr = Tracer(g, **engine_kw(engine), mode="soft", soft_hit_alpha=0.0, soft_min_transmittance=1e-3)
+    tr = Tracer(g, SoftMode(hit_alpha=0.0, min_transmittance=1e-3), core=core_of(engine))
     h = tr.trace(o, d, 0.0, 12.0)
     depth, acc = sampled_soft_composite(o, d, g.means, rots, g.scales, g.opacities, K, t_max=12.0)
     has = acc > 0
@@ -131,7 +131,7 @@ def test_soft_mode_matches_sampled_compositing(engine, rng):
 @pytest.mark.parametrize("engine", ENGINES)
 def test_soft_single_gaussian_through_centre(engine):
     g = one_gaussian([5, 0, 0], [0, 0, 1], 0.3, [0.5, 0.2, 0.3], opacity=0.4)
-    h = Tracer(g, **engine_kw(engine), mode="soft", soft_hit_alpha=0.3).trace(np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
+    h = Tracer(g, SoftMode(hit_alpha=0.3), core=core_of(engine)).trace(np.zeros((1, 3)), np.array([[1.0, 0, 0]]))
     assert h.hit[0]
     assert h.t[0] == pytest.approx(5.0, abs=1e-9)
     assert h.alpha[0] == pytest.approx(0.4, abs=1e-6)
@@ -151,7 +151,7 @@ def test_mesh_first_hit_is_exact(backend, rng):
     o = rng.uniform(-2, 2, (500, 3))
     d = (p0 + rng.uniform(-10, 10, (500, 1)) * u + rng.uniform(-10, 10, (500, 1)) * v) - o
     d /= np.linalg.norm(d, axis=1, keepdims=True)
-    h = Tracer(mesh, **backend_kw(backend)).trace(o, d)
+    h = Tracer(mesh, core=mesh_engine(backend)).trace(o, d)
     t_true = ((p0 - o) @ n) / (d @ n)
     assert h.hit.all()
     np.testing.assert_allclose(h.t, t_true, rtol=1e-12)
@@ -167,7 +167,7 @@ def test_zero_quaternion_and_zero_scale_are_defined(engine):
     g = Gaussians(means=np.array([[5.0, 0, 0], [0, 5.0, 0]]), scales=np.array([[0.3, 0.3, 0.0], [0.2, -0.2, 0.2]]),
                   quats=np.array([[0.0, 0, 0, 0], [0.0, 0, 0, 0]]), opacities=np.array([1.0, 1.0]),
                   sh_dc=np.zeros((2, 3), np.float32))
-    tr = Tracer(g, **engine_kw(engine))
+    tr = Tracer(g, core=core_of(engine))
     h = tr.trace(np.zeros((2, 3)), np.array([[1.0, 0, 0], [0, 1.0, 0]]))
     # zero quaternion = identity; zero scale = a flat disc facing x... here the disc lies in the
     # xy-plane (third axis flat), so a ray along x travels in its plane and enters at 5 - 0.9.
@@ -178,7 +178,7 @@ def test_zero_quaternion_and_zero_scale_are_defined(engine):
 @pytest.mark.parametrize("engine", ENGINES)
 def test_ray_parallel_to_disc(engine):
     g = one_gaussian([0, 0, 0], [0, 0, 1], 0.0, [1.0, 1.0, 1e-9])
-    tr = Tracer(g, **engine_kw(engine), opacity_floor=0.0)
+    tr = Tracer(g, HardMode(opacity_floor=0.0), core=core_of(engine))
     o = np.array([[-10.0, 0, 0], [-10.0, 0, 1e-6], [-10.0, 0, 0]])
     d = np.array([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0.2, 0]])
     h = tr.trace(o, d)
@@ -206,12 +206,12 @@ def test_bad_inputs_raise_clear_errors():
 def test_empty_scene_misses_everything(backend):
     empty = Gaussians(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0), np.zeros((0, 3), np.float32))
     for engine in ENGINES:
-        kw = {**engine_kw(engine), **backend_kw(backend)}
+        core = core_of(engine) if engine == "compiled" else ReferenceCore(backend)
         for mode in ("entry", "soft"):
-            h = Tracer(empty, **kw, mode=mode).trace(np.zeros((4, 3)), np.eye(4, 3) + [0, 0, 1])
+            h = Tracer(empty, mode, core=core).trace(np.zeros((4, 3)), np.eye(4, 3) + [0, 0, 1])
             assert not h.hit.any()
     mesh = TriangleMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32))
-    assert not Tracer(mesh, **backend_kw(backend)).trace(np.zeros((2, 3)), [[1, 0, 0], [0, 1, 0]]).hit.any()
+    assert not Tracer(mesh, core=mesh_engine(backend)).trace(np.zeros((2, 3)), [[1, 0, 0], [0, 1, 0]]).hit.any()
 
 
 @given(data=st.data())
@@ -228,7 +228,7 @@ def test_degenerate_gaussians_never_give_nan_points(data):
     o, d = random_rays(rng, 200, radius=8.0)
     for mode in ("entry", "max_response", "soft"):
         for engine in ("compiled", "reference-embreex"):
-            h = Tracer(g, **engine_kw(engine), mode=mode).trace(o, d)
+            h = Tracer(g, mode, core=core_of(engine)).trace(o, d)
             assert np.all(np.isfinite(h.t[h.hit])) and np.all(np.isfinite(h.points[h.hit]))
             assert np.all(np.isfinite(h.normals))
 
@@ -250,7 +250,8 @@ def test_lattice_of_identical_gaussians(engine, proxy, rng):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     rots = gg.rotations()
     want = brute_force_hard(o, d, gg.means, rots, gg.scales, K, "entry")
-    h = Tracer(scene, **engine_kw(engine), proxy=proxy, opacity_floor=0.0).trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
+    tracer = Tracer(scene, HardMode(opacity_floor=0.0), core=core_of(engine, proxy))
+    h = tracer.trace(o - (scene.origin if proxy == "voxel_box" else 0), d)
     assert np.array_equal(h.hit, np.isfinite(want))
     np.testing.assert_allclose(h.t[h.hit], want[h.hit], rtol=1e-9, atol=1e-9)
 
@@ -270,7 +271,7 @@ def test_gaussians_below_the_floor_are_dropped_and_the_rest_keep_their_reflectan
     refl = np.zeros(vs.valid.shape, np.float32)
     refl[order.voxel, order.slot] = 0.1 * (which + 1)
     vs.set_channel("reflectance", refl)
-    tracer = Tracer(vs, **engine_kw(engine), opacity_floor=0.05)
+    tracer = Tracer(vs, HardMode(opacity_floor=0.05), core=core_of(engine))
     assert len(tracer.gaussians) == 3
     h = tracer.trace_world(np.c_[np.full(5, -5.0), ys, np.zeros(5)], np.tile([1.0, 0.0, 0.0], (5, 1)))
     np.testing.assert_array_equal(h.hit, opac >= 0.05)

@@ -15,6 +15,7 @@ from scube_sim.lidar.model import Lidar
 from scube_sim.mesh import TriangleMesh
 from scube_sim.raytrace.tracer import Tracer
 from scube_sim.realdata.build import (
+    BuildOptions,
     accumulate,
     build_voxsplat,
     free_space_mask,
@@ -201,7 +202,8 @@ def test_boxes_select_and_remove_points():
     assert list(points_in_boxes(pts, [box, turned], margin=0.15)) == [0, 0, 1, 1, -1]
     # remove="dynamic" drops the moving box's points only; the parked one's keep its label.
     sw = LidarSweep("l", pts[:3] + [0, 0, 0], make_pose(), 0.0)
-    acc = accumulate([sample_of(sw, [box, turned])], min_range=0.0, remove="dynamic", mesh=False)
+    opts = BuildOptions(samples=[0], min_range=0.0, remove="dynamic", mesh=False)
+    acc = accumulate([sample_of(sw, [box, turned])], opts)
     assert len(acc) == 1 and acc.removed == 2 and acc.labels[0] == 1
 
 

@@ -16,7 +16,7 @@ from typer.testing import CliRunner
 from scube_sim.cli import app
 from scube_sim.datasets import open_dataset
 from scube_sim.realdata.build import BuildOptions, build_from_dataset
-from scube_sim.realdata.fidelity import run_fidelity
+from scube_sim.realdata.fidelity import FidelityOptions, run_fidelity
 from scube_sim.voxsplat import VoxSplat
 from tests.conftest import one_line_error, require
 
@@ -91,7 +91,7 @@ def test_build_stores_its_recipe_and_colours_from_the_cameras(nus_scene):
 def test_kitti_raw_novel_pose_replay(shared_data):
     ds = open_dataset("kitti_raw", require(shared_data / "kitti-raw-2011_09_26-udacity"))
     vs, rep, _ = build_from_dataset(ds, BuildOptions(samples=[0], carve_with=[1], color=False))
-    res = run_fidelity(ds, vs, sample=2, static_from=[0, 1], baselines=True)
+    res = run_fidelity(ds, vs, 2, FidelityOptions(static_from=[0, 1], baselines=True))
     st = res.rows["voxsplat [static rays]"]
     assert st["median_abs_m"] < 0.05 and st["p90_abs_m"] < 0.5
     assert st["median_abs_m"] < res.rows[f"{CUBES} [static rays]"]["median_abs_m"]
@@ -105,7 +105,7 @@ def test_kitti_raw_novel_pose_replay(shared_data):
 def test_argoverse2_motion_model_helps(shared_data):
     ds = open_dataset("argoverse2", require(shared_data / "argoverse2-sensor-log-7fab2350"))
     vs, _, _ = build_from_dataset(ds, BuildOptions(samples=[0], color=False, sensors=["up_lidar"], mesh_max_edge_rel=0.1))
-    res = run_fidelity(ds, vs, sample=1, sensor="up_lidar", raw=True, baselines=False)
+    res = run_fidelity(ds, vs, 1, FidelityOptions(sensor="up_lidar", raw=True, baselines=False))
     with_model, without = res.rows["voxsplat"], res.rows["voxsplat, no motion model"]
     assert with_model["median_abs_m"] < 0.6 * without["median_abs_m"]
     assert with_model["p90_abs_m"] < without["p90_abs_m"]

@@ -391,14 +391,14 @@ def _sparse_wall(z_lo: float, label: int):
     """A wall in the plane x = 5.05 (y 0..2 m, z from `z_lo`, 1 m tall) measured only along one
     vertical texture edge per 0.2 m voxel (at its centre, y = 0.1 m + k 0.2 m), as stereo measures a
     plain door at its few edges: the fitted VoxSplat, all voxels observed and labelled `label`."""
-    from scube_sim.fit import fit_voxsplat
+    from scube_sim.fit import FitOptions, fit_voxsplat
 
     vs = 0.2
     y = (np.arange(10) + 0.5) * vs
     z = z_lo + (np.arange(60) + 0.5) * (1.0 / 60)
     yy, zz = np.meshgrid(y, z, indexing="ij")
     pts = np.column_stack([np.full(yy.size, 5.05), yy.ravel(), zz.ravel()])
-    scene = fit_voxsplat(pts, vs, gaussians_per_voxel=4, max_normal_scale=0.006)
+    scene = fit_voxsplat(pts, vs, fit=FitOptions(gaussians_per_voxel=4, max_normal_scale=0.006))
     scene.labels[:] = label
     scene.set_channel("observed", np.ones(scene.num_voxels, bool))
     return scene

@@ -14,7 +14,7 @@ from scube_sim.raytrace import compiled
 from scube_sim.reconstruct.config import FusionConfig
 from scube_sim.reconstruct.fusion import DepthObservation, _misses, fuse_depth
 from scube_sim.voxsplat import voxel_keys
-from tests.raytrace.engines import engine_kw
+from tests.raytrace.engines import require_compiled
 from tests.reconstruct.stereo.test_mvs import PLANE_Z, _shot
 from tests.reconstruct.stereo.test_sweep import _pose
 
@@ -215,7 +215,7 @@ def test_ground_points_snapped_onto_the_height_field_trace_at_the_plane_and_a_ke
 
 def _core(name: str) -> str:
     if name == "compiled":
-        engine_kw("compiled")  # skips only where SCUBE_SIM_ALLOW_NO_CORE=1 and the core is not built
+        require_compiled()  # skips only where SCUBE_SIM_ALLOW_NO_CORE=1 and the core is not built
     return name
 
 

@@ -1,4 +1,4 @@
-"""A scenario's cached conversion (`runs.scenario._cached_conversion`) is keyed by every checkpoint
+"""A scenario's cached conversion (`runs.scenario.build._cached_conversion`) is keyed by every checkpoint
 its profile names: a completion checkpoint retrained under the same file name misses the cache, so a
 stale converted scene is never reused."""
 
@@ -13,7 +13,8 @@ from scube_sim.converter.merge import CompletionConfig
 from scube_sim.converter.profile import load_profile
 from scube_sim.model.checkpoint import resolve_checkpoint
 from scube_sim.run_manifest import sha256_file
-from scube_sim.runs.scenario import FramesSpec, _cache_entry_valid, conversion_key
+from scube_sim.runs.scenario import FramesSpec, conversion_key
+from scube_sim.runs.scenario.build import _cache_entry_valid
 
 
 def _cache_entry(stem, key):

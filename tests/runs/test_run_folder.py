@@ -24,7 +24,8 @@ from scube_sim.run_manifest import (
     prepare_output,
     read_manifest,
 )
-from scube_sim.runs import scenario as scenario_mod
+from scube_sim.runs.scenario import build as scenario_mod
+from scube_sim.runs.scenario import schema as scenario_schema
 from scube_sim.sim.sinks import FileSink
 from scube_sim.worlds.generator import WorldConfig
 
@@ -256,7 +257,7 @@ def test_a_corrupt_chunk_cache_entry_is_rebuilt_not_fatal(tmp_path):
     from scube_sim.worlds.generator import generate_world
 
     world = generate_world(WorldConfig(style="suburban", seed=3, layout="straight", length_m=40, duration_s=2))
-    spec = scenario_mod.SceneSpec(world=world.config, voxel_size=1.0, gaussians_per_voxel=1)
+    spec = scenario_schema.SceneSpec(world=world.config, voxel_size=1.0, gaussians_per_voxel=1)
     specs = scenario_mod._world_chunks(world, spec, tmp_path / "scene_chunks")
     first = specs[0].path
     meta = json.loads(first.with_suffix(".json").read_text())
@@ -283,7 +284,7 @@ def test_a_corrupt_chunk_cache_entry_is_rebuilt_not_fatal(tmp_path):
     # other settings: refit silently (nothing was wrong)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        other = scenario_mod.SceneSpec(world=world.config, voxel_size=2.0, gaussians_per_voxel=1)
+        other = scenario_schema.SceneSpec(world=world.config, voxel_size=2.0, gaussians_per_voxel=1)
         scenario_mod._world_chunks(world, other, tmp_path / "scene_chunks")
     assert np.isclose(VoxSplat.load(first).voxel_size, 2.0)
 

@@ -13,7 +13,7 @@ from scube_sim.boxes import Box
 from scube_sim.cli import app
 from scube_sim.converter.frames import open_frames
 from scube_sim.converter.pipeline import Converter
-from scube_sim.fit import fit_voxsplat
+from scube_sim.fit import FitOptions, fit_voxsplat
 from scube_sim.io.pointcloud import read_pcd
 from scube_sim.labels import LABEL_IDS
 from scube_sim.lidar.config import ConfigError
@@ -37,7 +37,7 @@ def test_remove_boxes_cuts_the_actor_and_keeps_the_ground_under_it():
     pts = np.concatenate([road, car, other])
     labels = np.concatenate([np.full(len(road), LABEL_IDS["road"]), np.full(len(car), LABEL_IDS["car"]),
                              np.full(len(other), LABEL_IDS["car"])])
-    vs = fit_voxsplat(pts, 0.4, gaussians_per_voxel=1, labels=labels)
+    vs = fit_voxsplat(pts, 0.4, labels=labels, fit=FitOptions(gaussians_per_voxel=1))
     c2w = pose_from_xyz_rpy([1000.0, -500.0, 20.0], [0, 0, 90])
     vs.metadata.update({"frame": "chunk", "chunk_to_world": c2w.tolist()})
     vs.set_channel("confidence", np.linspace(0, 1, vs.num_voxels, dtype=np.float32))
@@ -57,11 +57,11 @@ def test_remove_boxes_cuts_the_actor_and_keeps_the_ground_under_it():
 
 
 def test_a_chunk_frame_scene_is_placed_by_its_pose_and_traced_in_its_mode():
-    wall = fit_voxsplat(_slab(9.9, 10.1, -3, 3, 0, 3, 0.05), 0.2, gaussians_per_voxel=1)
+    wall = fit_voxsplat(_slab(9.9, 10.1, -3, 3, 0, 3, 0.05), 0.2, fit=FitOptions(gaussians_per_voxel=1))
     c2w = pose_from_xyz_rpy([100.0, 50.0, 0.0], [0, 0, 90])  # the chunk's x is the world's y
     wall.metadata.update({"frame": "chunk", "chunk_to_world": c2w.tolist(), "trace_mode": "soft"})
     part = scene_part(wall)
-    assert part.tracer.mode == "soft"
+    assert part.tracer.mode.name == "soft"
     np.testing.assert_array_equal(part.pose, c2w)
     from scube_sim.sim.scene import SimScene
 
@@ -177,7 +177,7 @@ def test_scene_soft_alpha_min_reaches_the_tracer_and_drops_fainter_contributions
     from scube_sim.runs.scenario import build_scene
     from scube_sim.sim.scene import SimScene
 
-    slab = fit_voxsplat(_slab(9.8, 10.4, -3, 3, 0, 3, 0.05), 0.2, gaussians_per_voxel=1)
+    slab = fit_voxsplat(_slab(9.8, 10.4, -3, 3, 0, 3, 0.05), 0.2, fit=FitOptions(gaussians_per_voxel=1))
     slab.params[..., 3] = np.log(0.3 / 0.7)  # raw opacity: sigmoid -> 0.3
     slab.metadata.update({"trace_mode": "soft"})
     slab.save(tmp_path / "slab.npz")
@@ -191,7 +191,7 @@ def test_scene_soft_alpha_min_reaches_the_tracer_and_drops_fainter_contributions
         sc, where = load_scenario(p)
         built = build_scene(sc, where, tmp_path / "cache", reach=200.0)
         part = built.scene.static[0]
-        assert part.tracer.soft_alpha_min == (floor or 1.0 / 255.0)
+        assert part.tracer.mode.alpha_min == (floor or 1.0 / 255.0)
         hits[floor] = SimScene(static=[part]).trace_world(o, d)
     assert hits[None].hit[0] and hits[None].t[0] == pytest.approx(10.0, abs=0.5)
     assert not hits[0.35].hit[0]

@@ -54,7 +54,7 @@ from ...model.geometry.net import GeometryNet
 from ...reconstruct.config import StereoConfig
 from ...reconstruct.ground import RANSAC_INLIER_M, fit_ground_plane
 from ...reconstruct.stereo import stereo_depth
-from ..frames import frames_item
+from ..frames import network_inputs
 from ..profile import PAPER_PROFILE, StageProfile, load_profile
 
 RANGE_BANDS_M = ((0.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 80.0))
@@ -87,7 +87,7 @@ class MonoDepth:
     """The monocular depth head of a geometry checkpoint: each feature pixel's expected depth
     under its softmax over the depth bins (sum of probability x bin centre, metres of camera z),
     sampled bilinearly at every image pixel's centre. The image meets the network as the converter
-    gives it (`converter.frames_item`: resized so its focal length is `focal_px`, default the
+    gives it (`converter.frames.network_inputs`: resized so its focal length is `focal_px`, default the
     `cpu` profile's geometry stage's, the shipped checkpoints' training focal length)."""
 
     name = "mono"
@@ -105,7 +105,7 @@ class MonoDepth:
     @torch.no_grad()
     def __call__(self, frames: Frames, index: int) -> np.ndarray:
         im = frames.images[index]
-        item = frames_item(Frames([im], frames.ego_pose, frames.timestamp, dict(frames.metadata)), self.stage)
+        item = network_inputs(Frames([im], frames.ego_pose, frames.timestamp, dict(frames.metadata)), self.stage)
         cond = self.conditioner
         out = cond.head(cond.encoder(item["images"]))
         probs = out[:, cond.cfg.feature_channels:].softmax(1)

@@ -50,7 +50,7 @@ from ...model.nn.image_metrics import psnr
 from ...model.nn.label_metrics import semantic_metrics
 from ...model.nn.lifting import LiftGrid, grid_in_box
 from ...model.nn.views import render_rig
-from ...raytrace.tracer import Tracer
+from ...raytrace.tracer import HardMode, SoftMode, Tracer
 from ...transforms import invert_pose, transform_points
 from ...voxsplat import VoxSplat, voxel_keys
 from ...worlds.generator import WorldConfig, generate_world
@@ -196,8 +196,8 @@ def _input_psnr(scene: VoxSplat, frames, rig: str) -> float:
 
 def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel: float = 0.4, seed: int = 0,
                     ahead: Sequence[float] = AHEAD_M, convert_options: dict | None = None,
-                    with_psnr: bool = True, gt_cache: dict | None = None, trace_mode: str | None = None,
-                    trace_options: dict | None = None, context: int | None = None,
+                    with_psnr: bool = True, gt_cache: dict | None = None,
+                    trace_mode: str | HardMode | SoftMode | None = None, context: int | None = None,
                     sweeps: dict | None = None) -> dict:
     """One worlds sample (module docstring): -> {"sample", "stages": {geometry IoU, Chamfer in
     voxels, PSNR at the input cameras, seconds, peak MB, the observed Gaussians' centres to the mesh
@@ -205,11 +205,11 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     median_m, p90_m, hit_agreement, chamfer_m}], "pose_clear": {metres ahead ("20"): whether a car can
     stand there, `pose_clear`}}. gt_cache: a dict kept across calls that holds
     each sample's regenerated world, mesh sweeps and ground-truth rows (a trade sweep over
-    converter settings then regenerates nothing). trace_mode: how the converted scene is traced
-    (default its metadata ``trace_mode``); trace_options: more `Tracer` settings for it (for
-    example ``soft_alpha_min``). context: the instants before and after the sample the converter
-    sees (`open_frames`; default the profile's). sweeps: a dict that receives each traced scene's range
-    image (rings, columns; NaN: no return) by (scene, metres ahead), to compare scenes ray by ray."""
+    converter settings then regenerates nothing). trace_mode: how the converted scene is traced, a
+    mode's name or options (default its metadata ``trace_mode``). context: the instants before
+    and after the sample the converter sees (`open_frames`; default the profile's). sweeps: a
+    dict that receives each traced scene's range image (rings, columns; NaN: no return) by
+    (scene, metres ahead), to compare scenes ray by ray."""
     sample_dir = Path(sample_dir)
     meta = json_loads((sample_dir / "meta.json").read_text(), sample_dir / "meta.json", InputError)
     key = str(sample_dir.resolve())
@@ -240,7 +240,7 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
     stages["gt_surface_median_m"] = cached["gt_surface_median_m"]
     if with_psnr and "sky_panorama" in scene.channels:
         stages["input_psnr_db"] = _input_psnr(scene, frames, meta["rig"])
-    tracer = Tracer(scene, mode=trace_mode or scene.metadata.get("trace_mode", "entry"), **(trace_options or {}))
+    tracer = Tracer(scene, trace_mode or scene.metadata.get("trace_mode", "entry"))
     t1 = time.perf_counter()
     rows = list(cached["rows"])
     if done.completion_grid is not None:
@@ -250,8 +250,7 @@ def evaluate_sample(conv: Converter, sample_dir: Path, lidar: Lidar, *, gt_voxel
         stages["completion_removed_share"] = merged.get("removed_voxels", 0) / max(merged.get("observed_voxels", 0), 1)
     # with a completion: the same measurement without it, traced from the same poses
     alone = done.uncompleted
-    alone_tracer = None if alone is None else Tracer(alone, mode=trace_mode or alone.metadata.get("trace_mode", "entry"),
-                                                     **(trace_options or {}))
+    alone_tracer = None if alone is None else Tracer(alone, trace_mode or alone.metadata.get("trace_mode", "entry"))
     for ref, p in zip(cached["refs"], cached["poses"]):
         traced = {"converted": lidar.scan(tracer, p.chunk, seed=seed)}
         if alone_tracer is not None:

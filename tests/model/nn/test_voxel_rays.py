@@ -9,7 +9,7 @@ import torch
 from scube_sim.model.nn.voxel_rays import VoxelRayCaster, deposit_mean
 from scube_sim.raytrace import compiled
 
-from ...raytrace.engines import engine_kw
+from ...raytrace.engines import require_compiled
 
 # Every traversal test runs on both cores; the compiled one is required (tests/raytrace/engines.py).
 CORES = ("reference", "compiled")
@@ -17,7 +17,7 @@ CORES = ("reference", "compiled")
 
 def need(core: str) -> str:
     if core == "compiled":
-        engine_kw("compiled")  # skips only where SCUBE_SIM_ALLOW_NO_CORE=1 and the core is not built
+        require_compiled()  # skips only where SCUBE_SIM_ALLOW_NO_CORE=1 and the core is not built
     return core
 
 

@@ -1,319 +1,43 @@
-"""Scenario files: what to simulate, from where, with which sensors, into which outputs.
-
-A scenario is YAML validated by pydantic (an unknown key or a bad value names the file and the key
-path). Relative paths are relative to the scenario file; a path starting with `shared:` is looked
-up in the third-party data folder (SCUBE_SIM_SHARED_DATA, default `../shared/data` beside the
-repository). `build_run` turns a scenario into a ready `Simulator`, its pose source and time span.
-
-    name: lane-change
-    seed: 0
-    duration_s: 8              # default: the trajectory's span
-    tick_hz: 10
-    scene:                     # exactly one of world / voxsplat / ply / chunks / frames
-      world: {style: boulevard, seed: 5, layout: straight, length_m: 200}
-      representation: voxsplat # or mesh (the world's exact triangles)
-      voxel_size: 0.4
-    trajectory:
-      source: world            # world | file | can
-      edit: {lateral_offset_m: 3.4, lateral_ramp_s: [2, 5]}
-    sensors:
-      - {preset: hdl64e}
-    effects: {noise: true, drops: true, motion_distortion: true, divergence: true}
-    outputs: {files: [pcd], usd: replay.usdc}
-
-`scene.frames` converts camera frames into the scene (`scube_sim.convert`, the converter's
-profile) on first use and caches the result under -o/scene_chunks/: either `path` (a worlds sample
-folder, or any adapter's folder with `dataset` and `sample`; the string shorthand `frames: PATH`)
-or `world` (a generated world whose `rig` cameras are rendered at time 0, and at the `context`
-instants either side of it as a log's frames would be; the world's ego path and moving actors then
-drive the run, and the actors' voxels are cut out of the converted scene, `sim.converted`). With `world` and `route: true`, a long road is converted chunk by chunk
-(`scene.chunk_spacing_m` apart), each from the rig held at the chunk's origin when the ego passes
-it (`route_stops`), and loaded as a `ChunkSet` within the sensors' reach.
+"""A validated scenario made runnable: `build_run` gives the `Simulator`, its pose source and
+time span; `build_scene` the scene (a generated world, fitted or converted chunks, a file), with
+the fitted and converted chunks cached in the run folder and keyed by everything that made them.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath, PureWindowsPath
-from typing import Literal
+from pathlib import Path
 
 import numpy as np
-from pydantic import Field, field_validator, model_validator
 
-from .._version import __version__
-from ..atomic import atomic_path
-from ..config import (
-    CONTEXT_INSTANTS,
-    MAX_RANGE_M,
-    SAMPLE_INDEX,
-    SCENE_VOXEL_M,
-    SEED,
-    ConfigError,
-    Mount,
-    StrictModel,
-    laid_over,
-    listed_twice,
-    load_yaml,
-    unique_names,
-    validate_model,
-)
-from ..converter.profile import DEFAULT_PROFILE, ConverterProfile, load_profile
-from ..errors import ScubeSimWarning
-from ..lidar.config import LidarConfig, config_from_dict, load_lidar_config
-from ..raytrace.tracer import Tracer
-from ..run_manifest import RunManifest, sha256_file
-from ..scene_file import load_scene
-from ..sim.can import CanPoseSource, CanTrajectory
-from ..sim.contracts import PoseSource
-from ..sim.converted import DEFAULT_MODE, remove_boxes, scene_part
-from ..sim.scene import ChunkSet, ChunkSpec, Part, SimScene
-from ..sim.simulator import LidarSensor, Simulator
-from ..sim.sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
-from ..sim.sinks.rosbag import RosbagConfig, RosbagSink
-from ..sim.sinks.viewer import ViewerConfig, ViewerSink
-from ..sim.sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
-from ..sim.vehicle import DeadReckoner
-from ..voxsplat import VoxSplat
-from ..worlds.dataset import render_frames_with_context
-from ..worlds.generator import World, WorldConfig, generate_world
-from ..worlds.groundtruth import chunk_frames, gt_voxsplat
-from ..worlds.textures import TEXTURE_VERSION, world_albedo
-
-
-class ChunkEntry(StrictModel):
-    path: str
-    pose: Mount = Mount()  # chunk-to-world: metres and degrees
-
-
-class FramesSpec(StrictModel):
-    """scene.frames (module docstring): exactly one of `path` and `world`."""
-
-    path: str | None = None
-    dataset: str | None = None
-    sample: int = SAMPLE_INDEX.field(0)
-    world: WorldConfig | None = None
-    rig: str = "waymo-5"
-    profile: str = DEFAULT_PROFILE
-    max_range_m: float | None = MAX_RANGE_M.field(None)
-    route: bool = False  # world only: one conversion per chunk along the road (scene.chunk_spacing_m apart)
-    # the instants before and after the sample in the same log (`convert --context`), or rendered
-    # around the world's instant at its frame rate; None: the profile's own
-    context: int | None = CONTEXT_INSTANTS.field(None)
-
-    @model_validator(mode="after")
-    def _one_source(self):
-        if (self.path is None) == (self.world is None):
-            raise ValueError("give exactly one of path (camera frames on disk) or world (frames rendered from it)")
-        if self.route and self.world is None:
-            raise ValueError("route: needs world (the rig is rendered at each chunk along its road)")
-        return self
-
-
-class SceneSpec(StrictModel):
-    world: WorldConfig | None = None
-    representation: Literal["voxsplat", "mesh"] = "voxsplat"
-    voxel_size: float = SCENE_VOXEL_M.field(0.4)
-    gaussians_per_voxel: int = Field(default=4, ge=1, le=16)
-    # None: a VoxSplat file's own trace mode (metadata trace_mode; converted scenes: soft), else max_response
-    depth: Literal["entry", "max_response", "soft"] | None = None
-    # soft mode's alpha floor (None: the tracer's 1/255): contributions fainter than it are
-    # dropped and each Gaussian's box ends where its response reaches it; on converted scenes
-    # 0.1 sweeps about 1.6x faster at a lower median error and 1.7 points fewer returns
-    # (docs/converter.md, bench_s2s_trade)
-    soft_alpha_min: float | None = Field(default=None, gt=0, lt=1)
-    chunk_spacing_m: float = Field(default=96.0, gt=10, le=102.4)
-    voxsplat: str | None = None
-    ply: str | None = None
-    chunks: list[ChunkEntry] | None = None
-    frames: FramesSpec | None = None
-
-    @field_validator("frames", mode="before")
-    @classmethod
-    def _frames_path(cls, v):
-        return {"path": v} if isinstance(v, str) else v  # `frames: PATH` is the path alone
-
-    @model_validator(mode="after")
-    def _one_source(self):
-        given = [k for k in ("world", "voxsplat", "ply", "chunks", "frames") if getattr(self, k) is not None]
-        if len(given) != 1:
-            raise ValueError(f"give exactly one of world, voxsplat, ply, chunks or frames (got {given or 'none'})")
-        return self
-
-
-class CanSpec(StrictModel):
-    log: str
-    dbc: str
-    start_s: float = Field(default=0.0, ge=0)
-    duration_s: float = Field(default=20.0, gt=0)
-    realtime: bool = False
-    speed: float = Field(default=1.0, gt=0)
-    wheelbase_m: float | None = Field(default=None, gt=0)
-    steering_ratio: float | None = Field(default=None, gt=0)
-
-
-class EditSpec(StrictModel):
-    lateral_offset_m: float = 0.0
-    lateral_ramp_s: tuple[float, float] | None = None
-    speed_scale: float = Field(default=1.0, gt=0)
-    time_shift_s: float = 0.0
-
-    @field_validator("lateral_ramp_s")
-    @classmethod
-    def _ramp_runs_forward(cls, v):
-        if v is not None and not v[1] > v[0]:
-            raise ValueError(f"expected [start, end] seconds with end > start, got {list(v)}")
-        return v
-
-
-class TrajectorySpec(StrictModel):
-    source: Literal["world", "file", "can", "openscenario"] = "world"
-    file: str | None = None
-    entity: str | None = None  # openscenario: the ego's ScenarioObject (default: 'Ego' or the first)
-    rate_hz: float = Field(default=10.0, gt=0, le=1000)
-    can: CanSpec | None = None
-    edit: EditSpec | None = None
-
-    @model_validator(mode="after")
-    def _needs(self):
-        if self.source in ("file", "openscenario") and not self.file:
-            raise ValueError(f"source '{self.source}' needs 'file'")
-        if self.source == "can" and self.can is None:
-            raise ValueError("source 'can' needs a 'can' section")
-        return self
-
-
-class SensorSpec(StrictModel):
-    preset: str
-    name: str | None = None
-    rate_hz: float | None = Field(default=None, gt=0, le=1000)
-    mount: Mount | None = None
-    phase_s: float = 0.0
-    overrides: dict = Field(default_factory=dict)
-
-
-class EffectsSpec(StrictModel):
-    noise: bool = True
-    drops: bool = True
-    motion_distortion: bool = True
-    divergence: bool = True
-    output: Literal["raw", "compensated"] | None = None
-
-
-class CanOutputSpec(StrictModel):
-    interface: str = "virtual"
-    channel: str = "scube-sim"
-    arbitration_id: int = Field(default=0x5F0, ge=0, le=0x1FFFFFFF)
-
-
-class RosbagOutputSpec(RosbagConfig):
-    """`outputs.rosbag`: a rosbag2 folder (MCAP) inside -o, and what `RosbagSink` writes."""
-
-    folder: str = "bag"
-
-
-class ViewerOutputSpec(ViewerConfig):
-    """`outputs.viewer`: a Foxglove-schema MCAP file inside -o, and what `ViewerSink` writes."""
-
-    file: str = "viewer.mcap"
-
-
-class OutputsSpec(StrictModel):
-    files: list[Literal["pcd", "bin", "npz", "ply", "las", "laz"]] = Field(default_factory=lambda: ["pcd"])
-    usd: str | None = "replay.usdc"  # a file name inside the output folder (-o)
-    rosbag: RosbagOutputSpec | None = None
-    viewer: ViewerOutputSpec | None = None
-    usd_clips: bool = False
-    frames_per_clip: int = Field(default=100, ge=1)
-    usd_scene: bool = True
-    can: CanOutputSpec | None = None
-
-    _files_once = field_validator("files")(classmethod(lambda cls, v: unique_names(v)))
-
-    @field_validator("rosbag", mode="before")
-    @classmethod
-    def _bag_folder(cls, v):
-        return {"folder": v} if isinstance(v, str) else v  # `rosbag: DIR` is the folder alone
-
-    @field_validator("viewer", mode="before")
-    @classmethod
-    def _viewer_file(cls, v):
-        return {"file": v} if isinstance(v, str) else v
-
-    @field_validator("rosbag", "viewer")
-    @classmethod
-    def _bag_inside(cls, v):
-        if v is not None:
-            cls._inside_the_output_folder(v.folder if isinstance(v, RosbagOutputSpec) else v.file)
-        return v
-
-    @field_validator("usd")
-    @classmethod
-    def _inside_the_output_folder(cls, v: str | None) -> str | None:
-        # Every output stays inside -o: a scenario must not write wherever a path points.
-        if v is None:
-            return v
-        posix, win = PurePosixPath(v), PureWindowsPath(v)
-        if (not v.strip() or posix.is_absolute() or win.is_absolute() or win.drive or v.startswith("~")
-                or ".." in posix.parts or ".." in win.parts):
-            raise ValueError(f"expected a relative path inside the output folder (-o), without '..', got {v!r}")
-        return v
-
-
-class Scenario(StrictModel):
-    name: str
-    description: str = ""
-    seed: int = SEED.field(0)
-    duration_s: float | None = Field(default=None, gt=0, le=86_400)  # a day at most
-    tick_hz: float = Field(default=10.0, gt=0, le=1000)
-    scene: SceneSpec
-    trajectory: TrajectorySpec = TrajectorySpec()
-    actors: Literal["world", "none"] = "world"
-    sensors: list[SensorSpec] = Field(min_length=1)
-    effects: EffectsSpec = EffectsSpec()
-    outputs: OutputsSpec = OutputsSpec()
-
-
-def shared_data_dir() -> Path:
-    env = os.environ.get("SCUBE_SIM_SHARED_DATA")
-    return Path(env) if env else Path(__file__).resolve().parents[2].parent / "shared" / "data"
-
-
-def resolve_path(p: str, base: Path) -> Path:
-    """A scenario path: `shared:<rel>` in the third-party data folder, else relative to `base`."""
-    if p.startswith("shared:"):
-        return shared_data_dir() / p[len("shared:"):].lstrip("/")
-    q = Path(os.path.expanduser(p))
-    return q if q.is_absolute() else (base / q).resolve()
-
-
-def load_scenario(path: str | Path) -> tuple[Scenario, Path]:
-    """Validate a scenario file; returns it and the folder its relative paths refer to."""
-    path = Path(path)
-    sc = validate_model(Scenario, load_yaml(path), str(path), "scenario settings")
-    return sc, path.resolve().parent
-
-
-def sensor_config(spec: SensorSpec, effects: EffectsSpec, base: Path, where: str) -> LidarConfig:
-    """A sensor's LiDAR config: the preset, the scenario's overrides, then the effects switches."""
-    preset = str(resolve_path(spec.preset, base)) if spec.preset.endswith((".yaml", ".yml")) else spec.preset
-    cfg = load_lidar_config(preset)
-    data = laid_over(cfg.model_dump(mode="json"), spec.overrides)
-    if not effects.noise:
-        data["noise"] = {"range_sigma_m": 0.0, "range_sigma_rel": 0.0, "quantization_m": 0.0}
-    if not effects.drops:
-        data["drop"] = {"random_rate": 0.0, "max_incidence_deg": 90.0, "min_intensity": 0.0}
-    if not effects.divergence:
-        data["beam"]["samples"] = 1
-    if effects.output is not None:
-        data["motion"]["output"] = effects.output
-    if spec.mount is not None:
-        data["mount"] = spec.mount.model_dump(mode="json")
-    return config_from_dict(data, f"{where} (preset {spec.preset!r} with overrides)")
-
+from ..._version import __version__
+from ...atomic import atomic_path
+from ...config import ConfigError, listed_twice
+from ...converter.profile import ConverterProfile, load_profile
+from ...errors import ScubeSimWarning
+from ...lidar.config import LidarConfig
+from ...raytrace.tracer import HardMode, SoftMode, Tracer, trace_mode
+from ...run_manifest import RunManifest, sha256_file
+from ...scene_file import load_scene
+from ...sim.can import CanPoseSource, CanTrajectory
+from ...sim.contracts import PoseSource
+from ...sim.converted import DEFAULT_MODE, remove_boxes, scene_mode, scene_part
+from ...sim.scene import ChunkSet, ChunkSpec, Part, SimScene
+from ...sim.simulator import LidarSensor, Simulator
+from ...sim.sinks import CanFrameSink, FileSink, RunInfo, Sink, UsdSink
+from ...sim.sinks.rosbag import RosbagConfig, RosbagSink
+from ...sim.sinks.viewer import ViewerConfig, ViewerSink
+from ...sim.sources import EditedTrajectory, HeldPoses, TrajectorySource, track_pose_fn
+from ...sim.vehicle import DeadReckoner
+from ...voxsplat import VoxSplat
+from ...worlds.dataset import render_frames_with_context
+from ...worlds.generator import World, WorldConfig, generate_world
+from ...worlds.groundtruth import chunk_frames, gt_voxsplat
+from ...worlds.textures import TEXTURE_VERSION, world_albedo
+from .schema import CanSpec, FramesSpec, OutputsSpec, Scenario, SceneSpec, resolve_path, sensor_config
 
 CACHE_FOLDERS = ("scene_chunks",)  # kept by --overwrite / --resume (entries checked on use)
 
@@ -386,14 +110,14 @@ def build_scene(sc: Scenario, base: Path, cache: Path, *, reach: float, progress
     and loaded within `reach` metres of the ego, plus its actors), a VoxSplat / PLY file, or a
     list of VoxSplat chunks. Fitted and converted chunks are cached in the folder `cache`."""
     spec = sc.scene
-    tracer_kw = {"mode": spec.depth or DEFAULT_MODE, **_soft_kw(spec)}
+    mode = _trace_mode(spec, DEFAULT_MODE)
     if spec.world is not None:
         world = generate_world(_world_for_run(sc, spec.world))
         static, chunks = [], None
         if spec.representation == "mesh":
             static.append(Part(Tracer(world.static), name="world"))
         else:
-            chunks = ChunkSet(_world_chunks(world, spec, cache, progress), reach, tracer_kw)
+            chunks = ChunkSet(_world_chunks(world, spec, cache, progress), reach, mode)
         scene = SimScene(static=static, actors=_world_actors(sc, world), chunks=chunks,
                          static_boxes=world.boxes_static)
         return BuiltScene(scene, world=world)
@@ -403,20 +127,24 @@ def build_scene(sc: Scenario, base: Path, cache: Path, *, reach: float, progress
         path = resolve_path(spec.voxsplat or spec.ply, base)
         file_scene = load_scene(path)
         if isinstance(file_scene, VoxSplat):  # placed by its chunk pose, traced in its own mode
-            part = scene_part(file_scene, name=path.stem, mode=spec.depth, tracer_kw=_soft_kw(spec))
+            part = scene_part(file_scene, name=path.stem, mode=_trace_mode(spec, scene_mode(file_scene)))
         else:
-            part = Part(Tracer(file_scene, **tracer_kw), name=path.stem)
+            part = Part(Tracer(file_scene, mode), name=path.stem)
         return BuiltScene(SimScene(static=[part]), file_scene=file_scene)
     specs = [ChunkSpec(resolve_path(c.path, base), c.pose.matrix()) for c in spec.chunks]
     for s in specs:
         if not s.path.is_file():
             raise ConfigError(f"scene.chunks: {s.path}: no such VoxSplat file")
-    return BuiltScene(SimScene(chunks=ChunkSet(specs, reach, tracer_kw)))
+    return BuiltScene(SimScene(chunks=ChunkSet(specs, reach, mode)))
 
 
-def _soft_kw(spec: SceneSpec) -> dict:
-    """The `Tracer` settings the scene spec names beyond the depth mode."""
-    return {} if spec.soft_alpha_min is None else {"soft_alpha_min": spec.soft_alpha_min}
+def _trace_mode(spec: SceneSpec, default: str) -> HardMode | SoftMode:
+    """How the scene spec traces its Gaussians: its `depth` (else `default`), in soft mode with
+    its `soft_alpha_min` where it names one."""
+    mode = trace_mode(spec.depth or default)
+    if isinstance(mode, SoftMode) and spec.soft_alpha_min is not None:
+        mode = SoftMode(alpha_min=spec.soft_alpha_min)
+    return mode
 
 
 def _world_for_run(sc: Scenario, wcfg: WorldConfig) -> WorldConfig:
@@ -439,8 +167,8 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
     """scene.frames: the frames converted (cached in `folder`), the moving actors' voxels
     cut out (`sim.converted.remove_boxes`), the actors traced as instances. With `route`, one
     conversion per chunk along the world's road, loaded as a `ChunkSet`."""
-    from ..converter.frames import open_frames
-    from ..converter.pipeline import TRACE_MODE
+    from ...converter.frames import open_frames
+    from ...converter.pipeline import TRACE_MODE
 
     f = sc.scene.frames
     profile = load_profile(resolve_path(f.profile, base) if f.profile.endswith((".yaml", ".yml")) else f.profile)
@@ -453,7 +181,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
             raise ConfigError(f"scene.frames.path: {path}: no such folder")
         frames = open_frames(path, f.dataset, f.sample, context=context)
         scene = _cached_conversion(folder / "converted", frames, key, profile, sc.seed, f.max_range_m, progress)
-        part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
+        part = scene_part(scene, name="converted", mode=_trace_mode(sc.scene, scene_mode(scene)))
         return BuiltScene(SimScene(static=[part]), file_scene=scene)
     world = generate_world(_world_for_run(sc, f.world))
     actors = _world_actors(sc, world)
@@ -465,7 +193,7 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
         scene, removed = remove_boxes(scene, [a.box_at(float(frames.timestamp)) for a in actors])
         if progress and removed:
             progress(f"removed {removed} voxels of {len(actors)} moving actors from the converted scene")
-        part = scene_part(scene, name="converted", mode=sc.scene.depth, tracer_kw=_soft_kw(sc.scene))
+        part = scene_part(scene, name="converted", mode=_trace_mode(sc.scene, scene_mode(scene)))
         return BuiltScene(SimScene(static=[part], actors=actors, static_boxes=world.boxes_static), world=world,
                           file_scene=scene)
     specs = []
@@ -480,8 +208,8 @@ def _frames_scene(sc: Scenario, base: Path, folder: Path, reach: float, progress
         scene.save(cut)
         specs.append(ChunkSpec(cut, np.asarray(scene.metadata["chunk_to_world"], np.float64)))
     # the converted chunks' own trace mode (one profile made them all: the scube route soft, evidence entry)
-    mode = sc.scene.depth or (scene.metadata.get("trace_mode", TRACE_MODE) if specs else TRACE_MODE)
-    chunks = ChunkSet(specs, reach, {"mode": mode, **_soft_kw(sc.scene)})
+    mode = _trace_mode(sc.scene, scene.metadata.get("trace_mode", TRACE_MODE) if specs else TRACE_MODE)
+    chunks = ChunkSet(specs, reach, mode)
     return BuiltScene(SimScene(actors=actors, chunks=chunks, static_boxes=world.boxes_static), world=world)
 
 
@@ -490,7 +218,7 @@ def conversion_key(frames_spec: FramesSpec, profile: ConverterProfile, seed: int
     the profile's values and the sha256 of every checkpoint it names (a retrained checkpoint under
     the same name converts again). The spec's context is left out where it defers to the profile's,
     so caches made before the option existed stay valid."""
-    from ..model.checkpoint import resolve_checkpoint
+    from ...model.checkpoint import resolve_checkpoint
 
     f = frames_spec
     return {"spec": f.model_dump(mode="json", exclude={"context"} if f.context is None else None), "seed": seed,
@@ -514,7 +242,7 @@ def route_stops(world: World, spacing_m: float) -> list[tuple[float, np.ndarray]
 def _cached_conversion(stem: Path, frames, key: dict, profile, seed: int, max_range, progress=None) -> VoxSplat:
     """`frames` converted with `profile`, or the conversion cached at STEM.npz / STEM.json when
     its key (`key` and the frames' digest) matches and its checksum holds."""
-    from ..converter.pipeline import Converter
+    from ...converter.pipeline import Converter
 
     npz, meta_path = stem.with_suffix(".npz"), stem.with_suffix(".json")
     key = {**key, "frames": frames_digest(frames)}
