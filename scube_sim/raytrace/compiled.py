@@ -99,6 +99,23 @@ def carve_misses(origin: np.ndarray, direction: np.ndarray, reach: np.ndarray, c
     return hit, conf_sum, conf_cnt
 
 
+def voxel_first_hit(origins: np.ndarray, dirs: np.ndarray, grid_origin: np.ndarray, voxel_size: float,
+                    lo: np.ndarray, dims: np.ndarray, keys: np.ndarray, order: np.ndarray, block_distance: np.ndarray,
+                    max_t: float, index: np.ndarray, t_hit: np.ndarray) -> None:
+    """The first voxel of a sparse grid each ray enters, in the compiled core (`model.nn.voxel_rays`).
+
+    origins, dirs (R, 3) float64 metres in the grid's frame; grid_origin (3,) metres, voxel_size
+    metres; lo (3,), dims (3,) int64 the grid's low corner and size in voxels; keys (V,) int64 the
+    voxels' sorted linear keys and order (V,) their rows; block_distance: the chessboard distance
+    in blocks to the nearest occupied block (the empty-space skip). Writes index (R,) int64 (-1:
+    none within max_t) and t_hit (R,) float64 (inf: none) in place."""
+    if _core is None:
+        raise CoreUnavailable(f"the compiled core is not built ({_LOAD_ERROR})")
+    _core.voxel_first_hit(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float64),
+                          grid_origin, float(voxel_size), lo, dims, keys, order, block_distance, float(max_t),
+                          index, t_hit)
+
+
 @dataclass
 class CompiledScene:
     """The core's BVH and what the hits are filled from. lo, hi (3,): the search box (the k-sigma

@@ -79,9 +79,8 @@ class VoxelRayCaster:
                 raise compiled.CoreUnavailable(f"core='compiled': the compiled core is not built "
                                                f"({compiled.load_error()})")
             origin, lo, dims, keys, order, dist = self._arrays
-            compiled._core.voxel_first_hit(np.ascontiguousarray(o.numpy()), np.ascontiguousarray(d.numpy()), origin,
-                                           self.voxel_size, lo, dims, keys, order, dist, float(max_t),
-                                           index.numpy(), t_hit.numpy())
+            compiled.voxel_first_hit(o.numpy(), d.numpy(), origin, self.voxel_size, lo, dims, keys, order, dist,
+                                     max_t, index.numpy(), t_hit.numpy())
             return index, t_hit
         if name != "reference":
             raise ValueError(f"core: expected 'compiled' or 'reference', got {name!r}")
