@@ -4,9 +4,15 @@ Public faces: this package (the VoxSplat container and the error base), `scube_s
 `scube_sim.lidar`, `scube_sim.camera`, `scube_sim.worlds`, `scube_sim.datasets`, `scube_sim.sim`.
 """
 
-from ._version import __version__
-from .errors import ScubeSimError
-from .voxsplat import Gaussians, VoxSplat
+import os
+
+# Idle OpenMP threads sleep rather than spin (read when torch's OpenMP starts): on a machine other
+# jobs share, a spinning thread holds a core another thread of ours is waiting for.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from ._version import __version__  # noqa: E402
+from .errors import ScubeSimError  # noqa: E402
+from .voxsplat import Gaussians, VoxSplat  # noqa: E402
 
 
 def convert(frames, **options) -> VoxSplat:

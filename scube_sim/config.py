@@ -97,6 +97,7 @@ CONTEXT_INSTANTS = Range(ge=0, le=100, integer=True)
 CONFIDENCE_SAMPLES = Range(ge=0, le=64, integer=True)  # K (0: off; 1 is refused where it is read)
 MAX_RANGE_M = Range(gt=0, le=10_000, unit="metres")  # as a LiDAR's range.max_m
 THREADS = Range(ge=1, le=1024, integer=True)
+COMMAND_THREADS = Range(ge=0, le=1024, integer=True)  # a command's --threads (0: `cpus.resolve_threads`)
 WORKERS = Range(ge=1, le=1024, integer=True)
 VOXEL_SIZE_M = Range(ge=0.001, le=100, unit="metres")  # a VoxSplat fitted to points or Gaussians
 SCENE_VOXEL_M = Range(gt=0.01, le=5.0, unit="metres")  # a VoxSplat fitted to a mesh (`SceneSpec`, the demo)

@@ -6,7 +6,7 @@
     sensors       raytrace camera lidar
     representation voxsplat splat_params fit scene_file io (but io.pointcloud, io.safe_pickle)
     ground        _version errors config atomic run_manifest transforms labels boxes mesh geodesy memory
-                  resources viz parallel io.pointcloud io.safe_pickle _sensors
+                  cpus resources viz parallel io.pointcloud io.safe_pickle _sensors
 
 1. Layers are folders (or top-level modules); an import goes to the module's own layer or a lower one.
 2. Inside the middle layer a room imports only the rooms before it in MIDDLE_ORDER; `sim` imports
@@ -35,7 +35,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "scube_sim"
 
 LAYERS = [
     ("ground", ["_version", "errors", "config", "atomic", "run_manifest", "transforms", "labels", "resources",
-                "geodesy", "boxes", "mesh", "memory", "viz", "parallel", "io.pointcloud", "io.safe_pickle",
+                "geodesy", "boxes", "mesh", "memory", "cpus", "viz", "parallel", "io.pointcloud", "io.safe_pickle",
                 "_sensors"]),
     ("representation", ["voxsplat", "splat_params", "fit", "io", "scene_file"]),
     ("sensors", ["raytrace", "camera", "lidar"]),

@@ -92,6 +92,20 @@ def bounded(**ranges: Range):
     return decorate
 
 
+def threads_option():
+    """A command's --threads option (a new one per command: `bounded` writes its range into the help)."""
+    return typer.Option(0, "--threads", help="threads of every pool the command starts: torch, OpenMP, the "
+                        "compiled cores, Embree (0: the environment variable SCUBE_SIM_THREADS, else the CPUs "
+                        "this process may use: its affinity mask and container CPU quota)")
+
+
+def start_threads(threads: int) -> int:
+    """Size the command's pools (`cpus.use_threads`) from --threads (`cpus.resolve_threads`)."""
+    from ..cpus import resolve_threads, use_threads
+
+    return use_threads(resolve_threads(threads))
+
+
 def parse_pose(text: str) -> np.ndarray:
     """--pose x,y,z,roll,pitch,yaw (metres, degrees) -> (4, 4) pose."""
     from ..transforms import pose_from_xyz_rpy
@@ -126,6 +140,24 @@ def name_list(items: list, flag: str) -> list:
     if msg:
         raise CliError(f"{flag}: {msg}")
     return items
+
+
+def stage_lines(enabled: bool = True):
+    """A `status` callback for a long command: each stage's line on stderr, after the seconds since
+    the command started (rich's console on a terminal; plain lines in a log file or CI, where they
+    appear as each stage starts). None when `enabled` is False (--no-progress)."""
+    import sys
+    import time
+
+    if not enabled:
+        return None
+    t0 = time.perf_counter()
+    if sys.stderr.isatty():
+        from rich.console import Console
+
+        console = Console(stderr=True, highlight=False)
+        return lambda line: console.print(f"[dim]{time.perf_counter() - t0:6.1f} s[/dim]  {line}")
+    return lambda line: typer.echo(f"{time.perf_counter() - t0:6.1f} s  {line}", err=True)
 
 
 def track(items, description: str):

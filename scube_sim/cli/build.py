@@ -9,15 +9,26 @@ from typing import Optional
 
 import typer
 
-from ..config import SAMPLE_INDEX
+from ..config import COMMAND_THREADS, SAMPLE_INDEX
 from ..realdata.options import BUILD_RANGES
-from ._common import CliError, app, bounded, datasets_app, handle_errors, int_list, name_list
+from ._common import (
+    CliError,
+    app,
+    bounded,
+    datasets_app,
+    handle_errors,
+    int_list,
+    name_list,
+    start_threads,
+    threads_option,
+)
 
 
 @app.command("build")
 @handle_errors
 @bounded(**{k: BUILD_RANGES[k] for k in ("voxel_size", "gaussians_per_voxel", "patch_scale", "max_patch_sigma",
                                              "max_normal_scale", "mesh_max_edge_rel")})
+@bounded(threads=COMMAND_THREADS)
 def build_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
     dataset: str = typer.Option(..., "--dataset", "-d", help="nuscenes | kitti_raw | kitti_object | kitti360 | tri_dgp | argoverse2 | waymo | folder"),
@@ -36,8 +47,10 @@ def build_cmd(
     all_points: bool = typer.Option(False, "--all-points/--mesh-points", help="every return adds its own patch, not only those in no triangle"),
     color: bool = typer.Option(True, "--color/--no-color", help="colour from the camera images, where present"),
     assume_single_origin: bool = typer.Option(False, "--assume-single-origin", help="build sweeps that look merged from several LiDARs from their stated origin anyway"),
+    threads: int = threads_option(),
 ) -> None:
     """Build a VoxSplat from real LiDAR sweeps (accumulate, remove moving objects, fit, colour)."""
+    start_threads(threads)
     from ..datasets import open_dataset
     from ..realdata.build import BuildOptions, build_from_dataset
 
@@ -70,6 +83,7 @@ def build_cmd(
 @app.command("fidelity")
 @handle_errors
 @bounded(sample=SAMPLE_INDEX)
+@bounded(threads=COMMAND_THREADS)
 def fidelity_cmd(
     path: Path = typer.Argument(..., help="dataset folder"),
     dataset: str = typer.Option(..., "--dataset", "-d", help="dataset format (as for `build`)"),
@@ -88,8 +102,10 @@ def fidelity_cmd(
     regions: bool = typer.Option(False, "--regions", help="also score the returns within 40 m inside the sample's cameras, "
                                  "ground and above ground apart, beside a plane fitted to the sweep, and the surface "
                                  "distances both ways (converted scenes)"),
+    threads: int = threads_option(),
 ) -> None:
     """Simulate the real sensor at the real pose and compare with the real sweep, ray for ray."""
+    start_threads(threads)
     from ..datasets import open_dataset
     from ..realdata.fidelity import FidelityOptions, run_fidelity, write_report
     from ..voxsplat import VoxSplat

@@ -8,15 +8,25 @@ from typing import Optional
 
 import typer
 
-from ..config import CONFIDENCE_SAMPLES, CONTEXT_INSTANTS, DDIM_STEPS, FIT_STEPS, MAX_RANGE_M, SAMPLE_INDEX, SEED
-from ..converter.profile import DEFAULT_PROFILE
-from ._common import CliError, app, bounded, handle_errors
+from ..config import (
+    COMMAND_THREADS,
+    CONFIDENCE_SAMPLES,
+    CONTEXT_INSTANTS,
+    DDIM_STEPS,
+    FIT_STEPS,
+    MAX_RANGE_M,
+    SAMPLE_INDEX,
+    SEED,
+)
+from ..converter.profile import DEFAULT_PROFILE, load_profile
+from ._common import CliError, app, bounded, handle_errors, stage_lines, start_threads, threads_option
 
 
 @app.command("convert")
 @handle_errors
 @bounded(sample=SAMPLE_INDEX, steps=DDIM_STEPS, seed=SEED, confidence=CONFIDENCE_SAMPLES, max_range=MAX_RANGE_M,
          context=CONTEXT_INSTANTS, fit_steps=FIT_STEPS)
+@bounded(threads=COMMAND_THREADS)
 def convert_cmd(
     path: Path = typer.Argument(..., help="a worlds sample folder (DIR/test/000000), or with --dataset any adapter's folder"),
     output: Path = typer.Option(..., "-o", "--output", help="VoxSplat .npz to write"),
@@ -42,9 +52,13 @@ def convert_cmd(
                                 "the reference instant only and record the instants given)"),
     fit_steps: Optional[int] = typer.Option(None, "--fit-steps", help="the paper's route: a test-time fit of the "
                                             "Gaussians to the input views, Adam steps (default: the profile's)"),
+    progress: bool = typer.Option(True, "--progress/--no-progress", help="one line on stderr as each stage "
+                                  "(each stereo image, the fusion, the completion) starts"),
+    threads: int = threads_option(),
 ) -> None:
     """Convert posed camera frames into a VoxSplat (the profile's route: measured evidence with the learned
     completion by default, or the paper's two networks)."""
+    start_threads(threads)
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     from ..converter.frames import open_frames
@@ -54,17 +68,23 @@ def convert_cmd(
         raise CliError(f"-o: expected a .npz path, got {output}")
     if confidence is not None and (confidence == 1 or confidence < 0):
         raise CliError(f"--confidence: expected 0 (off) or K >= 2 samples, got {confidence}")
-    conv = Converter(profile)
+    chosen = load_profile(profile)
     paper = {"--steps": steps, "--seed": seed, "--confidence": confidence, "--sky" if sky else "--no-sky": sky,
              "--fit-steps": fit_steps}
     given = [name for name, value in paper.items() if value is not None]
-    if given and conv.profile.route != "scube":
-        raise CliError(f"{', '.join(given)}: profile {conv.profile.name!r} is route {conv.profile.route}, which does "
+    if given and chosen.route != "scube":
+        raise CliError(f"{', '.join(given)}: profile {chosen.name!r} is route {chosen.route}, which does "
                        f"not use {'it' if len(given) == 1 else 'them'} (the paper's route does: --profile cpu)")
+    status = stage_lines(progress)
+    if status:
+        status(f"loading profile {chosen.name}'s networks")
+    conv = Converter(chosen)
     options = {} if conv.profile.route != "scube" else {
         "steps": steps, "confidence": bool(confidence and confidence > 1), "confidence_samples": confidence or None,
         "sky": True if sky is None else sky, "fit_steps": fit_steps}
     context = conv.profile.context if context is None else context
+    if status:
+        status(f"opening {path} (sample {sample}, {context} context instant(s) either side)")
     frames = open_frames(path, dataset, sample, context=context)
     if context and not frames.context:
         typer.echo(f"note: --context {context}: the set holds no other instant of this sample's log (one keyframe, or "
@@ -76,8 +96,10 @@ def convert_cmd(
         task = bar.add_task("", total=n_fit)
         if options:
             options["progress"] = lambda step, total: bar.update(task, completed=step, total=total)
-        done = conv.convert(frames, seed=seed or 0, max_range=max_range, **options)
+        done = conv.convert(frames, seed=seed or 0, max_range=max_range, status=status, **options)
     vs, t = done.scene, done.timings
+    if status:
+        status(f"writing {output}")
     output.parent.mkdir(parents=True, exist_ok=True)
     vs.save(output)
     seen = float(vs.channel("observed").mean()) if vs.num_voxels else 0.0

@@ -8,9 +8,9 @@ from typing import Optional
 
 import typer
 
-from ..config import CONTEXT_INSTANTS, FINE_VOXEL_M, SEED, Range
+from ..config import COMMAND_THREADS, CONTEXT_INSTANTS, FINE_VOXEL_M, SEED, Range
 from ..converter.profile import DEFAULT_PROFILE
-from ._common import CliError, _fail, app, bounded, handle_errors
+from ._common import CliError, _fail, app, bounded, handle_errors, start_threads, threads_option
 
 eval_app = typer.Typer(no_args_is_help=True, help="Evaluate a stage's checkpoint, the converter end to end, or "
                        "camera depth.")
@@ -19,6 +19,7 @@ app.add_typer(eval_app, name="eval")
 
 @eval_app.command("stage")
 @handle_errors
+@bounded(threads=COMMAND_THREADS)
 def eval_stage_cmd(
     stage: str = typer.Argument(..., is_eager=True, callback=lambda v: _eval_stage_name(v),
                                 help="the stage the checkpoint belongs to (geometry-vae, geometry, appearance, "
@@ -33,8 +34,10 @@ def eval_stage_cmd(
                                           "config to change from the checkpoint's (repeatable; VALUE is YAML), "
                                           "e.g. eval_frames=true"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    threads: int = threads_option(),
 ) -> None:
     """A stage's checkpoint on one split of a dataset folder: the stage's own metrics."""
+    start_threads(threads)
     import json
 
     from ..atomic import atomic_path
@@ -66,6 +69,7 @@ def eval_stage_cmd(
 @eval_app.command("sensor-to-sensor")
 @handle_errors
 @bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True), gt_voxel=FINE_VOXEL_M, seed=SEED)
+@bounded(threads=COMMAND_THREADS)
 def eval_sensor_to_sensor_cmd(
     data: Optional[Path] = typer.Option(None, "--data", help="a worlds dataset folder (required)"),
     split: str = typer.Option("test", "--split", help="train | val | test"),
@@ -78,9 +82,11 @@ def eval_sensor_to_sensor_cmd(
     seed: int = typer.Option(0, "--seed", help="converter and LiDAR seed"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    threads: int = threads_option(),
 ) -> None:
     """The whole converter end to end: each held-out worlds sample's cameras converted, a LiDAR swept
     through the result against the same LiDAR on the world's mesh (converter/eval/sensor_to_sensor.py)."""
+    start_threads(threads)
     import json
 
     from ..atomic import atomic_path
@@ -105,6 +111,7 @@ def eval_sensor_to_sensor_cmd(
 @eval_app.command("depth")
 @handle_errors
 @bounded(context=CONTEXT_INSTANTS, limit=Range(ge=1, integer=True))
+@bounded(threads=COMMAND_THREADS)
 def eval_depth_cmd(
     data: Optional[Path] = typer.Option(None, "--data", help="dataset folder (required)"),
     dataset: Optional[str] = typer.Option(None, "--dataset", help="the dataset adapter (worlds, nuscenes, "
@@ -121,9 +128,11 @@ def eval_depth_cmd(
     limit: Optional[int] = typer.Option(None, "--limit", help="the dataset's first N samples"),
     output: Optional[Path] = typer.Option(None, "-o", "--output", help="metrics .json to write"),
     progress: bool = typer.Option(True, "--progress/--no-progress"),
+    threads: int = threads_option(),
 ) -> None:
     """A depth method on each sample's camera images against the rendered depth maps, else the
     sample's LiDAR projected into the cameras (converter/eval/depth.py)."""
+    start_threads(threads)
     _require_data(data)
     if checkpoint is not None and method == "stereo":
         raise CliError("--checkpoint: --method stereo uses no checkpoint (mono and fused do)")

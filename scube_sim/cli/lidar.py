@@ -10,13 +10,13 @@ from typing import Optional
 import numpy as np
 import typer
 
-from ..config import SCALE_FACTOR, SEED, VOXEL_SIZE_M, Range
-from ._common import CliError, app, bounded, handle_errors, parse_pose
+from ..config import COMMAND_THREADS, SCALE_FACTOR, SEED, VOXEL_SIZE_M, Range
+from ._common import CliError, app, bounded, handle_errors, parse_pose, start_threads, threads_option
 
 
 @app.command("lidar")
 @handle_errors
-@bounded(threads=Range(ge=0, le=1024, integer=True), k=Range(gt=0, le=10), soft_alpha_min=Range(ge=0, lt=1), seed=SEED)
+@bounded(threads=COMMAND_THREADS, k=Range(gt=0, le=10), soft_alpha_min=Range(ge=0, lt=1), seed=SEED)
 def lidar_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or any 3DGS .ply"),
     sensor: str = typer.Option(..., "--sensor", "-s", help="preset name (see `scube-sim sensors`) or a sensor YAML path"),
@@ -25,13 +25,14 @@ def lidar_cmd(
     mode: str = typer.Option("auto", "--mode", help="entry | max_response | soft | auto (a VoxSplat's own trace_mode, else entry; soft for 3DGS .ply)"),
     backend: Optional[str] = typer.Option(None, "--backend", help="open3d | embreex | compiled: the Embree engine of the reference core's proxies (default open3d)"),
     core: Optional[str] = typer.Option(None, "--core", help="compiled | reference (default: compiled where built; env SCUBE_SIM_CORE)"),
-    threads: int = typer.Option(0, "--threads", help="the compiled core's threads (0: all cores)"),
+    threads: int = threads_option(),
     k: float = typer.Option(3.0, "--k", help="hard surface: the k-sigma ellipsoid"),
     soft_alpha_min: float = typer.Option(1.0 / 255.0, "--soft-alpha-min", help="soft mode: contributions fainter than this are dropped (converted scenes: 0.1 traces faster at a lower median error, fewer returns)"),
     seed: int = typer.Option(0, "--seed", help="random seed (noise, drops)"),
     png: Optional[Path] = typer.Option(None, "--png", help="also write a bird's-eye view PNG"),
 ) -> None:
     """Simulate one LiDAR sweep; the output is in the sensor frame (x forward, y left, z up)."""
+    threads = start_threads(threads)
     from ..io.pointcloud import write_points
     from ..lidar.config import load_lidar_config
     from ..lidar.model import Lidar
@@ -75,6 +76,7 @@ def lidar_cmd(
 @app.command("export")
 @handle_errors
 @bounded(voxel_size=VOXEL_SIZE_M, max_gaussians=Range(ge=1, integer=True))
+@bounded(threads=COMMAND_THREADS)
 def export_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or 3DGS .ply"),
     to: str = typer.Option(..., "--to", help="ply (3DGS, Inria layout) | usd (.usda) | usdc | npz (VoxSplat)"),
@@ -83,8 +85,10 @@ def export_cmd(
     max_gaussians: Optional[int] = typer.Option(
         None, "--max-gaussians", help="--to ply: keep the N Gaussians with the largest opacity x area (a 3DGS "
                                       "trainer's initialisation)"),
+    threads: int = threads_option(),
 ) -> None:
     """Convert a scene between VoxSplat .npz, 3DGS .ply and USD."""
+    start_threads(threads)
     from ..scene_file import as_voxsplat, load_scene
     from ..voxsplat import VoxSplat
 
@@ -118,14 +122,17 @@ def export_cmd(
 @app.command("render")
 @handle_errors
 @bounded(scale=SCALE_FACTOR)
+@bounded(threads=COMMAND_THREADS)
 def render_cmd(
     scene: Path = typer.Argument(..., help="VoxSplat .npz or any 3DGS .ply"),
     rig: str = typer.Option(..., "--rig", help="camera rig preset (waymo-5, nuscenes-6) or a rig YAML"),
     output: Path = typer.Option(..., "-o", "--output", help="PNG mosaic of the rig's views"),
     pose: str = typer.Option("0,0,0,0,0,0", "--pose", help="ego pose in the scene frame: x,y,z,roll,pitch,yaw (m, deg)"),
     scale: float = typer.Option(0.25, "--scale", help="of each camera's resolution (CPU time grows with pixels)"),
+    threads: int = threads_option(),
 ) -> None:
     """Render camera views of a scene through a rig with the CPU Gaussian renderer."""
+    start_threads(threads)
     from ..camera.rig import load_rig
     from ..model.nn.views import render_rig
     from ..scene_file import load_scene

@@ -8,14 +8,15 @@ from typing import Optional
 
 import typer
 
-from ..config import SCENE_VOXEL_M, SEED, THREADS, WORKERS, Range
+from ..config import COMMAND_THREADS, SCENE_VOXEL_M, SEED, THREADS, WORKERS, Range
 from ..converter.profile import DEFAULT_PROFILE
-from ._common import CliError, app, bounded, handle_errors
+from ._common import CliError, app, bounded, handle_errors, start_threads, threads_option
 
 
 @app.command("demo")
 @handle_errors
 @bounded(voxel_size=SCENE_VOXEL_M, seed=SEED)
+@bounded(threads=COMMAND_THREADS)
 def demo_cmd(
     output: Path = typer.Option(Path("out"), "-o", "--output", help="output folder"),
     sensor: str = typer.Option("hdl64e", "--sensor", "-s", help="LiDAR preset or YAML"),
@@ -26,9 +27,11 @@ def demo_cmd(
                                 "what no camera saw completed; evidence: without the completion; "
                                 "cpu-lidar: the paper's route, one Gaussian per voxel, no context instants)"),
     convert: bool = typer.Option(True, "--convert/--no-convert", help="also convert the camera images and compare"),
+    threads: int = threads_option(),
 ) -> None:
     """Build a VoxSplat of the default scene, sweep a LiDAR through it and write out/; convert the
     scene's camera images (and the instants around them the profile asks for) and sweep that too."""
+    start_threads(threads)
     from ..runs.demo import run_demo
 
     run_demo(output, sensor=sensor, voxel_size=voxel_size, seed=seed, echo=typer.echo,
@@ -38,6 +41,7 @@ def demo_cmd(
 @app.command("replay")
 @handle_errors
 @bounded(duration=Range(gt=0, le=86_400, unit="seconds"), seed=SEED)
+@bounded(threads=COMMAND_THREADS)
 def replay_cmd(
     scenario: Path = typer.Argument(..., help="scenario YAML (see scenarios/)"),
     output: Path = typer.Option(..., "-o", "--output", help="output folder (new or empty; see --overwrite, --resume)"),
@@ -47,8 +51,10 @@ def replay_cmd(
                                    "(the VoxSplat chunk cache scene_chunks/ is kept)"),
     resume: bool = typer.Option(False, "--resume", help="continue the same run (same inputs and settings, "
                                 "by its manifest.json): nothing to do if complete, else run it again"),
+    threads: int = threads_option(),
 ) -> None:
     """Run a scenario end to end: frames (PCD/BIN/NPZ + manifest), a USD stage, CAN out."""
+    start_threads(threads)
     from ..runs.replay import replay
 
     r = replay(scenario, output, duration=duration, seed=seed, overwrite=overwrite, resume=resume,

@@ -8,14 +8,16 @@ from typing import Optional
 
 import typer
 
-from ..config import COARSE_FACTOR, FINE_VOXEL_M, SCALE_FACTOR, SEED, WORKERS, Range
-from ._common import CliError, bounded, handle_errors, worlds_app
+from ..config import COARSE_FACTOR, COMMAND_THREADS, FINE_VOXEL_M, SCALE_FACTOR, SEED, WORKERS, Range
+from ..cpus import share_threads
+from ._common import CliError, bounded, handle_errors, start_threads, threads_option, worlds_app
 
 
 @worlds_app.command("generate")
 @handle_errors
 @bounded(count=Range(ge=0, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True), jobs=WORKERS,
          image_scale=SCALE_FACTOR, fine_voxel=FINE_VOXEL_M, coarse_factor=COARSE_FACTOR)
+@bounded(threads=COMMAND_THREADS)
 def worlds_generate_cmd(
     output: Path = typer.Option(..., "-o", "--output", help="dataset folder (created, or resumed)"),
     split: str = typer.Option("train", "--split", help="train | val | test (fixed seeds per split)"),
@@ -35,9 +37,11 @@ def worlds_generate_cmd(
                                                "(default 0.1); only for a new folder"),
     coarse_factor: Optional[int] = typer.Option(None, "--coarse-factor", help="coarse voxel = factor x fine "
                                                 "(default 4); only for a new folder"),
+    threads: int = threads_option(),
 ) -> None:
     """Write dataset samples: images at T, T+5, T+10 (or --frame-offsets), depth, semantics, poses, boxes, GT
     voxels and LiDAR."""
+    start_threads(share_threads(jobs, threads))  # each worker's share
     from ..config import validate_model
     from ..worlds.dataset import DatasetConfig, generate_dataset
 
@@ -67,14 +71,17 @@ def worlds_generate_cmd(
 @worlds_app.command("preview")
 @handle_errors
 @bounded(seed=SEED)
+@bounded(threads=COMMAND_THREADS)
 def worlds_preview_cmd(
     scenario: Optional[Path] = typer.Argument(None, help="scenario YAML with a `world:` section"),
     style: str = typer.Option("urban", "--style", help="urban | suburban | intersection | boulevard"),
     seed: int = typer.Option(0, "--seed"),
     output: Path = typer.Option(Path("out"), "-o", "--output", help="folder for the PNGs"),
     rig: str = typer.Option("waymo-5", "--rig"),
+    threads: int = threads_option(),
 ) -> None:
     """Render a world's camera views and a top view of its ground-truth voxels."""
+    start_threads(threads)
     from ..worlds.generator import WorldConfig
     from ..worlds.preview import preview_world
 
@@ -88,6 +95,7 @@ def worlds_preview_cmd(
 @worlds_app.command("evidence")
 @handle_errors
 @bounded(count=Range(ge=1, le=1_000_000, integer=True), start=Range(ge=0, le=999_999, integer=True), jobs=WORKERS)
+@bounded(threads=COMMAND_THREADS)
 def worlds_evidence_cmd(
     data: Path = typer.Argument(..., help="worlds dataset folder (generated with context instants)"),
     split: str = typer.Option("train", "--split", help="train | val | test"),
@@ -96,9 +104,11 @@ def worlds_evidence_cmd(
     profile: str = typer.Option("evidence", "--profile", help="the evidence-route profile that measures"),
     jobs: int = typer.Option(1, "--jobs", "-j", help="worker processes (one thread each; the cache does not "
                              "depend on it)"),
+    threads: int = threads_option(),
 ) -> None:
     """Measure the evidence of worlds samples with the real stereo pipeline and cache it for the completion
     stage (DATA/evidence/<split>/<sample>.npz); resumable: cached samples with the same settings are skipped."""
+    start_threads(share_threads(jobs, threads))  # each worker's share
     from ..converter.profile import load_profile
     from ..model.completion.data import cache_evidence
 

@@ -15,7 +15,7 @@ from ..voxsplat import VoxSplat
 from .frames import context_record
 from .merge import CompletionGrid
 
-__all__ = ["Conversion", "checkpoint_hashes", "context_metadata", "one_torch_thread"]
+__all__ = ["Conversion", "checkpoint_hashes", "context_metadata", "one_torch_thread", "torch_threads"]
 
 
 @dataclass
@@ -52,14 +52,19 @@ def context_metadata(frames: Frames, used: str) -> dict:
 
 
 @contextlib.contextmanager
-def one_torch_thread():
-    """torch on one intra-op thread for the block, restored afterwards. The networks' convolutions
-    and matrix products split their sums by thread count, so their float results (1e-6 apart) and
-    the file's bytes would depend on it; `convert` and a batch worker must write the same file.
-    It costs a single conversion its second core; a batch runs samples side by side instead."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+def torch_threads(threads: int):
+    """torch on `threads` intra-op threads for the block, restored afterwards."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(int(threads))
     try:
         yield
     finally:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(before)
+
+
+def one_torch_thread():
+    """torch on one intra-op thread for the block (`torch_threads(1)`). The networks' convolutions
+    and matrix products split their sums by thread count, so their float results (1e-6 apart) and
+    the file's bytes would depend on it; `convert` and a batch worker must write the same file.
+    It costs a single conversion its second core; a batch runs samples side by side instead."""
+    return torch_threads(1)

@@ -7,6 +7,7 @@ z up from the road under the ego, metres) and traces at hard opacity.
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 import torch
@@ -45,13 +46,14 @@ class EvidencePipeline:
 
     @torch.no_grad()
     def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None,
-                evidence: Evidence | None = None) -> Conversion:
+                evidence: Evidence | None = None, status: Callable[[str], None] | None = None) -> Conversion:
         """Frames -> the scene (chunk frame): the measured evidence's surfels, completed where the
         profile names a completion; `seed` is not used (the route draws nothing), max_range: keep
         only the voxels whose centre lies within this many metres (horizontally) of the ego.
         evidence: these frames' `Evidence`, measured with this profile's settings
         (`reconstruct.evidence.measure_evidence`), used instead of measuring it again (several
-        completions compared on one measurement; stereo_s is then 0). Timings: stereo_s,
+        completions compared on one measurement; stereo_s is then 0). status: called with one line
+        as each stage (each stereo image, the fusion, the completion) starts. Timings: stereo_s,
         fusion_s (fusion, ground and surfels) and completion_s. Same frames, same bytes."""
         ev = evidence
         reset_peak()
@@ -59,13 +61,15 @@ class EvidencePipeline:
         parts: dict[str, float] = {"stereo_s": 0.0}
         cfg = self.profile.evidence
         if ev is None:
-            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts)
+            ev = measure_evidence(frames, invert_pose(chunk_to_world(frames)), cfg, timings=parts, status=status)
         scene = scene_from_evidence(ev, cfg)
         scene.metadata.update({"cameras": list(frames.names), "timestamp": float(frames.timestamp)})
         t1 = time.perf_counter()
         parts["fusion_s"] = t1 - t0 - parts["stereo_s"]
         completed = uncompleted = grid = None
         if self.completion is not None:
+            if status:
+                status("completion: the network on the evidence, then the merge")
             uncompleted = scene
             feats = completion_input(ev, self.completion_voxel_size, min_confidence=cfg.fusion.min_confidence,
                                      pixel_stride=cfg.fusion_at_stereo_scale().pixel_stride, max_depth_m=cfg.fusion.max_depth_m)

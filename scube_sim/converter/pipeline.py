@@ -8,14 +8,15 @@ it: `evidence.EvidencePipeline` (measured geometry, then the learned completion)
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
 from ..camera.frames import Frames
+from ..cpus import resolve_threads
 from ..errors import InputError
 from ..voxsplat import VoxSplat
-from .conversion import Conversion, checkpoint_hashes
+from .conversion import Conversion, checkpoint_hashes, torch_threads
 from .evidence import EvidencePipeline
 from .profile import DEFAULT_PROFILE, ConverterProfile, load_profile
 from .scube import TRACE_MODE, PaperPipeline
@@ -25,12 +26,14 @@ __all__ = ["TRACE_MODE", "Conversion", "Converter", "Pipeline", "convert", "is_l
 
 class Pipeline(Protocol):
     """A route's conversion: its networks loaded from the profile, `paths` the checkpoint files
-    they came from, `OPTIONS` the keyword options `convert` takes besides seed and max_range."""
+    they came from, `OPTIONS` the keyword options `convert` takes besides seed, max_range and
+    status (called with one line as each stage starts)."""
 
     OPTIONS: tuple[str, ...]
     paths: dict[str, Path]
 
-    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, **options) -> Conversion:
+    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None,
+                status: Callable[[str], None] | None = None, **options) -> Conversion:
         ...
 
 
@@ -48,10 +51,12 @@ class Converter:
         """sha256 of every checkpoint the profile's pipeline loaded (provenance)."""
         return checkpoint_hashes(self.pipeline.paths)
 
-    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, **options) -> Conversion:
+    def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None,
+                status: Callable[[str], None] | None = None, **options) -> Conversion:
         """Frames -> `Conversion` (the scene in the chunk frame, timings, intermediates). seed: the
         paper route's sampler (an integer >= 0); max_range: metres (horizontal) from the ego a voxel's
-        centre may lie; `options`: the pipeline's own (`PaperPipeline.convert`, `EvidencePipeline.convert`),
+        centre may lie; status: called with one line as each stage starts (a command's progress);
+        `options`: the pipeline's own (`PaperPipeline.convert`, `EvidencePipeline.convert`),
         any other refused with one line naming the profile's route and what it takes."""
         unknown = sorted(set(options) - set(self.pipeline.OPTIONS))
         if unknown:
@@ -62,7 +67,9 @@ class Converter:
             raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
         if max_range is not None and not (np.isfinite(max_range) and max_range > 0):
             raise InputError(f"max_range: expected a positive number of metres, got {max_range}")
-        return self.pipeline.convert(frames, seed=int(seed), max_range=max_range, **options)
+        # the CPUs this process may use (`cpus.resolve_threads`), not torch's count of the machine's cores
+        with torch_threads(resolve_threads(None)):
+            return self.pipeline.convert(frames, seed=int(seed), max_range=max_range, status=status, **options)
 
 
 _CACHE: dict[str, Converter] = {}

@@ -22,6 +22,7 @@ by the field of view, not by the sensor's pixel count.
 from __future__ import annotations
 
 import time
+from typing import Callable
 
 import numpy as np
 import torch
@@ -48,6 +49,10 @@ __all__ = ["TRACE_MODE", "PaperPipeline"]
 # and the demo read): its Gaussians are camera-trained blobs about half a voxel wide whose opacity
 # matters; at hard opacity their 3-sigma shells are slabs metres thick.
 TRACE_MODE = "soft"
+
+
+def _quiet(line: str) -> None:
+    """A `status` that shows nothing."""
 
 
 class PaperPipeline:
@@ -173,7 +178,7 @@ class PaperPipeline:
     def convert(self, frames: Frames, *, seed: int = 0, max_range: float | None = None, steps: int | None = None,
                 confidence: bool = False, confidence_samples: int | None = None,
                 sky: bool = True, fit_steps: int | None = None,
-                progress=None) -> Conversion:
+                progress=None, status: Callable[[str], None] | None = None) -> Conversion:
         """Frames -> the scene (chunk frame, module docstring) with labels, reflectance, the sky
         panorama (unless `sky` is False: a LiDAR-only run) and per voxel ``observed`` (an input
         camera's ray enters it first) and ``confidence``. confidence: draw K geometry samples
@@ -185,29 +190,32 @@ class PaperPipeline:
         appearance stage (its cost grows with the voxels). steps: DDIM steps of a diffusion
         geometry (default the profile's); fit_steps: a test-time fit of the appearance on the input
         views (default the profile's `appearance.fit_steps`); progress(step, total) after each of
-        its steps. Timings: geometry_s, appearance_s. Same frames and seed, same bytes."""
+        its steps; status: called with one line as each stage starts. Timings: geometry_s,
+        appearance_s. Same frames and seed, same bytes."""
         if fit_steps is not None and (isinstance(fit_steps, bool) or not isinstance(fit_steps, (int, np.integer))
                                          or fit_steps < 0):
             raise InputError(f"fit_steps: expected an integer >= 0, got {fit_steps!r}")
         with one_torch_thread():
             return self._convert(frames, seed=seed, max_range=max_range, steps=steps, confidence=confidence,
                                  confidence_samples=confidence_samples,
-                                 sky=sky, fit_steps=fit_steps, progress=progress)
+                                 sky=sky, fit_steps=fit_steps, progress=progress, status=status or _quiet)
 
     def _convert(self, frames: Frames, *, seed, max_range, steps, confidence, confidence_samples, sky,
-                 fit_steps, progress) -> Conversion:
+                 fit_steps, progress, status) -> Conversion:
         fit_steps = self.profile.appearance.fit_steps if fit_steps is None else int(fit_steps)
         if confidence_samples is not None and confidence_samples < 1:
             raise InputError(f"confidence_samples: expected at least one geometry sample, got {confidence_samples}")
         samples = (confidence_samples or self.profile.confidence_samples) if confidence else 1
         reset_peak()
         t0 = time.perf_counter()
+        status(f"geometry: {samples} sample(s) of the voxels")
         ijk, labels, conf, observed, vs = self.predict_voxels(frames, steps=steps, seed=int(seed), samples=samples)
         if max_range is not None:
             centres = torch.as_tensor(CHUNK_CORNER[:2]) + (ijk[:, :2].double() + 0.5) * vs
             keep = centres.norm(dim=1) <= max_range
             ijk, labels, conf, observed = ijk[keep], labels[keep], conf[keep], observed[keep]
         t1 = time.perf_counter()
+        status(f"appearance: the Gaussians of {len(ijk)} voxels")
         scene = self.gaussians(frames, ijk, labels, vs, sky=sky, fit_steps=fit_steps, progress=progress)
         t2 = time.perf_counter()
         timings = {"geometry_s": t1 - t0, "appearance_s": t2 - t1, "peak_mb": peak_mb()}

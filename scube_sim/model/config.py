@@ -14,7 +14,6 @@ punctuation ignored, as sensor presets do ('Geometry-Waymo' == 'geometry_waymo')
 from __future__ import annotations
 
 import contextlib
-import os
 from pathlib import Path
 from typing import Any, Literal
 
@@ -22,6 +21,7 @@ import torch
 from pydantic import BaseModel, Field, PrivateAttr, create_model, field_validator, model_validator
 
 from ..config import ConfigError, StrictModel, load_yaml, normalize_name, validate_model
+from ..cpus import share_threads
 
 
 class TrainConfig(StrictModel):
@@ -150,7 +150,7 @@ def torch_settings(tc: TrainConfig, world: int):
     if tc.threads is not None:
         torch.set_num_threads(tc.threads)
     elif world > 1:  # ranks share the cores
-        torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+        torch.set_num_threads(share_threads(world))
     # Only on a change: the call also sets torch._inductor's flag, importing it (seconds) if needed.
     if (det, warn) != (tc.deterministic, False):
         torch.use_deterministic_algorithms(tc.deterministic)

@@ -12,14 +12,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..atomic import atomic_path
+from ..cpus import THREADS_ENV
 from ..errors import InputError
 from ..memory import peak_mb, reset_peak
 from ..run_manifest import RunManifest, finish_run, prepare_output, read_manifest
 
 STATE_DIR = ".batch"
-# BLAS and OpenMP pools read these at start-up: each worker gets the same, whatever the executor
+# BLAS and OpenMP pools read these at start-up, our compiled cores SCUBE_SIM_THREADS
+# (`cpus.THREADS_ENV`): each worker gets the same, whatever the executor
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-               "VECLIB_MAXIMUM_THREADS")
+               "VECLIB_MAXIMUM_THREADS", THREADS_ENV)
 
 
 class BatchError(InputError):
@@ -72,7 +74,7 @@ class Job:
 
 
 def pinned_env(threads: int) -> dict[str, str]:
-    """Environment variables that pin a worker's BLAS / OpenMP / torch threads."""
+    """Environment variables that pin a worker's BLAS / OpenMP / torch threads and our cores'."""
     return {v: str(threads) for v in THREAD_VARS}
 
 

@@ -52,10 +52,16 @@ constexpr int64_t kChunk = 512;  // rays per work item handed to a thread
 template <typename T>
 using Arr = py::array_t<T, py::array::c_style | py::array::forcecast>;
 
+// The build threads of the device (0: Embree's default), set before the device exists.
+int g_device_threads = 0;
+bool g_device_made = false;
+
 RTCDevice shared_device() {
   // One device per process; its TBB pool builds every scene's BVH.
   static RTCDevice device = [] {
-    RTCDevice d = rtcNewDevice(nullptr);
+    const std::string config = g_device_threads > 0 ? "threads=" + std::to_string(g_device_threads) : "";
+    RTCDevice d = rtcNewDevice(config.empty() ? nullptr : config.c_str());
+    g_device_made = true;
     if (!d) throw std::runtime_error("Embree: rtcNewDevice failed (error " +
                                      std::to_string(rtcGetDeviceError(nullptr)) + ")");
     return d;
@@ -1073,6 +1079,12 @@ PYBIND11_MODULE(_core, m) {
       .def("first_hit", &MeshScene::first_hit, py::arg("o"), py::arg("d"), py::arg("far"), py::arg("t"),
            py::arg("prim"), py::arg("threads") = 0,
            "First hit per ray: o, d (N, 3), far (N,) float32; fills t (N,) float32 (inf: miss) and prim (N,) int64.");
+  m.def("set_device_threads", [](int threads) {
+    if (g_device_made) return false;
+    g_device_threads = std::max(0, threads);
+    return true;
+  }, py::arg("threads"),
+        "The BVH build threads of the process's Embree device; False once the device exists (then unchanged).");
   m.def("trace", &trace, "Trace rays; fills the output arrays; returns (traversals, exact tests, unfinished rays).");
   m.def("voxel_first_hit", &voxel_first_hit, py::arg("o"), py::arg("d"), py::arg("origin"), py::arg("voxel_size"),
         py::arg("lo"), py::arg("dims"), py::arg("keys"), py::arg("order"), py::arg("dist"), py::arg("max_t"),

@@ -4,8 +4,8 @@ Three engines: the compiled core's `MeshScene` (`_core.cpp`: the Embree device, 
 thread-count knob the Gaussian core uses; honours the far limit in traversal), embreex (Embree 4
 through Cython, one thread per call) and open3d's `RaycastingScene` (Embree inside,
 multi-threaded). All take float32 rays in the mesh's frame and return the first hit up to a
-per-ray limit; `threads` is the compiled engine's thread count (0: all cores; open3d's likewise;
-embreex has one). The BVH is built once, at construction.
+per-ray limit; `threads` is the compiled engine's thread count (0: the CPUs the process may use,
+`compiled.threads_for`; open3d's likewise; embreex has one). The BVH is built once, at construction.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ def default_mesh_backend() -> str:
 
 class MeshEngine:
     """How a `Tracer` traces a triangle mesh: Embree's own triangles on `backend` ('open3d' |
-    'embreex' | 'compiled'; default `default_mesh_backend()`), with `threads` (0: all cores;
-    embreex runs one whatever it says)."""
+    'embreex' | 'compiled'; default `default_mesh_backend()`), with `threads` (0: the CPUs
+    the process may use; embreex runs one whatever it says)."""
 
     name = "mesh"
 
@@ -39,7 +39,7 @@ class MeshEngine:
         if backend is not None and backend not in BACKENDS:
             raise InputError(f"backend: expected one of {BACKENDS}, got {backend!r}")
         if int(threads) < 0:
-            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
+            raise InputError(f"threads: expected 0 (all usable CPUs) or a positive count, got {threads}")
         self.backend = backend or default_mesh_backend()
         self.threads = int(threads)
 
@@ -107,7 +107,7 @@ class Open3DBackend:
         n = origins.shape[0]
         if n == 0 or self.num_faces == 0:
             return np.full(n, np.inf, np.float32), np.full(n, -1, np.int64)
-        nthreads = threads or self._nthreads
+        nthreads = compiled.threads_for(threads or self._nthreads)
         res = self._scene.cast_rays(self._o3d.core.Tensor(_o3d_rays(origins, dirs)), nthreads=nthreads)
         t = res["t_hit"].numpy()
         prim = res["primitive_ids"].numpy().astype(np.int64)
@@ -125,14 +125,15 @@ class Open3DBackend:
         if n == 0 or self.num_faces == 0:
             return
         rays = _o3d_rays(origins, dirs)
-        counts = self._scene.count_intersections(self._o3d.core.Tensor(rays), nthreads=self._nthreads).numpy()
+        counts = self._scene.count_intersections(self._o3d.core.Tensor(rays), nthreads=compiled.threads_for(self._nthreads)).numpy()
         csum = np.cumsum(counts.astype(np.int64))
         lo = 0
         while lo < n:
             base = csum[lo - 1] if lo else 0
             hi = max(lo + 1, int(np.searchsorted(csum, base + chunk_hits, side="right")))
             hi = min(hi, n)
-            res = self._scene.list_intersections(self._o3d.core.Tensor(rays[lo:hi]), nthreads=self._nthreads)
+            res = self._scene.list_intersections(self._o3d.core.Tensor(rays[lo:hi]),
+                                                 nthreads=compiled.threads_for(self._nthreads))
             ray = res["ray_ids"].numpy().astype(np.int64) + lo
             t = res["t_hit"].numpy()
             prim = res["primitive_ids"].numpy().astype(np.int64)
@@ -152,6 +153,7 @@ class CompiledMeshBackend:
         if not compiled.available():
             raise BackendUnavailable(f"the compiled tracer core is not built ({compiled.load_error()})")
         self.num_faces = int(faces.shape[0])
+        compiled.device()
         self._scene = compiled._core.MeshScene(np.ascontiguousarray(vertices, np.float32),
                                               np.ascontiguousarray(faces, np.int64).reshape(-1, 3))
 
@@ -159,7 +161,7 @@ class CompiledMeshBackend:
         n = origins.shape[0]
         t, prim = np.empty(n, np.float32), np.empty(n, np.int64)
         self._scene.first_hit(np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(dirs, np.float32),
-                              np.ascontiguousarray(t_far, np.float32), t, prim, int(threads))
+                              np.ascontiguousarray(t_far, np.float32), t, prim, compiled.threads_for(threads))
         return t, prim
 
 

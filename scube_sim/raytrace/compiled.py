@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..cpus import resolve_threads
 from ..errors import InputError, ScubeSimError
 from .contracts import SceneGaussians, SoftMode, TraceMode
 from .hits import Hits, TraceStats
@@ -52,6 +53,19 @@ def embree_version() -> str | None:
     return _core.EMBREE_VERSION if _core is not None else None
 
 
+def threads_for(threads: int) -> int:
+    """The extension's thread count for a request: 0 is the process's (`cpus.resolve_threads`:
+    SCUBE_SIM_THREADS, else the CPUs the process may use), never the machine's core count."""
+    return resolve_threads(int(threads) or None)
+
+
+def device() -> None:
+    """Size the Embree device's BVH build pool before its first scene (`threads_for(0)`); later
+    calls change nothing (a process has one device)."""
+    if _core is not None:
+        _core.set_device_threads(threads_for(0))
+
+
 _warned = False
 
 
@@ -84,7 +98,7 @@ def carve_misses(origin: np.ndarray, direction: np.ndarray, reach: np.ndarray, c
     samples in one voxel counted once, looked up in the sorted `candidates` (K,) int64 voxel keys
     (`voxsplat.voxel_keys`). Returns per candidate (hit (K,) bool, summed `confidence` (K,) float64 of
     the rays that crossed it, their count (K,) float64). Sums are added per batch of `batch` rays in
-    batch order, so the bytes do not depend on `threads` (0: one per core)."""
+    batch order, so the bytes do not depend on `threads` (0: `threads_for`)."""
     if _core is None:
         raise CoreUnavailable(f"the compiled core is not built ({_LOAD_ERROR})")
     n = len(candidates)
@@ -93,7 +107,7 @@ def carve_misses(origin: np.ndarray, direction: np.ndarray, reach: np.ndarray, c
         ok = _core.carve_misses(np.asarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
                                 np.ascontiguousarray(reach, np.float64), np.ascontiguousarray(confidence, np.float64),
                                 np.asarray(grid_origin, np.float64), float(voxel_size), float(step), int(batch),
-                                np.ascontiguousarray(candidates, np.int64), conf_sum, conf_cnt, hit, int(threads))
+                                np.ascontiguousarray(candidates, np.int64), conf_sum, conf_cnt, hit, threads_for(threads))
         if not ok:
             raise InputError("voxel indices beyond +-2^20: the scene is too large for this voxel size")
     return hit, conf_sum, conf_cnt
@@ -113,7 +127,7 @@ def voxel_first_hit(origins: np.ndarray, dirs: np.ndarray, grid_origin: np.ndarr
         raise CoreUnavailable(f"the compiled core is not built ({_LOAD_ERROR})")
     _core.voxel_first_hit(np.ascontiguousarray(origins, np.float64), np.ascontiguousarray(dirs, np.float64),
                           grid_origin, float(voxel_size), lo, dims, keys, order, block_distance, float(max_t),
-                          index, t_hit)
+                          index, t_hit, threads_for(0))
 
 
 @dataclass
@@ -144,13 +158,14 @@ def _build(scene: SceneGaussians, alpha_min: float, morton: bool = True):
     """The extension's scene; morton=False stores the Gaussians as given (benchmarks only)."""
     g = scene.gaussians
     c64 = [np.ascontiguousarray(x, np.float64) for x in (g.means, g.quats, g.scales, g.opacities)]
+    device()
     return _core.GaussianScene(*c64, float(scene.k), float(scene.pad), float(alpha_min), bool(morton))
 
 
 class CompiledCore:
     """The compiled `TraceCore`: one Embree traversal per ray with the exact test inside.
 
-    threads: the extension's threads (0: all cores); k_buffer: soft contributions gathered per
+    threads: the extension's threads (0: `threads_for`, the CPUs the process may use); k_buffer: soft contributions gathered per
     traversal (3DGRT's k-buffer: a small one re-traverses more, and re-tests every Gaussian it
     straddles); max_iterations: soft re-traversals per ray at most."""
 
@@ -158,7 +173,7 @@ class CompiledCore:
 
     def __init__(self, threads: int = 0, k_buffer: int = 256, max_iterations: int = 1000):
         if int(threads) < 0:
-            raise InputError(f"threads: expected 0 (all cores) or a positive count, got {threads}")
+            raise InputError(f"threads: expected 0 (all usable CPUs) or a positive count, got {threads}")
         if int(k_buffer) < 1:
             raise InputError(f"k_buffer: expected at least 1, got {k_buffer}")
         if int(max_iterations) < 1:
@@ -196,7 +211,7 @@ class CompiledCore:
             prepared.handle_for(mode), _MODE_CODES[mode.name], *f64, s.voxel, s.labels, s.colors,
             out.hit, out.t, out.points, out.normals, out.gaussian, out.voxel, out.label, out.color, out.alpha,
             float(soft.min_transmittance), float(soft.alpha_min), float(soft.hit_alpha),
-            self.k_buffer, self.max_iterations, self.threads)
+            self.k_buffer, self.max_iterations, threads_for(self.threads))
         stats.casts += 1
         stats.rays_cast += int(casts)
         stats.exact_tests += int(tests)

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from typing import Callable
 
 import numpy as np
 
@@ -102,10 +103,11 @@ class Evidence:
 
 
 def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig | None = None, *,
-                     progress: bool = False, timings: dict | None = None) -> Evidence:
+                     status: Callable[[str], None] | None = None, timings: dict | None = None) -> Evidence:
     """Frames -> the `Evidence` in the chunk frame (`to_chunk` (4, 4): world -> chunk): stereo per
     reference image, fusion, the ground height field and the points' labels (module docstring).
-    `timings`, if given, receives stereo_s and fusion_s (seconds)."""
+    `timings`, if given, receives stereo_s and fusion_s (seconds); `status`, if given, is called
+    with one line as each reference image's stereo and then the fusion starts."""
     cfg = cfg or EvidenceConfig()
     to_chunk = np.asarray(to_chunk, np.float64)
     if to_chunk.shape != (4, 4) or not np.all(np.isfinite(to_chunk)):
@@ -113,27 +115,30 @@ def measure_evidence(frames: Frames, to_chunk: np.ndarray, cfg: EvidenceConfig |
     t0 = time.perf_counter()
     observations = []
     have = {f.offset - frames.offset for f in frames.instants()}
-    for offset in dict.fromkeys(cfg.references):
-        if offset not in have:  # a log's first or last instants: fewer references
-            continue
+    # a log's first or last instants give fewer references; stereo refuses fisheye images
+    todo = [(offset, k) for offset in dict.fromkeys(cfg.references) if offset in have
+            for k, im in enumerate(frames.around(offset).images) if im.intrinsics.model != "fisheye"]
+    for i, (offset, k) in enumerate(todo, 1):
         at = frames.around(offset)
-        for k, im in enumerate(at.images):
-            if im.intrinsics.model == "fisheye":  # stereo refuses it; the others still measure
-                continue
-            # a moving object's own-frame depth is kept at T only (below: elsewhere it is not where seen)
-            res = stereo_depth(at, k, cfg.stereo, progress=progress, movers=cfg.stereo.movers and offset == 0)
-            conf = res.confidence
-            uncarved = ()
-            if offset != 0 and (at.boxes or frames.boxes):
-                # an object that moved between this instant and T is not where this image saw it
-                conf = np.where(moved_pixels(im, at.boxes, frames.boxes, cfg.stereo), np.float32(0), conf)
-                if cfg.stereo.movers:
-                    # nor is the space where it stands at T free because this image saw through it
-                    uncarved = tuple(box_in_frame(b, to_chunk, cfg.stereo.box_margin_m)
-                                     for b in moved_boxes(at.boxes, frames.boxes, cfg.stereo)[1])
-            moved = dataclasses.replace(im, cam_to_world=to_chunk @ im.cam_to_world)
-            observations.append(DepthObservation(moved, res.depth, conf, uncarved))
+        im = at.images[k]
+        if status:
+            status(f"stereo {i}/{len(todo)}: {im.name} at instant {offset:+d}")
+        # a moving object's own-frame depth is kept at T only (below: elsewhere it is not where seen)
+        res = stereo_depth(at, k, cfg.stereo, movers=cfg.stereo.movers and offset == 0)
+        conf = res.confidence
+        uncarved = ()
+        if offset != 0 and (at.boxes or frames.boxes):
+            # an object that moved between this instant and T is not where this image saw it
+            conf = np.where(moved_pixels(im, at.boxes, frames.boxes, cfg.stereo), np.float32(0), conf)
+            if cfg.stereo.movers:
+                # nor is the space where it stands at T free because this image saw through it
+                uncarved = tuple(box_in_frame(b, to_chunk, cfg.stereo.box_margin_m)
+                                 for b in moved_boxes(at.boxes, frames.boxes, cfg.stereo)[1])
+        moved = dataclasses.replace(im, cam_to_world=to_chunk @ im.cam_to_world)
+        observations.append(DepthObservation(moved, res.depth, conf, uncarved))
     t1 = time.perf_counter()
+    if status:
+        status(f"fusion of {len(observations)} depth maps, the ground and the surfels")
     movers = ()
     if cfg.stereo.movers:  # their surfaces at T, measured: a car's hood is no road
         here = {id(b): b for f in frames.context for b in moved_boxes(frames.boxes, f.boxes, cfg.stereo)[0]}

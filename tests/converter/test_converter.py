@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import re
 import subprocess
 import sys
 
@@ -68,6 +69,31 @@ def test_cli_converts_a_worlds_sample_with_provenance_and_the_same_bytes_twice(t
     r = CliRunner().invoke(app, ["lidar", str(outs[0]), "--sensor", "vlp16", "--pose", "0,0,1.8,0,0,0",
                                  "-o", str(tmp_path / "s.pcd")])
     assert r.exit_code == 0 and "mode soft" in r.output, r.output
+
+
+def test_cli_convert_shows_each_stage_and_takes_threads(tiny_converter, tmp_path, monkeypatch):
+    """Off a terminal (CliRunner's stderr), one line per stage as it starts; --no-progress none;
+    --threads sizes the pools (the same bytes) and a negative count is refused in one line."""
+    import torch
+
+    monkeypatch.setenv("SCUBE_SIM_THREADS", "2")  # the command sets it; keep the test process's own
+    before = torch.get_num_threads()
+    base = ["convert", str(tiny_converter["sample"]), "--profile", str(tiny_converter["profile"])]
+    try:
+        r = CliRunner().invoke(app, [*base, "-o", str(tmp_path / "a.npz"), "--threads", "1"])
+        assert r.exit_code == 0, r.output
+        stages = [m.group(1) for ln in r.stderr.splitlines() if (m := re.match(r"\s*\d+\.\d s  (.*)", ln))]
+        assert stages[0].startswith("loading profile") and stages[1].startswith("opening")
+        assert stages[2].startswith("geometry:") and stages[3].startswith("appearance:")
+        assert stages[-1].startswith("writing") and len(stages) == 5
+        quiet = CliRunner().invoke(app, [*base, "-o", str(tmp_path / "b.npz"), "--no-progress", "--threads", "2"])
+        assert quiet.exit_code == 0 and " s  " not in quiet.stderr, quiet.output
+        assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+        bad = CliRunner().invoke(app, [*base, "-o", str(tmp_path / "c.npz"), "--threads", "-1"])
+        assert bad.exit_code == 2 and "--threads: expected an integer from 0 to 1024, got -1" in bad.output
+        assert not (tmp_path / "c.npz").exists()
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_the_same_file_whatever_torch_s_thread_count(tiny_converter, tmp_path):
