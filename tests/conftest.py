@@ -23,6 +23,21 @@ def shared_data_dir() -> Path:
     return Path(env) if env else REPO.parent / "shared" / "data"
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_cache(tmp_path_factory):
+    """The user cache (estimated poses, `datasets.odometry`) in a folder of the test session, so a
+    test run neither reads nor fills the user's own."""
+    import os
+
+    before = os.environ.get("SCUBE_SIM_CACHE")
+    os.environ["SCUBE_SIM_CACHE"] = str(tmp_path_factory.mktemp("user-cache"))
+    yield
+    if before is None:
+        os.environ.pop("SCUBE_SIM_CACHE", None)
+    else:
+        os.environ["SCUBE_SIM_CACHE"] = before
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """../shared/data, or skip the test with the reason."""

