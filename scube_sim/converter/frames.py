@@ -13,7 +13,7 @@ import torch
 
 from ..camera.frames import Frames, chunk_to_world
 from ..camera.resize import camera_distortion, resize_bilinear, resize_nearest, scale_intrinsics
-from ..datasets import open_dataset
+from ..datasets import adapter_name, open_dataset
 from ..datasets.base import frames_with_context
 from ..datasets.worlds import DATASET_FILE as WORLDS_HEADER
 from ..datasets.worlds import META_FILE as WORLDS_SAMPLE_META
@@ -41,6 +41,7 @@ def open_frames(path: str | Path, dataset: str | None = None, sample: int = 0, c
                              f"worlds with DIR/<split> ...)")
     else:
         options = {}
+        dataset = adapter_name(dataset)
         if dataset == "worlds":  # DIR/<split>
             options = {"split": path.name, "eval_frames": False}
             path = path.parent

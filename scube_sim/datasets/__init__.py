@@ -9,6 +9,7 @@ Modules are imported only when their format is asked for.
 from __future__ import annotations
 
 import importlib
+import re
 from pathlib import Path
 
 from ..boxes import Box, points_in_boxes
@@ -29,15 +30,35 @@ _ADAPTERS = {
 }
 
 
+# other names users type for an adapter (compared as `_plain` spellings)
+_ALIASES = {"av2": "argoverse2", "argoverse": "argoverse2", "dgp": "tri_dgp", "tri": "tri_dgp",
+            "kittiraw": "kitti_raw", "kittiobject": "kitti_object", "waymoopen": "waymo"}
+
+
 def available() -> list[str]:
     return sorted(_ADAPTERS)
 
 
+def _plain(name: str) -> str:
+    """A name as compared: lower case, letters and digits only (`KITTI-360`, `kitti_360` -> `kitti360`)."""
+    return re.sub(r"[^a-z0-9]", "", str(name).lower())
+
+
+def adapter_name(name: str) -> str:
+    """The adapter a user's spelling names (`nuScenes`, `kitti-360`, `KITTI_360`, `av2`, ...);
+    an unknown name is an InputError listing the known ones."""
+    plain = {_plain(k): k for k in _ADAPTERS}
+    key = plain.get(_plain(name)) or _ALIASES.get(_plain(name))
+    if key is None:
+        hint = " (kitti_raw or kitti_object?)" if _plain(name) == "kitti" else ""
+        raise InputError(f"dataset: unknown format {name!r}{hint}; expected one of {', '.join(available())}")
+    return key
+
+
 def open_dataset(name: str, root: str | Path, **options) -> Dataset:
-    """Open the dataset at `root` with the adapter called `name` (see `available()`)."""
-    key = name.lower().replace("-", "_")
-    if key not in _ADAPTERS:
-        raise InputError(f"dataset: unknown format {name!r}; expected one of {', '.join(available())}")
+    """Open the dataset at `root` with the adapter called `name` (see `available()`; the spellings
+    users type are accepted: `adapter_name`)."""
+    key = adapter_name(name)
     root = Path(root)
     if not root.exists():
         raise FileNotFoundError(f"{root}: no such dataset path")
@@ -45,5 +66,5 @@ def open_dataset(name: str, root: str | Path, **options) -> Dataset:
     return getattr(importlib.import_module(f"{__name__}.{module}"), cls)(root, **options)
 
 
-__all__ = ["Box", "Dataset", "DatasetError", "LidarSpec", "LidarSweep", "Sample", "available", "open_dataset",
-           "points_in_boxes"]
+__all__ = ["Box", "Dataset", "DatasetError", "LidarSpec", "LidarSweep", "Sample", "adapter_name", "available",
+           "open_dataset", "points_in_boxes"]
