@@ -110,11 +110,18 @@ def fidelity_cmd(
     from ..realdata.fidelity import FidelityOptions, run_fidelity, write_report
     from ..voxsplat import VoxSplat
 
-    ds = open_dataset(dataset, path)
+    # every argument checked before the dataset is read (a log without poses estimates them first)
+    if mode is not None and mode not in ("entry", "max_response", "soft"):
+        raise CliError(f"--mode: expected entry, max_response or soft, got {mode!r}")
+    static = int_list(static_from, "--static-from")
     vs = VoxSplat.load(scene)
+    ds = open_dataset(dataset, path)
+    for flag, index in [("--sample", sample)] + [("--static-from", i) for i in static]:
+        if index >= len(ds):
+            raise CliError(f"{flag}: {index} is past the dataset's last sample ({len(ds) - 1}): {path}")
     mode = mode or (vs.metadata.get("trace_mode") if isinstance(vs.metadata, dict) else None) or "max_response"
     opts = FidelityOptions(sensor=sensor, mode=mode, baselines=baselines, noise=noise,
-                           static_from=int_list(static_from, "--static-from"), raw=raw,
+                           static_from=static, raw=raw,
                            assume_single_origin=assume_single_origin, ground_plane=ground_plane, regions=regions)
     res = run_fidelity(ds, vs, sample, opts, progress=lambda m: typer.echo(m + " ..."))
     paths = write_report(res, output)

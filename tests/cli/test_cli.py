@@ -131,3 +131,13 @@ def test_progress_off_a_terminal_is_one_line_per_item(capsys):
     assert seen == ["a", "b", "c"]
     err = capsys.readouterr().err.splitlines()
     assert [line.split(",")[0] for line in err] == [f"sensor to sensor: {i}/3 done" for i in (1, 2, 3)]
+
+
+def test_fidelity_checks_its_arguments_before_reading_the_dataset(scene_npz, tmp_path):
+    """A bad --mode or --static-from is refused before the dataset is opened (whose poses may
+    take long to estimate); a sample past the end names the last one."""
+    base = ["fidelity", str(tmp_path / "no-such-dataset"), "--dataset", "folder", "--scene", str(scene_npz)]
+    r = CliRunner().invoke(app, [*base, "--mode", "fuzzy"])
+    assert r.exit_code == 2 and one_line_error(r, "--mode: expected entry, max_response or soft, got 'fuzzy'")
+    r = CliRunner().invoke(app, [*base, "--static-from", "1,x"])
+    assert r.exit_code == 2 and one_line_error(r, "--static-from: expected comma-separated sample indices")
