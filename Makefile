@@ -10,7 +10,7 @@ PIP_FLAGS ?= --disable-pip-version-check -q
 .PHONY: demo test bench check-wheel venv clean completion-data
 
 # The compiled tracer core builds on install: a change to its source reinstalls.
-$(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp
+$(STAMP): pyproject.toml setup.py scube_sim/raytrace/_core.cpp scube_sim/reconstruct/stereo/_sweep.cpp
 	@bash tools/ensure-system-deps.sh
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install $(PIP_FLAGS) --upgrade pip

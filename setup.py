@@ -1,11 +1,12 @@
 """The compiled trace core (scube_sim/raytrace/_core.cpp) against Embree 4 where its headers are
-found (Debian 13's libembree-dev), else Embree 3 (Debian 12's).
+found (Debian 13's libembree-dev), else Embree 3 (Debian 12's); the compiled plane sweep of the
+stereo (scube_sim/reconstruct/stereo/_sweep.cpp), which needs nothing but a C++17 compiler.
 
 EMBREE_INCLUDE_DIR / EMBREE_LIBRARY_DIR point the build at another Embree (searched first; the
 library directory also goes into the extension's run path). Everything else about the package is
 in pyproject.toml. The extension is optional: where it cannot be built (no compiler, no Embree
 headers) the package still installs, and the tracer says once that it runs on the NumPy
-reference walk instead.
+reference walk instead (the stereo, on its torch reference path).
 """
 
 import os
@@ -31,4 +32,13 @@ core = Pybind11Extension(
     optional=True,
 )
 
-setup(ext_modules=[core], cmdclass={"build_ext": build_ext})
+# -fno-trapping-math: lets the compiler vectorise the sweep's branch-free selects (no value changes)
+sweep = Pybind11Extension(
+    "scube_sim.reconstruct.stereo._sweep",
+    ["scube_sim/reconstruct/stereo/_sweep.cpp"],
+    cxx_std=17,
+    extra_compile_args=["-O3", "-ffp-contract=off", "-fno-trapping-math"],
+    optional=True,
+)
+
+setup(ext_modules=[core, sweep], cmdclass={"build_ext": build_ext})

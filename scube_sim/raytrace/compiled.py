@@ -66,26 +66,35 @@ def device() -> None:
         _core.set_device_threads(threads_for(0))
 
 
-_warned = False
+_WARNED: set[str] = set()  # the extensions whose absence was said
 
 
-def default_core_name() -> str:
-    """The core a `Tracer` uses when none is given: `SCUBE_SIM_CORE` if set, else the compiled
-    core where it imports (the reference otherwise, said once)."""
-    global _warned
+def choose_core(what: str, built: bool, load_error: str | None, fallback: str) -> str:
+    """'compiled' or 'reference' for one of our compiled extensions (`what`, e.g. 'tracer core'):
+    `SCUBE_SIM_CORE` if set ('compiled' where the extension is not `built`: CoreUnavailable), else
+    the compiled one where built, else the reference, said once per extension with `fallback`
+    (what then runs instead, and how to build it)."""
     name = os.environ.get(CORE_ENV, "auto").strip().lower() or "auto"
     if name not in CORES:
         raise InputError(f"{CORE_ENV}: expected one of {CORES}, got {name!r}")
+    if name == "compiled" and not built:
+        raise CoreUnavailable(f"{CORE_ENV}=compiled: the compiled {what} is not built ({load_error})")
     if name != "auto":
         return name
-    if available():
+    if built:
         return "compiled"
-    if not _warned:
-        _warned = True
-        warnings.warn(f"scube-sim: the compiled tracer core is not built ({_LOAD_ERROR}); tracing runs on the "
-                      "NumPy reference walk, several times slower. Install libembree-dev and a C++ compiler, "
-                      "then reinstall the package.", CoreUnavailableWarning, stacklevel=3)
+    if what not in _WARNED:
+        _WARNED.add(what)
+        warnings.warn(f"scube-sim: the compiled {what} is not built ({load_error}); {fallback}",
+                      CoreUnavailableWarning, stacklevel=3)
     return "reference"
+
+
+def default_core_name() -> str:
+    """The core a `Tracer` uses when none is given (`choose_core`)."""
+    return choose_core("tracer core", available(), _LOAD_ERROR,
+                       "tracing runs on the NumPy reference walk, several times slower. Install libembree-dev and "
+                       "a C++ compiler, then reinstall the package.")
 
 
 def carve_misses(origin: np.ndarray, direction: np.ndarray, reach: np.ndarray, confidence: np.ndarray,

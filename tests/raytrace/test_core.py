@@ -308,7 +308,7 @@ def test_the_core_is_chosen_by_name_or_environment(monkeypatch, rng):
 def test_a_missing_core_falls_back_once_with_a_warning(monkeypatch, rng):
     monkeypatch.setattr(compiled, "_core", None)
     monkeypatch.setattr(compiled, "_LOAD_ERROR", "ImportError: not built")
-    monkeypatch.setattr(compiled, "_warned", False)
+    monkeypatch.setattr(compiled, "_WARNED", set())
     monkeypatch.delenv(compiled.CORE_ENV, raising=False)
     g, _ = random_scene(rng, n=10)
     with pytest.warns(compiled.CoreUnavailableWarning, match="not built"):

@@ -63,7 +63,10 @@ def box_mask(boxes: list[Box], cam_to_world: np.ndarray, k: np.ndarray, hw: tupl
             t1, t2 = (-half - o) / d, (half - o) / d
         t1 = np.where(np.abs(d) < 1e-12, np.where(np.abs(o) <= half, -np.inf, np.inf), t1)
         t2 = np.where(np.abs(d) < 1e-12, np.where(np.abs(o) <= half, np.inf, -np.inf), t2)
-        tmin, tmax = np.minimum(t1, t2).max(1), np.maximum(t1, t2).min(1)
+        lo, hi = np.minimum(t1, t2), np.maximum(t1, t2)
+        # the three slabs' entry and exit, column by column (the same values as .max(1) / .min(1), faster)
+        tmin = np.maximum(np.maximum(lo[:, 0], lo[:, 1]), lo[:, 2])
+        tmax = np.minimum(np.minimum(hi[:, 0], hi[:, 1]), hi[:, 2])
         mask |= (tmax >= np.maximum(tmin, 0.0)) & (tmax > 0)
     out = torch.from_numpy(mask.reshape(h, w))
     if dilate_px > 0:

@@ -35,8 +35,14 @@ Steps (`stereo_depth`; the knobs are `StereoConfig`'s):
    between two confident pixels whose depths agree (or lie in line with the pixels beyond them,
    `fill_coplanar`) takes the depth interpolated in inverse depth: a textureless patch of a wall.
 
+Steps 3 and 5 (`_volume`), 5b (`sgm.semi_global`) and 6 (`sweep.winner_take_all`) run in the
+compiled sweep (`compiled.py`, `_sweep.cpp`: the reference's operations in its order) where it is
+built; `_volume_reference`, `sgm.semi_global_reference` and `sweep.winner_take_all_reference` are
+their torch references (`SCUBE_SIM_CORE=reference` chooses them).
+
 Depth: metres along the reference camera's optical axis. Deterministic: the bytes do not depend on
-the thread count (`sweep`'s operations, a fixed summation order over sources).
+the thread count (`sweep`'s operations, a fixed summation order over sources; the compiled sweep
+computes each output from a fixed sequence of inputs whatever its thread count).
 """
 
 from __future__ import annotations
@@ -55,10 +61,11 @@ from ...camera.frames import CameraImage, Frames
 from ...errors import InputError
 from ...transforms import invert_pose
 from ..config import StereoConfig
+from . import compiled
 from .gaps import fill_gaps
 from .movers import box_mask, crop, moved_boxes, mover_tracks
 from .sgm import semi_global
-from .sweep import cost_census, inverse_depth_hypotheses, warp_to_reference, winner_take_all
+from .sweep import _winner_take_all, cost_census, inverse_depth_hypotheses, warp_to_reference
 from .views import SourceView, candidates, select_sources
 
 MOVER_TOLERANCE_M = 0.1  # step 4b: how far outside its box a moving object's measured point may lie
@@ -233,7 +240,21 @@ def _prepare(ref: CameraImage, views: list[SourceView], boxes: dict, cfg: Stereo
 
 def _volume(ref_img, k_ref, ref_ok, hw, srcs, views, hyps: torch.Tensor, cfg: StereoConfig, bar: str | None):
     """The aggregated cost volume (D, h, w) over hypotheses `hyps` ((D,) depths), and per source its
-    own curve's minimum, its hypothesis and its maximum."""
+    own curve's minimum, its hypothesis and its maximum: the compiled sweep (`compiled.volume`)
+    where it is built, unless `SCUBE_SIM_CORE=reference` (`compiled.default_core_name`), else
+    `_volume_reference`."""
+    if compiled.default_core_name() == "compiled":
+        return compiled.volume(ref_img, k_ref, ref_ok, hw, srcs, views, hyps, cfg, bar)
+    return _volume_reference(ref_img, k_ref, ref_ok, hw, srcs, views, hyps, cfg, bar)
+
+
+def _volume_reference(ref_img, k_ref, ref_ok, hw, srcs, views, hyps: torch.Tensor, cfg: StereoConfig,
+                      bar: str | None):
+    """`_volume` in torch, the reference the compiled sweep is tested against: ref_img (C, h, w)
+    float32, k_ref (3, 3), ref_ok (h, w) bool, hw (h, w), srcs per source (image, K, reference-side
+    mask (h, w) bool or None, source-side mask (1, Hs, Ws) float32 or None), views (`SourceView`s),
+    hyps (D,) metres. Returns the volume (D, h, w) float32 and per source best (h, w) float32, arg
+    (h, w) int64 and worst (h, w) float32. bar: a bar over the hypothesis chunks."""
     inf = torch.tensor(float("inf"))
     n_src = len(srcs)
     best = [torch.full(hw, float("inf")) for _ in range(n_src)]  # each source's own minimum ...
@@ -330,9 +351,7 @@ def _sweep_image(ref: CameraImage, ref_offset: int, cands: list, boxes: dict, cf
     volume, best, arg, worst = _volume(ref_img, k_ref, ref_ok, hw, srcs, views, depths, cfg, bar)
     if cfg.sgm_paths:
         volume = semi_global(volume, cfg.sgm_p1, cfg.sgm_p2, paths=cfg.sgm_paths, fill=UNSEEN_COST)
-    inf = torch.tensor(float("inf"))
-    depth, _, peak = winner_take_all(volume, depths)
-    winner = torch.where(torch.isnan(volume), inf, volume).argmin(0)
+    depth, _, peak, winner = _winner_take_all(volume, depths)
     agreement, lone, agrees = _agreement(winner, best, arg, worst, cfg.agreement_tolerance, cfg.lone_credit)
     # a lone source needs the sharper peak: nothing can contradict a chance match of it (a source
     # whose view is blocked), and the aggregation makes such matches look peaked

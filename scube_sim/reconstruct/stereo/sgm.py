@@ -20,6 +20,10 @@ winner-take-all still ignores them.
 
 Deterministic: each path is a fixed sequence of elementwise operations (no reductions across
 threads), the same bytes whatever the thread count.
+
+`semi_global` runs in the compiled sweep (`compiled.semi_global`, `_sweep.cpp`: the same
+operations in the same order, the same bytes) where it is built, unless `SCUBE_SIM_CORE=reference`;
+`semi_global_reference` is the torch version it is tested against.
 """
 
 from __future__ import annotations
@@ -27,8 +31,9 @@ from __future__ import annotations
 import torch
 
 from ...errors import InputError
+from . import compiled
 
-__all__ = ["semi_global"]
+__all__ = ["semi_global", "semi_global_reference"]
 
 
 def _scan(cost: torch.Tensor, p1: float, p2: torch.Tensor) -> torch.Tensor:
@@ -80,15 +85,30 @@ def _undiagonal(sheared: torch.Tensor, shift: int, w: int) -> torch.Tensor:
     return torch.stack(rows, 1)
 
 
-def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5) -> torch.Tensor:
-    """cost (D, H, W) float32 (NaN: no candidate) -> (D, H, W) float32, the mean of the path costs
-    L_r over `paths` (4 or 8) directions (module docstring); NaN where the input is NaN."""
+def _check(cost: torch.Tensor, p1: float, p2: float, paths: int) -> None:
     if paths not in (4, 8):
         raise InputError(f"semi_global: paths must be 4 or 8, got {paths}")
     if not 0 <= p1 <= p2:
         raise InputError(f"semi_global: penalties must satisfy 0 <= p1 <= p2, got p1={p1}, p2={p2}")
     if cost.dim() != 3:
         raise InputError(f"semi_global: cost must be (D, H, W), got shape {tuple(cost.shape)}")
+
+
+def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5) -> torch.Tensor:
+    """cost (D, H, W) float32 (NaN: no candidate) -> (D, H, W) float32, the mean of the path costs
+    L_r over `paths` (4 or 8) directions (module docstring); NaN where the input is NaN. The
+    compiled version where it is built and chosen (module docstring), else `semi_global_reference`."""
+    _check(cost, p1, p2, paths)
+    if cost.dtype == torch.float32 and cost.shape[0] >= 2 and compiled.default_core_name() == "compiled":
+        return compiled.semi_global(cost, p1, p2, paths=paths, fill=fill)
+    return semi_global_reference(cost, p1, p2, paths=paths, fill=fill)
+
+
+def semi_global_reference(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fill: float = 0.5
+                          ) -> torch.Tensor:
+    """`semi_global` in torch: cost (D, H, W) (NaN: no candidate) -> (D, H, W), NaN where the input
+    is NaN."""
+    _check(cost, p1, p2, paths)
     nan = torch.isnan(cost)
     c = torch.where(nan, torch.full_like(cost, fill), cost)
     _, h, w = c.shape

@@ -69,8 +69,8 @@ MIN_SOURCE_Z = 1e-6  # metres: plane points at or behind the source camera are i
 LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 grey of RGB
 
 __all__ = ["CONF_EPS", "COSTS", "DEFAULT_CHUNK", "DEFAULT_WINDOW", "NCC_EPS", "census_codes", "combine_costs",
-           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "sweep_cost",
-           "warp_to_reference", "winner_take_all"]
+           "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "plane_terms",
+           "sweep_cost", "warp_to_reference", "winner_take_all", "winner_take_all_reference"]
 
 
 # --- hypotheses and warping -----------------------------------------------------------------------
@@ -107,6 +107,26 @@ def _pixel_rays(k_ref: torch.Tensor, h: int, w: int) -> torch.Tensor:
     return torch.linalg.inv(k_ref) @ pix
 
 
+def _plane_terms(k_src: torch.Tensor, k_ref: torch.Tensor, pose: torch.Tensor, h: int, w: int
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The plane point of reference pixel p at depth d in the source's homogeneous pixels,
+    K_src (R d ray_p + t) = d a[:, p] + b: a (3, H*W) and b (3, 1) float64 (k_src, k_ref (3, 3) and
+    pose (4, 4) reference -> source, float64 tensors). The compiled sweep (`compiled.py`) takes
+    the same terms."""
+    a = k_src @ pose[:3, :3] @ _pixel_rays(k_ref, h, w)  # (3, H*W)
+    b = k_src @ pose[:3, 3:]  # (3, 1)
+    return a, b
+
+
+def plane_terms(k_src, k_ref, ref_to_src, ref_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """`warp_to_reference`'s homography terms of a source: k_src, k_ref (3, 3) pinhole, ref_to_src
+    (4, 4), ref_hw (H, W) -> a (3, H*W), b (3, 1) float64 with the plane point of reference pixel p
+    at depth d (metres) at d a[:, p] + b in the source's homogeneous pixels."""
+    pose = torch.as_tensor(check_pose(ref_to_src, "ref_to_src"))
+    h, w = (int(s) for s in ref_hw)
+    return _plane_terms(_matrix(k_src, "k_src"), _matrix(k_ref, "k_ref"), pose, h, w)
+
+
 def warp_to_reference(src, k_src, k_ref, ref_to_src, depths, ref_hw: tuple[int, int], *, mode: str = "bilinear",
                       chunk: int = DEFAULT_CHUNK) -> tuple[torch.Tensor, torch.Tensor]:
     """The source image seen through each fronto-parallel plane z = depth of the reference camera.
@@ -134,9 +154,7 @@ def warp_to_reference(src, k_src, k_ref, ref_to_src, depths, ref_hw: tuple[int, 
         usable = usable.reshape(-1, h * w)
     else:
         depths = depths.reshape(-1)
-    # plane point of pixel p at depth d, in the source's pixels: K_src (R d ray + t) = d a + b
-    a = k_src @ pose[:3, :3] @ _pixel_rays(_matrix(k_ref, "k_ref"), h, w)  # (3, H*W)
-    b = k_src @ pose[:3, 3:]  # (3, 1)
+    a, b = _plane_terms(k_src, _matrix(k_ref, "k_ref"), pose, h, w)
     warped, valid = [], []
     for c, d in enumerate(depths.split(max(1, int(chunk)))):
         p = (d if per_pixel else d[:, None, None]) * a[None] + b[None]  # (Dc, 3, H*W)
@@ -364,6 +382,30 @@ def combine_costs(costs: list[torch.Tensor]) -> torch.Tensor:
 
 
 def winner_take_all(cost: torch.Tensor, depths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """cost (D, H, W) (lower is better, NaN: no candidate), depths (D,) metres, monotonic ->
+    depth (H, W) float32 metres, best cost (H, W) float32 and confidence (H, W) float32 in [0, 1]
+    (`winner_take_all_reference` says how). The compiled version (`compiled.winner_take_all`: the
+    same operations, the same bytes) where it is built, unless `SCUBE_SIM_CORE=reference`."""
+    return _winner_take_all(cost, depths)[:3]
+
+
+def _winner_take_all(cost: torch.Tensor, depths):
+    """`winner_take_all`'s (depth, best, confidence) and the winning hypothesis (H, W) int64 (the
+    first lowest cost, NaN as +inf; 0 where every hypothesis is NaN)."""
+    from . import compiled  # here: compiled.py imports this module
+
+    d_count = cost.shape[0]
+    depths = torch.as_tensor(depths, dtype=torch.float64).reshape(-1)
+    if depths.shape[0] != d_count or d_count < 2:
+        raise InputError(f"winner_take_all: cost has {d_count} hypotheses, depths {depths.shape[0]}")
+    if cost.dim() == 3 and cost.dtype == torch.float32 and compiled.default_core_name() == "compiled":
+        return compiled.winner_take_all(cost, depths)
+    depth, best, conf = winner_take_all_reference(cost, depths)
+    inf = torch.tensor(float("inf"), dtype=cost.dtype)
+    return depth, best, conf, torch.where(torch.isnan(cost), inf, cost).argmin(0)
+
+
+def winner_take_all_reference(cost: torch.Tensor, depths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """cost (D, H, W) (lower is better, NaN: no candidate), depths (D,) metres, monotonic ->
     depth (H, W) float32 metres, best cost (H, W) float32 and confidence (H, W) float32 in [0, 1].
 
