@@ -68,10 +68,12 @@ def format_bytes(n: float) -> str:
     return f"{int(n)} B"
 
 
-def check_fits(nbytes: float, what: str, error: type[Exception] = ValueError) -> None:
+def check_fits(nbytes: float, what: str, error: type[Exception] = ValueError, hint: str = "") -> None:
     """Raise `error` before allocating when `what` (a sentence naming the key and the size, e.g.
     'sky_size [100000, 200000] = 2e+10 panorama pixels') would need more memory than the machine
-    has available now: 'WHAT needs about 7.5 TB of memory; 12.3 GB is available'."""
+    has available now: 'WHAT needs about 7.5 TB of memory; 12.3 GB is available' (then `hint`,
+    what the user can do, after a semicolon)."""
     avail = available_bytes()
     if avail is not None and nbytes > avail:
-        raise error(f"{what} needs about {format_bytes(nbytes)} of memory; {format_bytes(avail)} is available")
+        raise error(f"{what} needs about {format_bytes(nbytes)} of memory; {format_bytes(avail)} is available"
+                    + (f"; {hint}" if hint else ""))

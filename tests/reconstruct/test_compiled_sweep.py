@@ -3,7 +3,7 @@
 random poses and masks (any channel count, more sources than four, other windows), the same bytes
 for any thread count and for the portable build, the core's choice (`SCUBE_SIM_CORE`), and
 `stereo_depth` end to end. The compiled semi-global aggregation and winner-take-all against theirs
-(`sgm.semi_global_reference`, `sweep.winner_take_all_reference`): the same bytes.
+(`sgm.semi_global_reference`, `winner.winner_take_all_reference`): the same bytes.
 
 Tolerance: the compiled sweep repeats the reference's arithmetic (torch's vectorised CPU kernels,
 fused multiply-adds included), so on a CPU where torch runs those kernels the outputs are the same
@@ -33,7 +33,8 @@ from scube_sim.raytrace.compiled import CoreUnavailable, CoreUnavailableWarning
 from scube_sim.reconstruct.config import StereoConfig
 from scube_sim.reconstruct.stereo import compiled, mvs, stereo_depth
 from scube_sim.reconstruct.stereo.sgm import semi_global_reference
-from scube_sim.reconstruct.stereo.sweep import inverse_depth_hypotheses, winner_take_all, winner_take_all_reference
+from scube_sim.reconstruct.stereo.sweep import inverse_depth_hypotheses
+from scube_sim.reconstruct.stereo.winner import winner_take_all, winner_take_all_reference
 from scube_sim.transforms import invert_pose
 
 ALLOW_NO_CORE = os.environ.get("SCUBE_SIM_ALLOW_NO_CORE", "") == "1"

@@ -1,8 +1,8 @@
 """The compiled plane sweep (`_sweep.cpp`): `mvs._volume`'s census cost volume in C++, threaded
 over hypotheses, the same bytes for any thread count; the semi-global aggregation of that volume
 (`semi_global`, threaded over the paths' lines) and its winner-take-all (`winner_take_all`).
-`mvs._volume`, `sgm.semi_global` and `sweep.winner_take_all` run them wherever the extension was
-built; `mvs._volume_reference`, `sgm.semi_global_reference` and `sweep.winner_take_all_reference`
+`mvs._volume`, `sgm.semi_global` and `winner.winner_take_all` run them wherever the extension was
+built; `mvs._volume_reference`, `sgm.semi_global_reference` and `winner.winner_take_all_reference`
 (torch) are what they are tested against.
 
 It repeats the reference's arithmetic step by step (`_sweep.cpp` lists them): the warp's float64
@@ -122,7 +122,7 @@ def semi_global(cost: torch.Tensor, p1: float, p2: float, *, paths: int = 4, fil
 
 
 def winner_take_all(cost: torch.Tensor, depths, *, threads: int = 0, portable: bool = False):
-    """`sweep.winner_take_all` in the compiled sweep: cost (D, H, W) float32 (NaN: no candidate),
+    """`winner.winner_take_all` in the compiled sweep: cost (D, H, W) float32 (NaN: no candidate),
     depths (D,) metres -> depth (H, W) float32 metres, best cost (H, W) float32, confidence (H, W)
     float32 in [0, 1], and the winning hypothesis (H, W) int64. threads, portable: as `volume`'s."""
     if _sweep is None:

@@ -21,7 +21,7 @@ Steps (`stereo_depth`; the knobs are `StereoConfig`'s):
    must agree where two see it.
 5b. Semi-global aggregation of that volume (`sgm_paths`, `sgm.semi_global`): neighbours on a smooth
    surface support a pixel whose own window is ambiguous.
-6. Winner-take-all with the parabola (`sweep.winner_take_all`): depth and peak ratio.
+6. Winner-take-all with the parabola (`winner.winner_take_all`): depth and peak ratio.
 7. Confidence: the peak ratio over `peak_full` times the agreement, the share of the usable sources
    whose own minimum lies within `agreement_tolerance` hypotheses of the winner (moving objects and
    occlusions disagree across instants); 0 below `min_agreement` (a chance match of two of three),
@@ -35,9 +35,9 @@ Steps (`stereo_depth`; the knobs are `StereoConfig`'s):
    between two confident pixels whose depths agree (or lie in line with the pixels beyond them,
    `fill_coplanar`) takes the depth interpolated in inverse depth: a textureless patch of a wall.
 
-Steps 3 and 5 (`_volume`), 5b (`sgm.semi_global`) and 6 (`sweep.winner_take_all`) run in the
+Steps 3 and 5 (`_volume`), 5b (`sgm.semi_global`) and 6 (`winner.winner_take_all`) run in the
 compiled sweep (`compiled.py`, `_sweep.cpp`: the reference's operations in its order) where it is
-built; `_volume_reference`, `sgm.semi_global_reference` and `sweep.winner_take_all_reference` are
+built; `_volume_reference`, `sgm.semi_global_reference` and `winner.winner_take_all_reference` are
 their torch references (`SCUBE_SIM_CORE=reference` chooses them).
 
 Depth: metres along the reference camera's optical axis. Deterministic: the bytes do not depend on
@@ -59,17 +59,24 @@ from rich.progress import track
 from ...boxes import Box, points_in_boxes
 from ...camera.frames import CameraImage, Frames
 from ...errors import InputError
+from ...memory import check_fits
 from ...transforms import invert_pose
 from ..config import StereoConfig
 from . import compiled
 from .gaps import fill_gaps
 from .movers import box_mask, crop, moved_boxes, mover_tracks
 from .sgm import semi_global
-from .sweep import _winner_take_all, cost_census, inverse_depth_hypotheses, warp_to_reference
+from .sweep import cost_census, inverse_depth_hypotheses, warp_to_reference
 from .views import SourceView, candidates, select_sources
+from .winner import _winner_take_all
 
 MOVER_TOLERANCE_M = 0.1  # step 4b: how far outside its box a moving object's measured point may lie
 FLAT_COST = 0.02  # a source whose own cost curve varies less than this (census: share of bits) has no say
+# memory per pixel of the stereo grid: per hypothesis, the float32 volume, its semi-global
+# aggregation and the masks read from them; per source, its float32 minimum and maximum, int64
+# argmin, and its warped image and grids
+VOLUME_BYTES = 16
+SOURCE_BYTES = 48
 UNSEEN_COST = 0.5  # the census cost of an uncorrelated match (half the bits differ): semi-global's fill
 
 __all__ = ["FLAT_COST", "StereoResult", "stereo_depth"]
@@ -347,6 +354,13 @@ def _sweep_image(ref: CameraImage, ref_offset: int, cands: list, boxes: dict, cf
     if not views:
         return None
     ref_img, k_ref, ref_ok, hw, srcs = _prepare(ref, views, boxes, cfg, cfg.scale, ref_offset, keep)
+    # the cost volume, its aggregation and their masks, and each source's extremes: refused from
+    # the image's size before any of it is made
+    h, w = hw
+    check_fits(h * w * (len(depths) * VOLUME_BYTES + len(srcs) * SOURCE_BYTES),
+               f"stereo of camera {ref.name!r} ({w}x{h} pixels at scale {cfg.scale:g}, {len(depths)} hypotheses, "
+               f"{len(srcs)} sources)", InputError,
+               hint="convert with fewer cameras or a profile with a smaller stereo scale or fewer hypotheses")
     bar = f"stereo {ref.name}" if progress else None
     volume, best, arg, worst = _volume(ref_img, k_ref, ref_ok, hw, srcs, views, depths, cfg, bar)
     if cfg.sgm_paths:

@@ -5,10 +5,10 @@ for each depth hypothesis d (fronto-parallel planes z = d in the reference camer
 1/d: `inverse_depth_hypotheses`) the source is warped into the reference view through the
 plane's homography (`warp_to_reference`), a matching cost compares it with the reference per
 pixel (`cost_ad`, `cost_ncc`, `cost_census`; lower is better) and the winner takes all
-(`winner_take_all`: the best hypothesis, refined by a parabola in inverse depth, and a peak-ratio
-confidence). `sweep_cost` runs the warp and one cost over the hypotheses in chunks (memory stays
-bounded by the chunk, not by the number of hypotheses); `combine_costs` averages the costs of
-several sources where they see the pixel.
+(`winner.py`: the best hypothesis, refined by a parabola in inverse depth, and a peak-ratio
+confidence, whose floor CONF_EPS is here). `sweep_cost` runs the warp and one cost over the
+hypotheses in chunks (memory stays bounded by the chunk, not by the number of hypotheses);
+`combine_costs` averages the costs of several sources where they see the pixel.
 
 Frames and units: OpenCV cameras (x right, y down, z forward). K: (3, 3) pinhole intrinsics in
 the project's pixel convention (`camera.Intrinsics.K`): pixel (u, v) spans [u, u + 1), its centre
@@ -70,7 +70,7 @@ LUMA = (0.299, 0.587, 0.114)  # ITU-R BT.601 grey of RGB
 
 __all__ = ["CONF_EPS", "COSTS", "DEFAULT_CHUNK", "DEFAULT_WINDOW", "NCC_EPS", "census_codes", "combine_costs",
            "cost_ad", "cost_census", "cost_hamming", "cost_ncc", "grey", "inverse_depth_hypotheses", "plane_terms",
-           "sweep_cost", "warp_to_reference", "winner_take_all", "winner_take_all_reference"]
+           "sweep_cost", "warp_to_reference"]
 
 
 # --- hypotheses and warping -----------------------------------------------------------------------
@@ -376,79 +376,3 @@ def combine_costs(costs: list[torch.Tensor]) -> torch.Tensor:
         total += torch.where(ok, c, torch.zeros_like(c))
         count += ok.to(c.dtype)
     return torch.where(count > 0, total / count.clamp_min(1.0), torch.full_like(total, float("nan")))
-
-
-# --- winner takes all -----------------------------------------------------------------------------
-
-
-def winner_take_all(cost: torch.Tensor, depths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """cost (D, H, W) (lower is better, NaN: no candidate), depths (D,) metres, monotonic ->
-    depth (H, W) float32 metres, best cost (H, W) float32 and confidence (H, W) float32 in [0, 1]
-    (`winner_take_all_reference` says how). The compiled version (`compiled.winner_take_all`: the
-    same operations, the same bytes) where it is built, unless `SCUBE_SIM_CORE=reference`."""
-    return _winner_take_all(cost, depths)[:3]
-
-
-def _winner_take_all(cost: torch.Tensor, depths):
-    """`winner_take_all`'s (depth, best, confidence) and the winning hypothesis (H, W) int64 (the
-    first lowest cost, NaN as +inf; 0 where every hypothesis is NaN)."""
-    from . import compiled  # here: compiled.py imports this module
-
-    d_count = cost.shape[0]
-    depths = torch.as_tensor(depths, dtype=torch.float64).reshape(-1)
-    if depths.shape[0] != d_count or d_count < 2:
-        raise InputError(f"winner_take_all: cost has {d_count} hypotheses, depths {depths.shape[0]}")
-    if cost.dim() == 3 and cost.dtype == torch.float32 and compiled.default_core_name() == "compiled":
-        return compiled.winner_take_all(cost, depths)
-    depth, best, conf = winner_take_all_reference(cost, depths)
-    inf = torch.tensor(float("inf"), dtype=cost.dtype)
-    return depth, best, conf, torch.where(torch.isnan(cost), inf, cost).argmin(0)
-
-
-def winner_take_all_reference(cost: torch.Tensor, depths) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """cost (D, H, W) (lower is better, NaN: no candidate), depths (D,) metres, monotonic ->
-    depth (H, W) float32 metres, best cost (H, W) float32 and confidence (H, W) float32 in [0, 1].
-
-    Depth: the lowest-cost hypothesis (the first of equal ones), refined by the parabola through it
-    and its two neighbours, in hypothesis index, mapped linearly to inverse depth between the
-    neighbours (uniform in 1/depth: the parabola's vertex in 1/depth); the offset is clamped to half
-    a step and skipped at the ends, next to a NaN or where the parabola does not open upwards.
-
-    Confidence (peak ratio, Hu and Mordohai 2012's PKRN on local minima): with c1 the best cost and
-    c2 the lowest other local minimum (the first of a run of equal costs) more than one hypothesis
-    away (where there is none, the curve's highest cost: it rises all the way),
-    1 - (c1 + CONF_EPS) / (c2 + CONF_EPS): 0 for a flat curve or a second minimum as good, towards 1
-    for one sharp unique minimum. NaN depth and cost, 0 confidence, where every hypothesis is NaN."""
-    d_count = cost.shape[0]
-    depths = torch.as_tensor(depths, dtype=torch.float64).reshape(-1)
-    if depths.shape[0] != d_count or d_count < 2:
-        raise InputError(f"winner_take_all: cost has {d_count} hypotheses, depths {depths.shape[0]}")
-    inf = torch.tensor(float("inf"), dtype=cost.dtype)
-    c = torch.where(torch.isnan(cost), inf, cost)
-    k = c.argmin(0)  # (H, W): the first minimum
-    best = c.gather(0, k[None])[0]
-    found = torch.isfinite(best)
-    # parabola through (k - 1, k, k + 1)
-    km, kp = (k - 1).clamp(min=0), (k + 1).clamp(max=d_count - 1)
-    c_m, c_p = c.gather(0, km[None])[0], c.gather(0, kp[None])[0]
-    curv = c_m - 2.0 * best + c_p
-    fit = found & (k > 0) & (k < d_count - 1) & torch.isfinite(c_m) & torch.isfinite(c_p) & (curv > 0)
-    off = torch.where(fit, 0.5 * (c_m - c_p) / torch.where(fit, curv, torch.ones_like(curv)), torch.zeros_like(curv))
-    off = off.clamp(-0.5, 0.5).to(torch.float64)
-    inv = 1.0 / depths
-    step = torch.where(off >= 0, inv[kp] - inv[k], inv[k] - inv[km])
-    depth = 1.0 / (inv[k] + off * step)
-    # confidence: the lowest local minimum away from the winner
-    left = torch.cat([inf.expand(1, *c.shape[1:]), c[:-1]])
-    right = torch.cat([c[1:], inf.expand(1, *c.shape[1:])])
-    index = torch.arange(d_count)[:, None, None]
-    # a local minimum is the first hypothesis of a run of equal costs (a plateau counts once, so
-    # the winner's own flat bottom is not a second minimum)
-    other = (c < left) & (c <= right) & torch.isfinite(c) & ((index - k[None]).abs() > 1)
-    second = torch.where(other, c, inf).min(0).values
-    highest = torch.where(torch.isfinite(c), c, -inf).max(0).values
-    second = torch.where(torch.isfinite(second), second, highest)
-    conf = 1.0 - (best + CONF_EPS) / (second + CONF_EPS)
-    nan = torch.full_like(best, float("nan"))
-    return (torch.where(found, depth.to(torch.float32), nan), torch.where(found, best, nan),
-            torch.where(found, conf.clamp(0.0, 1.0), torch.zeros_like(conf)))

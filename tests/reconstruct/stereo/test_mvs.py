@@ -372,3 +372,19 @@ def test_moved_pixels_cover_the_box_of_an_object_that_moved_and_nothing_for_one_
     # an object with no identity counts as moved (nothing says it stood still)
     anon = Box(np.asarray(centre, float), BOX_SIZE, np.eye(3))
     assert moved_pixels(ref, [anon], [anon])[on_box].all()
+
+
+def test_a_camera_too_large_for_the_memory_is_refused_from_its_size(monkeypatch):
+    """Before any cost volume is made, its size (pixels x hypotheses, and per source) is weighed
+    against the memory the process may use: one line naming the camera, the size and what to do."""
+    from scube_sim import memory
+
+    ref, _ = _shot("ref", _pose(), 0.0)
+    src, _ = _shot("cam", _pose((1.0, 0.2, 0.0)), 0.1)
+    monkeypatch.setattr(memory, "available_bytes", lambda: 20 * 2**20)  # 20 MB free
+    with pytest.raises(InputError) as err:
+        stereo_depth(_frames(ref, {1: [src]}), 0, CFG.model_copy(update={"hypotheses": 4096}))
+    msg = str(err.value)
+    assert msg.startswith(f"stereo of camera 'ref' ({W}x{H} pixels at scale 1, 4096 hypotheses, 1 sources) needs about")
+    assert "20.0 MB is available; convert with fewer cameras" in msg and "\n" not in msg
+    assert stereo_depth(_frames(ref, {1: [src]}), 0, CFG).sources  # the same camera fits at 64 hypotheses
