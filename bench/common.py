@@ -70,8 +70,10 @@ def best_per_core(fn, repeats: int, cores=("reference", "compiled")) -> tuple[di
 
 
 def machine() -> dict:
-    return {"cpus": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform(),
-            "date": time.strftime("%Y-%m-%d %H:%M")}
+    from scube_sim.cpus import usable_cpus
+
+    return {"cpus": os.cpu_count(), "usable_cpus": usable_cpus(), "python": platform.python_version(),
+            "platform": platform.platform(), "date": time.strftime("%Y-%m-%d %H:%M")}
 
 
 def write_results(name: str, rows: list[dict], header: list[str], notes: str = "", results: Path = RESULTS) -> Path:

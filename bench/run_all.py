@@ -6,12 +6,14 @@ import sys
 
 from . import (
     bench_batch,
+    bench_conversion,
     bench_fidelity,
     bench_fusion,
     bench_render,
     bench_representation,
     bench_sim,
     bench_sparse,
+    bench_stereo,
     bench_tracer,
     bench_voxel_cast,
 )
@@ -24,6 +26,8 @@ def main() -> None:
         module.main()
     bench_voxel_cast.main(["--repeats", "1" if quick else "2"])
     bench_fusion.main(["--repeats", "1" if quick else "2"])
+    bench_stereo.main(["--quick"] if quick else [])
+    bench_conversion.main(["--quick"] if quick else [])
 
 
 if __name__ == "__main__":
