@@ -47,18 +47,33 @@ def _moved(ref_boxes: list[Box], src_boxes: list[Box], moved_m: float) -> tuple[
 def box_mask(boxes: list[Box], cam_to_world: np.ndarray, k: np.ndarray, hw: tuple[int, int], margin_m: float,
               dilate_px: int) -> torch.Tensor | None:
     """(h, w) bool: the pixels of a pinhole camera (K, pose) whose ray meets one of `boxes` (each
-    grown by `margin_m`) in front of the camera (a slab test), dilated by `dilate_px`; None if none."""
+    grown by `margin_m`) in front of the camera (a slab test), dilated by `dilate_px`; None if none.
+    A box wholly in front of the camera is tested only on the pixels around its corners'
+    projection (a convex box's image lies within it); others on every pixel."""
     if not boxes:
         return None
     h, w = hw
-    v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    rays = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
-    dirs = rays @ cam_to_world[:3, :3].T
-    mask = np.zeros(h * w, bool)
+    r_cam, c_cam = cam_to_world[:3, :3], cam_to_world[:3, 3]
+    mask = np.zeros((h, w), bool)
+    signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
     for b in boxes:
-        o = b.rotation.T @ (cam_to_world[:3, 3] - b.center)  # camera centre in the box frame
-        d = dirs @ b.rotation  # ray directions in the box frame
         half = b.size / 2 + margin_m
+        rows, cols = slice(0, h), slice(0, w)
+        corners = ((b.center + (signs * half) @ b.rotation.T) - c_cam) @ r_cam  # camera frame
+        if np.all(corners[:, 2] > 1e-6):
+            u = k[0, 0] * corners[:, 0] / corners[:, 2] + k[0, 2] - 0.5  # continuous pixel index
+            v = k[1, 1] * corners[:, 1] / corners[:, 2] + k[1, 2] - 0.5
+            # two pixels of slack: the slab test's rounding at the silhouette stays inside
+            c0, c1 = max(int(np.floor(u.min())) - 2, 0), min(int(np.ceil(u.max())) + 3, w)
+            r0, r1 = max(int(np.floor(v.min())) - 2, 0), min(int(np.ceil(v.max())) + 3, h)
+            if c0 >= c1 or r0 >= r1:
+                continue  # in front of the camera but outside its image
+            rows, cols = slice(r0, r1), slice(c0, c1)
+        vv, uu = np.meshgrid(np.arange(rows.start, rows.stop) + 0.5, np.arange(cols.start, cols.stop) + 0.5,
+                             indexing="ij")
+        rays = np.stack([(uu - k[0, 2]) / k[0, 0], (vv - k[1, 2]) / k[1, 1], np.ones_like(uu)], -1).reshape(-1, 3)
+        o = b.rotation.T @ (c_cam - b.center)  # camera centre in the box frame
+        d = (rays @ r_cam.T) @ b.rotation  # ray directions in the box frame
         with np.errstate(divide="ignore", invalid="ignore"):
             t1, t2 = (-half - o) / d, (half - o) / d
         t1 = np.where(np.abs(d) < 1e-12, np.where(np.abs(o) <= half, -np.inf, np.inf), t1)
@@ -67,8 +82,9 @@ def box_mask(boxes: list[Box], cam_to_world: np.ndarray, k: np.ndarray, hw: tupl
         # the three slabs' entry and exit, column by column (the same values as .max(1) / .min(1), faster)
         tmin = np.maximum(np.maximum(lo[:, 0], lo[:, 1]), lo[:, 2])
         tmax = np.minimum(np.minimum(hi[:, 0], hi[:, 1]), hi[:, 2])
-        mask |= (tmax >= np.maximum(tmin, 0.0)) & (tmax > 0)
-    out = torch.from_numpy(mask.reshape(h, w))
+        hit = (tmax >= np.maximum(tmin, 0.0)) & (tmax > 0)
+        mask[rows, cols] |= hit.reshape(rows.stop - rows.start, cols.stop - cols.start)
+    out = torch.from_numpy(mask)
     if dilate_px > 0:
         out = F.max_pool2d(out[None, None].to(torch.float32), 2 * dilate_px + 1, stride=1, padding=dilate_px)[0, 0] > 0
     return out if bool(out.any()) else None

@@ -388,3 +388,33 @@ def test_a_camera_too_large_for_the_memory_is_refused_from_its_size(monkeypatch)
     assert msg.startswith(f"stereo of camera 'ref' ({W}x{H} pixels at scale 1, 4096 hypotheses, 1 sources) needs about")
     assert "20.0 MB is available; convert with fewer cameras" in msg and "\n" not in msg
     assert stereo_depth(_frames(ref, {1: [src]}), 0, CFG).sources  # the same camera fits at 64 hypotheses
+
+
+def test_box_mask_equals_a_slab_test_on_every_pixel():
+    """The box mask tests only the pixels around a box's projected corners where the box lies in
+    front of the camera: the same pixels as an independent ray-box test on every pixel, for boxes
+    in front, straddling the camera, behind it and outside the image."""
+    from scube_sim.reconstruct.stereo.movers import box_mask
+    from scube_sim.transforms import pose_from_xyz_rpy
+
+    rng = np.random.default_rng(7)
+    h, w = 48, 64
+    for _ in range(60):
+        cam = pose_from_xyz_rpy(rng.uniform(-3, 3, 3), np.radians(rng.uniform(-180, 180, 3)))
+        k = np.array([[rng.uniform(40, 120), 0, w / 2], [0, rng.uniform(40, 120), h / 2], [0, 0, 1.0]])
+        boxes = [Box(center=cam[:3, 3] + rng.uniform(-8, 8, 3), size=rng.uniform(0.5, 4, 3),
+                     rotation=pose_from_xyz_rpy([0, 0, 0], [0, 0, rng.uniform(-3, 3)])[:3, :3], label=1)
+                 for _ in range(3)]
+        got = box_mask(boxes, cam, k, (h, w), 0.1, 0)
+        v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
+        d = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones_like(u)], -1) @ cam[:3, :3].T
+        want = np.zeros((h, w), bool)
+        for b in boxes:  # the slab test in the box frame, every pixel, t > 0
+            o = b.rotation.T @ (cam[:3, 3] - b.center)
+            db = d @ b.rotation
+            half = b.size / 2 + 0.1
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ta, tb = (-half - o) / db, (half - o) / db
+            near, far = np.nanmax(np.minimum(ta, tb), -1), np.nanmin(np.maximum(ta, tb), -1)
+            want |= (far >= np.maximum(near, 0.0)) & (far > 0)
+        assert np.array_equal(np.zeros((h, w), bool) if got is None else got.numpy(), want)
