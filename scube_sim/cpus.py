@@ -94,11 +94,22 @@ def cgroup_cpus(root: Path | None = None, proc_cgroup: Path | None = None) -> fl
     return min(quotas) if quotas else None
 
 
+_QUOTAS: dict[tuple[Path, Path], float | None] = {}  # the process's own cgroup quota, read once
+
+
 def usable_cpus(root: Path | None = None, proc_cgroup: Path | None = None) -> int:
     """CPUs this process may run on at once: its affinity mask capped by its cgroup quota
-    (rounded up: a quota of 1.5 CPUs keeps two threads busy part of the time), at least 1."""
+    (rounded up: a quota of 1.5 CPUs keeps two threads busy part of the time), at least 1.
+    The quota of the default cgroup files is read once per process (every trace call asks, and a
+    container's quota is set when it starts); the affinity mask, a system call, at each call."""
     n = affinity_cpus()
-    quota = cgroup_cpus(root, proc_cgroup)
+    if root is None and proc_cgroup is None:
+        key = (CGROUP_ROOT, PROC_CGROUP)
+        if key not in _QUOTAS:
+            _QUOTAS[key] = cgroup_cpus(*key)
+        quota = _QUOTAS[key]
+    else:
+        quota = cgroup_cpus(root, proc_cgroup)
     if quota is not None:
         n = min(n, max(1, math.ceil(quota - 1e-9)))
     return max(1, n)
